@@ -1,0 +1,212 @@
+"""Impact maps: table (paper eqs (2)-(6)), racket (eqs (7)-(8)), net and floor; contact geometry.
+
+Each map takes pre-contact velocity and spin (..., 3) in the world frame and returns the
+post-contact pair; contacts are instantaneous, position does not change. Batched throughout.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from ace_drake.config import FloorParams, NetParams, RacketParams, TableParams
+
+# (features (N, 8), -> corrections (N, 6)) in the contact frame; see racket_residual.py.
+ResidualModel = Callable[[np.ndarray], np.ndarray]
+
+
+def table_restitution(v_z: np.ndarray, table: TableParams) -> np.ndarray:
+    """eps_table = 0.98 - 0.02 |v_z^-| (paper, below eq. (6); v_z^- < 0 at impact)."""
+    return table.restitution_base - table.restitution_slope * np.abs(v_z)
+
+
+def table_alpha(v_W: np.ndarray, w_W: np.ndarray, table: TableParams, radius: float):
+    """The friction coefficient alpha of eq. (4) and the sliding flag v_s > 0 of eq. (5).
+
+    v_T = [v_x - r w_y, v_y + r w_x] is the contact point's slip velocity (eq. (6)). The contact
+    slides while mu (1 + eps) |v_z| / |v_T| < 2/5; eq. (5) writes this v_s = 1 - 5/2 mu (1 + eps)
+    |v_z| / |v_T| > 0, and 5/2 is 1 / rolling_alpha so that the switch stays continuous if the
+    rolling value is changed. A ball with no slip (|v_T| = 0) rolls. Returns (alpha, sliding).
+    """
+    eps = table_restitution(v_W[..., 2], table)
+    slip = np.hypot(v_W[..., 0] - radius * w_W[..., 1], v_W[..., 1] + radius * w_W[..., 0])
+    normal_impulse = table.friction * (1.0 + eps) * np.abs(v_W[..., 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha_sliding = np.where(slip > 0.0, normal_impulse / np.where(slip > 0, slip, 1.0), np.inf)
+    v_s = 1.0 - alpha_sliding / table.rolling_alpha  # paper eq. (5)
+    sliding = v_s > 0.0
+    alpha = np.where(sliding, alpha_sliding, table.rolling_alpha)  # paper eq. (4)
+    return alpha, sliding
+
+
+def table_impact(v_W: np.ndarray, w_W: np.ndarray, table: TableParams, radius: float):
+    """Post-bounce velocity and spin off the table, paper eqs (2)-(3) with the printed matrices.
+
+    Args: v_W, w_W (..., 3) just before contact (v_z < 0); radius r (m). Returns (v+, w+).
+    """
+    v_W = np.asarray(v_W, dtype=float)
+    w_W = np.asarray(w_W, dtype=float)
+    alpha, _ = table_alpha(v_W, w_W, table, radius)
+    eps = table_restitution(v_W[..., 2], table)
+    vx, vy, vz = v_W[..., 0], v_W[..., 1], v_W[..., 2]
+    wx, wy, wz = w_W[..., 0], w_W[..., 1], w_W[..., 2]
+    # paper eq. (2): v+ = C_vv v- + C_vw w-
+    v_post = np.stack(
+        [(1.0 - alpha) * vx + alpha * radius * wy, (1.0 - alpha) * vy - alpha * radius * wx, -eps * vz],
+        axis=-1,
+    )
+    # paper eq. (3): w+ = C_wv v- + C_ww w-
+    spin_gain = 1.5 * alpha / radius
+    w_post = np.stack(
+        [-spin_gain * vy + (1.0 - 1.5 * alpha) * wx, spin_gain * vx + (1.0 - 1.5 * alpha) * wy, wz],
+        axis=-1,
+    )
+    return v_post, w_post
+
+
+def racket_restitution(v_normal: np.ndarray, racket: RacketParams) -> np.ndarray:
+    """eps_racket = gamma1 exp(gamma2 |v_z^-|) (paper, below eq. (8)); v_normal in m/s."""
+    return racket.restitution_gamma1 * np.exp(racket.restitution_gamma2 * np.abs(v_normal))
+
+
+def _racket_contact_frame(v_W, w_W, v_WRc, R_WC):
+    """(v_rel_C, w_C): ball velocity relative to the racket (m/s) and spin (rad/s), both in C."""
+    R_CW = np.swapaxes(R_WC, -1, -2)
+    v_rel_C = np.einsum("...ij,...j->...i", R_CW, np.asarray(v_W, dtype=float) - v_WRc)
+    w_C = np.einsum("...ij,...j->...i", R_CW, np.asarray(w_W, dtype=float))
+    return v_rel_C, w_C
+
+
+def _stack_racket_features(v_rel_C, w_C, contact_offset):
+    """[v_rel_C, w_C, offset] (..., 8); a missing contact offset is the blade's centre (0, 0)."""
+    batch = v_rel_C.shape[:-1]
+    offset = np.zeros(batch + (2,)) if contact_offset is None else contact_offset
+    return np.concatenate([v_rel_C, w_C, np.broadcast_to(offset, batch + (2,))], -1)
+
+
+def racket_contact_features(v_W, w_W, v_WRc, R_WC, contact_offset=None) -> np.ndarray:
+    """The racket residual's input (..., 8), exactly as ``racket_impact`` builds it.
+
+    [v_rel_C (3, m/s), w_C (3, rad/s), contact offset in C's x-y (2, m)], where v_rel_C =
+    R_WC^T (v_W - v_WRc) and w_C = R_WC^T w_W; shapes and frames as in ``racket_impact``.
+    """
+    return _stack_racket_features(*_racket_contact_frame(v_W, w_W, v_WRc, R_WC), contact_offset)
+
+
+def racket_impact(
+    v_W: np.ndarray,
+    w_W: np.ndarray,
+    v_WRc: np.ndarray,
+    R_WC: np.ndarray,
+    racket: RacketParams,
+    radius: float,
+    contact_offset: np.ndarray | None = None,
+    residual: ResidualModel | None = None,
+):
+    """Post-contact velocity and spin off the racket, paper eqs (7)-(8).
+
+    The linear model acts on the velocity relative to the racket, expressed in the contact frame C
+    (z along the blade normal, pointing from the blade towards the ball). Note on notation: the
+    paper's R maps world to racket (it writes R^T C R); here R_WC maps C to world, so
+    v_C = R_WC^T v_W. Eq. (8) as printed multiplies the absolute v^-; the spin change is driven by
+    the contact's slip, so like eq. (7) it uses the relative velocity here (identical for a racket
+    at rest, as the table of eq. (3) is).
+
+    Args:
+        v_W, w_W: (..., 3) ball velocity (m/s) and spin (rad/s) before contact.
+        v_WRc: (..., 3) velocity of the racket's material point at the contact, m/s.
+        R_WC: (..., 3, 3) orientation of the contact frame in world.
+        contact_offset: (..., 2) contact point on the blade in C's x-y, m (residual input only).
+        residual: optional correction model; its output (..., 6) is added to [v+, w+] in C.
+    Returns (v+, w+) in world, (..., 3) each.
+    """
+    v_rel_C, w_C = _racket_contact_frame(v_W, w_W, v_WRc, R_WC)
+    k = racket.tangential_k
+    eps = racket_restitution(v_rel_C[..., 2], racket)
+    vx, vy, vz = v_rel_C[..., 0], v_rel_C[..., 1], v_rel_C[..., 2]
+    wx, wy, wz = w_C[..., 0], w_C[..., 1], w_C[..., 2]
+    # paper eq. (7), in C: C_vv (v- - v_racket) + C_vw w-
+    v_post_C = np.stack(
+        [(1.0 - k) * vx + k * radius * wy, (1.0 - k) * vy - k * radius * wx, -eps * vz], axis=-1
+    )
+    # paper eq. (8), in C: C_wv v_rel + C_ww w-
+    spin_gain = 1.5 * k / radius
+    w_post_C = np.stack(
+        [-spin_gain * vy + (1.0 - 1.5 * k) * wx, spin_gain * vx + (1.0 - 1.5 * k) * wy, wz], axis=-1
+    )
+    if residual is not None:
+        flat = _stack_racket_features(v_rel_C, w_C, contact_offset).reshape(-1, 8)
+        correction = np.asarray(residual(flat), dtype=float).reshape(v_rel_C.shape[:-1] + (6,))
+        v_post_C = v_post_C + correction[..., :3]
+        w_post_C = w_post_C + correction[..., 3:]
+    v_post = np.einsum("...ij,...j->...i", R_WC, v_post_C) + v_WRc
+    w_post = np.einsum("...ij,...j->...i", R_WC, w_post_C)
+    return v_post, w_post
+
+
+def table_gap(p_W: np.ndarray, table: TableParams, radius: float) -> np.ndarray:
+    """Continuous guard for the playing surface, m: <= 0 exactly when the ball touches it.
+
+    max(z - r, d), with d the signed horizontal distance of the ball centre to the table's
+    rectangle (negative over the table), so a ball passing beside the table never triggers it.
+    """
+    dx = np.abs(p_W[..., 0]) - 0.5 * table.length
+    dy = np.abs(p_W[..., 1]) - 0.5 * table.width
+    signed_distance = np.hypot(np.maximum(dx, 0.0), np.maximum(dy, 0.0)) + np.minimum(np.maximum(dx, dy), 0.0)
+    return np.maximum(p_W[..., 2] - radius, signed_distance)
+
+
+def net_closest_point(p_W: np.ndarray, table: TableParams, net: NetParams) -> np.ndarray:
+    """Closest point to p_W on the net, a thin rectangle x = 0, |y| <= W/2 + overhang, 0 <= z <= h."""
+    half_span = 0.5 * table.width + net.overhang
+    closest = np.zeros_like(p_W, dtype=float)
+    closest[..., 1] = np.clip(p_W[..., 1], -half_span, half_span)
+    closest[..., 2] = np.clip(p_W[..., 2], 0.0, net.height)
+    return closest
+
+
+def net_gap(p_W: np.ndarray, table: TableParams, net: NetParams, radius: float) -> np.ndarray:
+    """Distance from the ball's surface to the net (face, top cord or side edge), m."""
+    return np.linalg.norm(p_W - net_closest_point(p_W, table, net), axis=-1) - radius
+
+
+def net_impact(p_W, v_W, w_W, table: TableParams, net: NetParams):
+    """Post-contact velocity and spin against the net.
+
+    The contact normal runs from the closest net point to the ball centre: along x on the face,
+    tilted over the top cord, so a ball clipping the cord high keeps its forward speed and goes over
+    (a net-cord ball, paper Fig. 4). Normal velocity is reversed with ``net.restitution``, tangential
+    velocity scaled by ``net.tangential_retention``; spin is unchanged. Returns (v+, w+).
+    """
+    p_W, v_W, w_W = (np.asarray(a, dtype=float) for a in (p_W, v_W, w_W))
+    offset = p_W - net_closest_point(p_W, table, net)
+    normal = offset / np.maximum(np.linalg.norm(offset, axis=-1, keepdims=True), 1e-12)
+    v_normal = np.sum(v_W * normal, axis=-1, keepdims=True)
+    approaching = v_normal < 0.0
+    v_tangent = v_W - v_normal * normal
+    v_post = net.tangential_retention * v_tangent - net.restitution * v_normal * normal
+    return np.where(approaching, v_post, v_W), w_W.copy()
+
+
+def floor_gap(p_W: np.ndarray, table: TableParams, radius: float) -> np.ndarray:
+    """Height of the ball's bottom above the floor (z = -surface_height), m."""
+    return p_W[..., 2] + table.surface_height - radius
+
+
+def floor_impact(v_W, w_W, floor: FloorParams):
+    """Post-bounce velocity and spin off the floor: v_z reversed with restitution, tangential scaled."""
+    v_W = np.asarray(v_W, dtype=float)
+    v_post = v_W * floor.tangential_retention
+    v_post[..., 2] = -floor.restitution * v_W[..., 2]
+    return v_post, np.asarray(w_W, dtype=float) * floor.tangential_retention
+
+
+def perturb_velocity_and_spin(v_W, w_W, velocity_std: float, spin_std: float, rng: np.random.Generator):
+    """Adds independent zero-mean Gaussian noise to each component (paper, *Physics perturbations*)."""
+    v_W = np.asarray(v_W, dtype=float)
+    w_W = np.asarray(w_W, dtype=float)
+    return (
+        v_W + velocity_std * rng.standard_normal(v_W.shape),
+        w_W + spin_std * rng.standard_normal(w_W.shape),
+    )

@@ -1,0 +1,89 @@
+"""Ball flight: drag, Magnus and gravity (paper eq. (1)), and the RK4 step.
+
+A ball state is a (..., 9) array [p_W (m), v_W (m/s), w_W (rad/s)] in the world frame of
+DESIGN.md; spin is constant in flight (paper, Methods *Ball aerodynamics*). Every function is
+batched over the leading dimensions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ace_drake.config import AeroParams
+
+POSITION = slice(0, 3)
+VELOCITY = slice(3, 6)
+SPIN = slice(6, 9)
+
+
+def magnus_coefficient(speed: np.ndarray, spin_rate: np.ndarray, aero: AeroParams) -> np.ndarray:
+    """c_M = min(0.1 |v| / (r |w|) - 0.001, 1) (paper, below eq. (1); cap from the authors' code).
+
+    The printed c_M is singular as |w| -> 0. With the cap, c_M = cap for all small spin rates, so the
+    Magnus acceleration c_M (rho_air / rho_ball)(v x w) goes to zero linearly in |w|: the limit at
+    |w| = 0 is defined as c_M = cap and the trajectory is continuous in w. Args: speed |v| (m/s),
+    spin_rate |w| (rad/s), any matching shapes. Returns c_M (dimensionless).
+    """
+    speed = np.asarray(speed, dtype=float)
+    spin_rate = np.asarray(spin_rate, dtype=float)
+    safe_rate = np.where(spin_rate > 0.0, spin_rate, 1.0)
+    c_m = aero.magnus_slope * speed / (aero.ball_radius * safe_rate) + aero.magnus_offset
+    return np.where(spin_rate > 0.0, np.minimum(c_m, aero.magnus_cap), aero.magnus_cap)
+
+
+def flight_acceleration(v_W: np.ndarray, w_W: np.ndarray, aero: AeroParams) -> np.ndarray:
+    """dv/dt of a ball in flight, m/s^2: paper eq. (1) divided by the ball's mass.
+
+    a = -(3 / (8 r)) c_d (rho_a / rho_b) |v| v - c_M (rho_a / rho_b) (v x w) + (1 - rho_a / rho_b) g,
+    the buoyancy factor on g as in the authors' code (``aero.buoyancy``). Args: v_W, w_W (..., 3).
+    """
+    v_W = np.asarray(v_W, dtype=float)
+    w_W = np.asarray(w_W, dtype=float)
+    density_ratio = aero.air_density / aero.ball_density
+    vx, vy, vz = v_W[..., 0], v_W[..., 1], v_W[..., 2]
+    wx, wy, wz = w_W[..., 0], w_W[..., 1], w_W[..., 2]
+    speed = np.sqrt(vx * vx + vy * vy + vz * vz)  # explicit: np.linalg.norm/np.cross dominate small batches
+    spin_rate = np.sqrt(wx * wx + wy * wy + wz * wz)
+    drag_gain = -(3.0 / (8.0 * aero.ball_radius)) * aero.drag_coefficient * density_ratio * speed
+    magnus_gain = -magnus_coefficient(speed, spin_rate, aero) * density_ratio
+    gravity_scale = (1.0 - density_ratio) if aero.buoyancy else 1.0
+    return np.stack(
+        [
+            drag_gain * vx + magnus_gain * (vy * wz - vz * wy),
+            drag_gain * vy + magnus_gain * (vz * wx - vx * wz),
+            drag_gain * vz + magnus_gain * (vx * wy - vy * wx) - gravity_scale * aero.gravity,
+        ],
+        axis=-1,
+    )
+
+
+def state_derivative(state: np.ndarray, aero: AeroParams) -> np.ndarray:
+    """d/dt [p, v, w] = [v, a(v, w), 0] for (..., 9) ball states."""
+    derivative = np.zeros_like(state, dtype=float)
+    derivative[..., POSITION] = state[..., VELOCITY]
+    derivative[..., VELOCITY] = flight_acceleration(state[..., VELOCITY], state[..., SPIN], aero)
+    return derivative
+
+
+def rk4_step(state: np.ndarray, dt: float | np.ndarray, aero: AeroParams) -> np.ndarray:
+    """One classical Runge-Kutta 4 step of the flight model.
+
+    Args: state (..., 9); dt seconds, a scalar or an array broadcastable to state[..., :1]
+    (per-ball steps, used by event location). Returns the state after dt.
+    """
+    dt = np.asarray(dt, dtype=float)
+    if dt.ndim > 0:
+        dt = dt[..., None]
+    k1 = state_derivative(state, aero)
+    k2 = state_derivative(state + 0.5 * dt * k1, aero)
+    k3 = state_derivative(state + 0.5 * dt * k2, aero)
+    k4 = state_derivative(state + dt * k3, aero)
+    return state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def make_state(p_W, v_W, w_W=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Stacks position (m), velocity (m/s) and spin (rad/s), each (..., 3), into (..., 9)."""
+    p_W, v_W, w_W = np.broadcast_arrays(
+        np.asarray(p_W, dtype=float), np.asarray(v_W, dtype=float), np.asarray(w_W, dtype=float)
+    )
+    return np.concatenate([p_W, v_W, w_W], axis=-1)

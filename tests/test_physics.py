@@ -1,0 +1,350 @@
+"""Ball physics: eq. (1), eqs (2)-(8), net and floor maps, against hand-worked numbers."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ace_drake.config import AeroParams, BallPhysicsParams, ConfigError, NetParams, TableParams, from_dict
+from ace_drake.physics import contact
+from ace_drake.physics.flight import flight_acceleration, magnus_coefficient, make_state, rk4_step
+from ace_drake.physics.propagate import ContactKind, apply_impact, simulate
+
+PARAMS = BallPhysicsParams()
+AERO = PARAMS.aero
+R = AERO.ball_radius
+DENSITY_RATIO = AERO.air_density / AERO.ball_density  # 1.204 / 81.2
+MIRROR_Y = np.diag([1.0, -1.0, 1.0])
+
+
+def mirror_state(state):
+    """Mirror across the XZ plane: positions and velocities flip y, spin (a pseudo-vector) flips x, z."""
+    state = np.array(state, dtype=float)
+    state[..., 1] *= -1
+    state[..., 4] *= -1
+    state[..., 6] *= -1
+    state[..., 8] *= -1
+    return state
+
+
+# ---------------------------------------------------------------------------------- eq. (1)
+
+
+def test_ball_mass_from_density():
+    assert AERO.ball_mass == pytest.approx(81.2 * 4 / 3 * np.pi * 0.02**3)
+    assert AERO.ball_mass == pytest.approx(2.721e-3, rel=1e-3)
+
+
+def test_flight_acceleration_hand_worked_drag_only():
+    # v = (10, 0, 0), no spin: drag = 3/(8 r) c_d (rho_a/rho_b) |v| v = 18.75 * 0.55 * 0.014828 * 100.
+    a = flight_acceleration(np.array([10.0, 0, 0]), np.zeros(3), AERO)
+    drag = 3 / (8 * 0.02) * 0.55 * (1.204 / 81.2) * 10 * 10
+    assert a[0] == pytest.approx(-drag, rel=1e-12)
+    assert a[0] == pytest.approx(-15.2907, rel=1e-4)
+    assert a[1] == 0.0
+    assert a[2] == pytest.approx(-(1 - 1.204 / 81.2) * 9.81, rel=1e-12)
+
+
+def test_flight_acceleration_hand_worked_magnus():
+    # Topspin for a ball moving +x is w_y > 0; the Magnus force then points down (-z).
+    v = np.array([10.0, 0, 0])
+    w = np.array([0, 200.0, 0])
+    c_m = 0.1 * 10 / (0.02 * 200) - 0.001  # 0.249
+    a = flight_acceleration(v, w, AERO)
+    a_no_spin = flight_acceleration(v, np.zeros(3), AERO)
+    magnus_z = -c_m * DENSITY_RATIO * (10 * 200)  # -(c_M rho ratio) (v x w)_z, (v x w) = (0, 0, 2000)
+    assert a[2] - a_no_spin[2] == pytest.approx(magnus_z, rel=1e-12)
+    assert magnus_z == pytest.approx(-7.3841, rel=1e-4)
+    np.testing.assert_allclose(a[:2], a_no_spin[:2], rtol=0, atol=1e-12)
+
+
+def test_magnus_coefficient_cap_and_zero_spin_limit():
+    assert magnus_coefficient(10.0, 200.0, AERO) == pytest.approx(0.249)
+    assert magnus_coefficient(10.0, 1.0, AERO) == 1.0  # capped
+    assert magnus_coefficient(10.0, 0.0, AERO) == 1.0  # the defined limit
+    # The Magnus acceleration vanishes linearly as |w| -> 0.
+    v = np.array([8.0, 1.0, 2.0])
+    base = flight_acceleration(v, np.zeros(3), AERO)
+    for scale in [1e-2, 1e-4, 1e-6]:
+        w = scale * np.array([3.0, -40.0, 5.0])
+        delta = np.linalg.norm(flight_acceleration(v, w, AERO) - base)
+        assert delta == pytest.approx(DENSITY_RATIO * np.linalg.norm(np.cross(v, w)), rel=1e-9)
+
+
+def test_trajectory_is_continuous_as_spin_goes_to_zero():
+    start = make_state([-1.2, 0.1, 0.25], [6.0, -0.5, 1.0], [0.0, 0.0, 0.0])
+    reference = simulate(start, PARAMS, 0.4, kinds=()).final_state[0]
+    previous_error = np.inf
+    for scale in [10.0, 1.0, 0.1, 0.01, 0.001]:
+        spun = start.copy()
+        spun[6:] = scale * np.array([0.3, -1.0, 0.2]) / np.sqrt(1.13)
+        error = np.linalg.norm(simulate(spun, PARAMS, 0.4, kinds=()).final_state[0][:3] - reference[:3])
+        assert error < previous_error
+        previous_error = error
+    assert previous_error < 1e-4  # 1 mrad/s of spin moves the ball by less than 0.1 mm
+
+
+def test_rk4_converges_at_fourth_order():
+    start = make_state([0, 0, 0.3], [10.0, 2.0, 3.0], [50.0, -300.0, 100.0])
+
+    def integrate(dt):
+        state = start.copy()
+        for _ in range(int(round(0.4 / dt))):
+            state = rk4_step(state, dt, AERO)
+        return state
+
+    fine = integrate(1e-4)
+    error_coarse = np.linalg.norm(integrate(8e-3) - fine)
+    error_half = np.linalg.norm(integrate(4e-3) - fine)
+    assert 12.0 < error_coarse / error_half < 20.0  # 2^4 = 16
+
+
+# ---------------------------------------------------------------------------------- eqs (2)-(6)
+
+
+def test_table_restitution_is_lower_for_faster_impacts():
+    assert contact.table_restitution(np.array(-2.0), PARAMS.table) == pytest.approx(0.94)
+    assert contact.table_restitution(np.array(-5.0), PARAMS.table) == pytest.approx(0.88)
+
+
+def test_table_impact_sliding_hand_worked():
+    # v- = (4, 1, -3), w- = (10, -50, 5): v_T = (4 + 1, 1 + 0.2) = (5, 1.2), |v_T| = 5.1420
+    v = np.array([4.0, 1.0, -3.0])
+    w = np.array([10.0, -50.0, 5.0])
+    eps = 0.98 - 0.02 * 3
+    alpha = 0.25 * (1 + eps) * 3 / np.hypot(5.0, 1.2)
+    assert alpha < 0.4  # sliding: v_s = 1 - 2.5 alpha > 0
+    v_post, w_post = contact.table_impact(v, w, PARAMS.table, R)
+    expected_v = [(1 - alpha) * 4 + alpha * R * -50, (1 - alpha) * 1 - alpha * R * 10, eps * 3]
+    expected_w = [
+        -1.5 * alpha / R * 1 + (1 - 1.5 * alpha) * 10,
+        1.5 * alpha / R * 4 + (1 - 1.5 * alpha) * -50,
+        5.0,
+    ]
+    np.testing.assert_allclose(v_post, expected_v, rtol=1e-12)
+    np.testing.assert_allclose(w_post, expected_w, rtol=1e-12)
+    np.testing.assert_allclose(v_post, [2.59976, 0.66394, 2.76], rtol=1e-5)
+
+
+def test_table_impact_rolling_leaves_no_slip():
+    # A slow tangential slip against a fast impact rolls: alpha = 2/5, contact point velocity -> 0.
+    v = np.array([0.3, -0.2, -4.0])
+    w = np.array([5.0, 10.0, 0.0])
+    alpha, sliding = contact.table_alpha(v, w, PARAMS.table, R)
+    assert not sliding and alpha == pytest.approx(0.4)
+    v_post, w_post = contact.table_impact(v, w, PARAMS.table, R)
+    slip_after = [v_post[0] - R * w_post[1], v_post[1] + R * w_post[0]]
+    np.testing.assert_allclose(slip_after, [0.0, 0.0], atol=1e-12)
+
+
+def test_table_alpha_switch_is_continuous():
+    # At the switch v_s = 0 the sliding alpha equals the rolling one.
+    v_z = -3.0
+    eps = 0.98 - 0.02 * 3
+    slip_at_switch = 0.25 * (1 + eps) * 3 / 0.4
+    for slip in [slip_at_switch * (1 - 1e-9), slip_at_switch * (1 + 1e-9)]:
+        alpha, _ = contact.table_alpha(np.array([slip, 0, v_z]), np.zeros(3), PARAMS.table, R)
+        assert alpha == pytest.approx(0.4, rel=1e-8)
+
+
+def test_ittf_drop_test_bounces_to_about_23_cm():
+    drop_height = 0.305
+    trajectory = simulate(make_state([0.3, 0.2, drop_height + R], [0, 0, 0]), PARAMS, 1.0, dt=5e-4)
+    first = trajectory.events[0][0]
+    assert first.kind == ContactKind.TABLE
+    after = trajectory.states[trajectory.times > first.time + 1e-9, 0, 2]
+    apex = after[: int(0.4 / 5e-4)].max() - R
+    assert 0.22 < apex < 0.25, apex  # ITTF: 230 mm from 305 mm (23 to 25 cm accepted)
+
+
+def test_drop_impact_time_matches_analytic_solution_with_drag():
+    # Vertical fall with quadratic drag: z(t) = z0 - (v_t^2 / g) ln cosh(g t / v_t).
+    g = (1 - DENSITY_RATIO) * AERO.gravity
+    k_drag = 3 / (8 * R) * AERO.drag_coefficient * DENSITY_RATIO
+    v_terminal = np.sqrt(g / k_drag)
+    for height in [0.1, 0.305, 1.0]:
+        t_impact = v_terminal / g * np.arccosh(np.exp(height * k_drag))
+        trajectory = simulate(make_state([0.5, 0.3, height + R], [0, 0, 0]), PARAMS, 2.0)
+        assert abs(trajectory.events[0][0].time - t_impact) < 1e-6
+
+
+def test_terminal_velocity():
+    g = (1 - DENSITY_RATIO) * AERO.gravity
+    k_drag = 3 / (8 * R) * AERO.drag_coefficient * DENSITY_RATIO
+    a = flight_acceleration(np.array([0, 0, -np.sqrt(g / k_drag)]), np.zeros(3), AERO)
+    np.testing.assert_allclose(a, 0.0, atol=1e-12)
+    assert np.sqrt(g / k_drag) == pytest.approx(7.95, abs=0.01)  # the model's terminal speed, m/s
+
+
+# ---------------------------------------------------------------------------------- eqs (7)-(8)
+
+
+def test_racket_impact_at_rest_with_identity_frame_matches_matrices():
+    v = np.array([1.0, -2.0, -6.0])
+    w = np.array([30.0, 80.0, -20.0])
+    racket = PARAMS.racket
+    v_post, w_post = contact.racket_impact(v, w, np.zeros(3), np.eye(3), racket, R)
+    k = racket.tangential_k
+    eps = racket.restitution_gamma1 * np.exp(racket.restitution_gamma2 * 6.0)
+    C_vv = np.diag([1 - k, 1 - k, -eps])
+    C_vw = np.array([[0, k * R, 0], [-k * R, 0, 0], [0, 0, 0]])
+    C_wv = np.array([[0, -1.5 * k / R, 0], [1.5 * k / R, 0, 0], [0, 0, 0]])
+    C_ww = np.diag([1 - 1.5 * k, 1 - 1.5 * k, 1])
+    np.testing.assert_allclose(v_post, C_vv @ v + C_vw @ w, rtol=1e-12)
+    np.testing.assert_allclose(w_post, C_wv @ v + C_ww @ w, rtol=1e-12)
+
+
+def test_racket_restitution_defaults_match_notes():
+    assert contact.racket_restitution(np.array(1.0), PARAMS.racket) == pytest.approx(0.88, abs=0.002)
+    assert contact.racket_restitution(np.array(15.0), PARAMS.racket) == pytest.approx(0.75, abs=0.002)
+
+
+def test_racket_impact_is_frame_invariant_and_galilean():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    R_WC = Rotation.random(random_state=4).as_matrix()
+    v = rng.normal(0, 5, 3)
+    w = rng.normal(0, 200, 3)
+    v_racket = rng.normal(0, 3, 3)
+    v_post, w_post = contact.racket_impact(v, w, v_racket, R_WC, PARAMS.racket, R)
+    # Same contact computed in C by hand.
+    v_post_C, w_post_C = contact.racket_impact(R_WC.T @ (v - v_racket), R_WC.T @ w, np.zeros(3), np.eye(3), PARAMS.racket, R)
+    np.testing.assert_allclose(v_post, R_WC @ v_post_C + v_racket, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(w_post, R_WC @ w_post_C, rtol=1e-10, atol=1e-10)
+
+
+def test_racket_impact_batched_equals_loop():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    n = 7
+    R_WC = Rotation.random(n, random_state=6).as_matrix()
+    v, w, vr = rng.normal(0, 5, (n, 3)), rng.normal(0, 200, (n, 3)), rng.normal(0, 3, (n, 3))
+    v_batch, w_batch = contact.racket_impact(v, w, vr, R_WC, PARAMS.racket, R)
+    for i in range(n):
+        v_i, w_i = contact.racket_impact(v[i], w[i], vr[i], R_WC[i], PARAMS.racket, R)
+        np.testing.assert_allclose(v_batch[i], v_i, rtol=1e-12)
+        np.testing.assert_allclose(w_batch[i], w_i, rtol=1e-12)
+
+
+# ---------------------------------------------------------------------------------- net and floor
+
+
+def test_net_face_hit_stops_the_ball_on_its_side():
+    start = make_state([-0.5, 0.0, 0.05], [5.0, 0.0, 0.0])
+    trajectory = simulate(start, PARAMS, 0.3, kinds=(ContactKind.NET,), stop_on=())
+    (event,) = trajectory.events[0][:1]
+    assert event.kind == ContactKind.NET
+    assert event.state_pre[0] == pytest.approx(-R, abs=1e-6)
+    assert event.state_post[3] == pytest.approx(-0.05 * event.state_pre[3], rel=1e-6)
+    assert trajectory.final_state[0, 0] < 0
+
+
+def test_net_cord_ball_goes_over():
+    # The ball's centre passes 19 mm above the cord: the contact normal is mostly vertical.
+    height = PARAMS.net.height + 0.019
+    start = make_state([-0.1, 0.0, height], [6.0, 0.0, 0.0])
+    trajectory = simulate(start, PARAMS, 0.3, kinds=(ContactKind.NET, ContactKind.TABLE))
+    kinds = [e.kind for e in trajectory.events[0]]
+    assert kinds[0] == ContactKind.NET
+    net = trajectory.events[0][0]
+    assert net.state_post[3] > 0.5 * net.state_pre[3]  # keeps most of its forward speed
+    assert ContactKind.TABLE in kinds
+    table = trajectory.events[0][kinds.index(ContactKind.TABLE)]
+    assert table.state_pre[0] > 0  # lands on the far side
+
+
+def test_ball_beside_the_net_passes():
+    start = make_state([-0.3, 0.5 * PARAMS.table.width + PARAMS.net.overhang + 0.05, 0.05], [6.0, 0.0, 0.0])
+    trajectory = simulate(start, PARAMS, 0.2, kinds=(ContactKind.NET,))
+    assert trajectory.events[0] == []
+
+
+def test_floor_impact():
+    v_post, w_post = contact.floor_impact(np.array([1.0, 2.0, -4.0]), np.array([0, 10.0, 0]), PARAMS.floor)
+    np.testing.assert_allclose(v_post, [0.8, 1.6, 2.0])
+    np.testing.assert_allclose(w_post, [0, 8.0, 0])
+
+
+def test_ball_off_the_table_falls_to_the_floor():
+    start = make_state([1.5, 0.0, 0.2], [2.0, 0.0, 0.0])
+    trajectory = simulate(start, PARAMS, 1.0)
+    assert trajectory.events[0][0].kind == ContactKind.FLOOR
+    assert trajectory.events[0][0].state_pre[2] == pytest.approx(-0.76 + R, abs=1e-6)
+
+
+# ---------------------------------------------------------------------------------- symmetry, batches
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.floats(-1.3, -0.5), st.floats(-0.5, 0.5), st.floats(0.1, 0.4),
+    st.floats(4, 15), st.floats(-2, 2), st.floats(-1, 3),
+    st.floats(-400, 400), st.floats(-400, 400), st.floats(-400, 400),
+)
+def test_mirror_symmetry_in_y_is_exact(px, py, pz, vx, vy, vz, wx, wy, wz):
+    start = make_state([px, py, pz], [vx, vy, vz], [wx, wy, wz])
+    trajectory = simulate(np.stack([start, mirror_state(start)]), PARAMS, 0.8, dt=2e-3)
+    np.testing.assert_allclose(trajectory.states[:, 1], mirror_state(trajectory.states[:, 0]), rtol=0, atol=1e-12)
+    assert [e.kind for e in trajectory.events[0]] == [e.kind for e in trajectory.events[1]]
+
+
+def test_batched_simulation_equals_one_by_one():
+    rng = np.random.default_rng(0)
+    n = 6
+    starts = make_state(
+        np.c_[rng.uniform(-1.3, -0.6, n), rng.uniform(-0.5, 0.5, n), rng.uniform(0.1, 0.4, n)],
+        np.c_[rng.uniform(5, 12, n), rng.uniform(-1, 1, n), rng.uniform(0, 3, n)],
+        rng.normal(0, 200, (n, 3)),
+    )
+    batch = simulate(starts, PARAMS, 1.0, record=False)
+    for i in range(n):
+        single = simulate(starts[i], PARAMS, 1.0, record=False)
+        np.testing.assert_allclose(batch.final_state[i], single.final_state[0], rtol=1e-12, atol=1e-12)
+        assert [e.time for e in batch.events[i]] == pytest.approx([e.time for e in single.events[0]], abs=1e-12)
+
+
+def test_perturbations_are_seeded_and_only_with_rng():
+    start = make_state([0.5, 0.1, 0.3], [-3.0, 0.2, 0.0], [0, 100.0, 0])
+    plain_a = simulate(start, PARAMS, 0.5).final_state
+    plain_b = simulate(start, PARAMS, 0.5).final_state
+    np.testing.assert_array_equal(plain_a, plain_b)
+    seeded_a = simulate(start, PARAMS, 0.5, rng=np.random.default_rng(7)).final_state
+    seeded_b = simulate(start, PARAMS, 0.5, rng=np.random.default_rng(7)).final_state
+    np.testing.assert_array_equal(seeded_a, seeded_b)
+    assert not np.allclose(seeded_a, plain_a)
+
+
+def test_stop_on_returns_state_at_contact():
+    start = make_state([-1.0, 0.0, 0.3], [5.0, 0.0, 0.0])
+    trajectory = simulate(start, PARAMS, 1.0, kinds=(ContactKind.NET, ContactKind.TABLE), stop_on=(ContactKind.TABLE,))
+    stop = trajectory.stop_events[0]
+    assert stop.kind == ContactKind.TABLE
+    np.testing.assert_allclose(trajectory.final_state[0], stop.state_pre)
+    np.testing.assert_allclose(stop.state_post, apply_impact(ContactKind.TABLE, stop.state_pre, PARAMS))
+
+
+# ---------------------------------------------------------------------------------- config
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ConfigError, match="aero.drag_coefficient"):
+        from_dict(BallPhysicsParams, {"aero": {"drag_coefficient": "high"}})
+    with pytest.raises(ConfigError, match="unknown field"):
+        from_dict(BallPhysicsParams, {"aero": {"drag_coeff": 0.5}})
+    with pytest.raises(ConfigError, match="ball_radius"):
+        from_dict(BallPhysicsParams, {"aero": {"ball_radius": -1.0}})
+    fitted = from_dict(BallPhysicsParams, {"table": {"friction": 0.2}})
+    assert fitted.table.friction == 0.2 and fitted.aero == AeroParams()
+
+
+def test_simulate_rejects_bad_input():
+    with pytest.raises(ValueError, match="initial_state"):
+        simulate(np.zeros(8), PARAMS, 1.0)
+    with pytest.raises(ValueError, match="NaN"):
+        simulate(np.full(9, np.nan), PARAMS, 1.0)
+    with pytest.raises(ValueError, match="dt"):
+        simulate(np.zeros(9), PARAMS, 1.0, dt=0.0)
