@@ -41,7 +41,8 @@ class RacketResidualMLP(nn.Module):
 
     ``forward`` maps physical features (N, 8) to physical corrections (N, 6), units as in the
     module docstring. Inputs are standardised with the ``feature_mean`` / ``feature_std`` buffers
-    and outputs multiplied by ``target_scale`` (m/s for the first three, rad/s for the last three),
+    and outputs multiplied by ``target_scale`` (m/s for the first three, rad/s for the last three;
+    ``fit_racket_residual`` sets one value per group, the targets' RMS component),
     so a saved state_dict is self-contained. The last layer starts at zero: a fresh module outputs
     exactly 0 and leaves the linear model unchanged.
 
@@ -161,10 +162,11 @@ def fit_racket_residual(
     The target is the linear model's error expressed in C: R_WC^T (v+_obs - v+_lin) (m/s; the
     racket velocity cancels, so it is also the error of the relative velocity) and
     R_WC^T (w+_obs - w+_lin) (rad/s), with (v+_lin, w+_lin) = ``racket_impact(..., residual=None)``.
-    Normalisation comes from the training split; Adam minimises the MSE of the normalised targets
-    and the weights with the lowest validation loss are kept (early stopping after ``patience``
-    epochs without improvement). Deterministic for a given ``seed`` (weights, split and batches);
-    runs single-threaded and restores the global torch RNG and thread count.
+    Features are standardised on the training split and targets divided by one RMS scale per group
+    (velocity, spin); Adam minimises the MSE of the normalised targets and the weights with the
+    lowest validation loss are kept (early stopping after ``patience`` epochs without improvement).
+    Deterministic for a given ``seed`` (weights, split and batches); runs single-threaded and
+    restores the global torch RNG and thread count.
 
     Args:
         pre_states, post_states: (N, 9) ball states [p (m), v (m/s), w (rad/s)] in world just
@@ -222,8 +224,10 @@ def fit_racket_residual(
     feature_mean = features[train_idx].mean(axis=0)
     feature_std = features[train_idx].std(axis=0)
     feature_std = np.where(feature_std > 1e-9, feature_std, 1.0)  # constant feature (e.g. no offsets)
-    target_scale = np.sqrt(np.mean(targets[train_idx] ** 2, axis=0))
-    target_scale = np.where(target_scale > 1e-12, target_scale, 1.0)
+    # One scale per group (velocity, spin), the RMS of its components: a per-component scale would
+    # blow up components that are mostly noise (e.g. a distortion along the normal only).
+    group_rms = np.sqrt(np.mean(targets[train_idx].reshape(-1, 2, 3) ** 2, axis=(0, 2)))
+    target_scale = np.repeat(np.where(group_rms > 1e-12, group_rms, 1.0), 3)
 
     threads = torch.get_num_threads()
     try:
@@ -318,11 +322,13 @@ def save_residual(model: RacketResidualMLP, path, sidecar: dict | None = None) -
         raise ValueError(f"sidecar must be JSON-serialisable: {error}") from None
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    torch.save(
-        {"format_version": _FORMAT_VERSION, "hidden": list(model.hidden), "activation": model.activation,
-         "state_dict": state},
-        path,
-    )
+    record_pt = {
+        "format_version": _FORMAT_VERSION,
+        "hidden": list(model.hidden),
+        "activation": model.activation,
+        "state_dict": state,
+    }
+    torch.save(record_pt, path)
     sidecar_path = path.with_suffix(".json")
     sidecar_path.write_text(text + "\n")
     return sidecar_path

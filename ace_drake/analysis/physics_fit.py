@@ -1,0 +1,141 @@
+"""Identify aerodynamic and table coefficients from recorded match events (SciPy least squares).
+
+The residual of one (shot or bounce) -> bounce pair is the predicted landing point, flight time
+and post-bounce velocity and spin minus the recorded ones (see physics_validation.py), each scaled
+by a typical measurement error so that the terms are comparable; a soft-L1 loss keeps badly
+estimated recordings from dominating. Fit on some players, judge on the others.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ace_drake.analysis.match_data import EventPairs
+from ace_drake.analysis.physics_validation import predict_pairs
+from ace_drake.config import BallPhysicsParams
+
+# name -> (lower, upper): the coefficients the fit may change, and the box it keeps them in.
+FIT_BOUNDS = {
+    "aero.drag_coefficient": (0.2, 1.2),
+    "aero.magnus_slope": (0.0, 0.5),
+    "aero.magnus_offset": (-0.05, 0.05),
+    "table.friction": (0.02, 0.8),
+    "table.restitution_base": (0.6, 1.0),
+    "table.restitution_slope": (0.0, 0.15),
+}
+DEFAULT_FIT_PARAMETERS = tuple(FIT_BOUNDS)
+
+# Residual scales: a landing error of 3 cm weighs as much as 10 ms, 0.3 m/s or 30 rad/s.
+LANDING_SCALE = 0.03  # m
+TIME_SCALE = 0.01  # s
+VELOCITY_SCALE = 0.3  # m/s
+SPIN_SCALE = 30.0  # rad/s
+MISSING_PENALTY = 10.0  # scaled residual for a prediction that never reaches the table
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Fitted parameters, the values of the fitted coefficients, and the optimiser's record."""
+
+    params: BallPhysicsParams
+    values: dict
+    initial_cost: float
+    final_cost: float
+    evaluations: int
+    message: str
+
+
+def get_value(params: BallPhysicsParams, name: str) -> float:
+    """Reads a dotted coefficient such as ``aero.drag_coefficient``."""
+    group, field = _split(name)
+    return getattr(getattr(params, group), field)
+
+
+def with_values(params: BallPhysicsParams, names: Sequence[str], values: Sequence[float]) -> BallPhysicsParams:
+    """A copy of ``params`` with the dotted coefficients ``names`` set to ``values``."""
+    updates: dict[str, dict] = {}
+    for name, value in zip(names, values):
+        group, field = _split(name)
+        updates.setdefault(group, {})[field] = float(value)
+    return dataclasses.replace(
+        params, **{group: dataclasses.replace(getattr(params, group), **fields) for group, fields in updates.items()}
+    )
+
+
+def pair_residuals(pairs: EventPairs, params: BallPhysicsParams) -> np.ndarray:
+    """Scaled residuals (N, 9): landing x, y; time; post-bounce velocity (3); post-bounce spin (3)."""
+    predictions = predict_pairs(pairs, params)
+    residuals = np.concatenate(
+        [
+            (predictions.predicted_contact[:, :2] - pairs.end_states[:, :2]) / LANDING_SCALE,
+            predictions.time_error[:, None] / TIME_SCALE,
+            (predictions.predicted_post[:, 3:6] - pairs.end_states[:, 3:6]) / VELOCITY_SCALE,
+            (predictions.predicted_post[:, 6:9] - pairs.end_states[:, 6:9]) / SPIN_SCALE,
+        ],
+        axis=1,
+    )
+    return np.where(np.isfinite(residuals), residuals, MISSING_PENALTY)
+
+
+def fit_physics(
+    pairs: EventPairs,
+    initial: BallPhysicsParams | None = None,
+    names: Sequence[str] = DEFAULT_FIT_PARAMETERS,
+    max_evaluations: int = 200,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Least-squares fit of the coefficients ``names`` (keys of FIT_BOUNDS) to ``pairs``.
+
+    Deterministic: the same data and start give the same result. ``progress`` receives a line per
+    model evaluation (cost and values).
+    """
+    if len(pairs) == 0:
+        raise ValueError("fit_physics: no event pairs to fit")
+    unknown = [n for n in names if n not in FIT_BOUNDS]
+    if unknown:
+        raise ValueError(f"fit_physics: cannot fit {unknown}; choose from {sorted(FIT_BOUNDS)}")
+    initial = initial or BallPhysicsParams()
+    names = tuple(names)
+    lower = np.array([FIT_BOUNDS[n][0] for n in names])
+    upper = np.array([FIT_BOUNDS[n][1] for n in names])
+    x0 = np.clip([get_value(initial, n) for n in names], lower, upper)
+    evaluations = [0]
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        values = pair_residuals(pairs, with_values(initial, names, x)).ravel()
+        evaluations[0] += 1
+        if progress is not None:
+            cost = float(np.sum(np.log1p(values**2 / 1.0)))
+            progress(f"eval {evaluations[0]:3d}  robust cost {cost:10.1f}  " + "  ".join(f"{v:.4g}" for v in x))
+        return values
+
+    result = least_squares(
+        residuals,
+        x0,
+        bounds=(lower, upper),
+        loss="soft_l1",
+        x_scale=np.maximum(np.abs(x0), 0.01),
+        diff_step=1e-3,
+        max_nfev=max_evaluations,
+    )
+    fitted = with_values(initial, names, result.x)
+    initial_cost = float(np.sum(2 * (np.sqrt(1 + residuals(x0) ** 2) - 1))) / 2
+    return FitResult(
+        params=fitted,
+        values={n: float(v) for n, v in zip(names, result.x)},
+        initial_cost=initial_cost,
+        final_cost=float(result.cost),
+        evaluations=evaluations[0],
+        message=str(result.message),
+    )
+
+
+def _split(name: str) -> tuple[str, str]:
+    group, _, field = name.partition(".")
+    if not field or group not in {f.name for f in dataclasses.fields(BallPhysicsParams)}:
+        raise ValueError(f"not a coefficient name: {name!r} (expected like 'aero.drag_coefficient')")
+    return group, field

@@ -1,0 +1,189 @@
+"""BallPlant: the ball's true state under flight, table, net, floor and racket contact."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.multibody.math import SpatialVelocity
+from pydrake.systems.framework import (
+    BasicVector,
+    LeafSystem,
+    UnrestrictedUpdateEvent,
+    WitnessFunctionDirection,
+)
+
+from ace_drake.config import BallPhysicsParams
+from ace_drake.physics import contact
+from ace_drake.physics.contact import ResidualModel
+from ace_drake.physics.flight import flight_acceleration
+from ace_drake.physics.propagate import ContactEvent, ContactKind, apply_impact, contact_gap
+
+
+class BallPlant(LeafSystem):
+    """The table-tennis ball: ground truth for every other system (paper, Methods *Simulation*).
+
+    Input ports:
+        racket_pose (abstract RigidTransform): X_WR, the racket frame R in world; R's origin is the
+            blade centre and its z axis the blade normal. Unconnected: there is no racket.
+        racket_spatial_velocity (abstract SpatialVelocity): V_WR of R's origin in world,
+            [w (rad/s), v (m/s)]. Needed when racket_pose is connected.
+    Output ports:
+        ball_state (9,): [p_WB (m), v_WB (m/s), w_WB (rad/s)] in world (DESIGN.md frame).
+        contact_events (abstract tuple[ContactEvent]): the contacts of this episode, in order, with
+            kind, time (s) and the (9,) states before and after.
+    State:
+        continuous (9,): [p, v, w]; spin is constant in flight (paper eq. (1)).
+        abstract: the tuple of contact events.
+    Parameters:
+        numeric (1,): the seed of the post-table-contact perturbations.
+    Events:
+        witness functions on the table, net, floor and (when connected) racket gaps; each
+        triggers an unrestricted update applying that contact's impact map from ``physics/``.
+
+    Contact times are located by the Simulator's witness isolation: use ``diagrams.make_simulator``
+    (maximum step 1 ms, accuracy 1e-6), which keeps a racket from being tunnelled through at relative
+    speeds up to 50 m/s and places contacts within 1e-6 s.
+    """
+
+    def __init__(
+        self,
+        params: BallPhysicsParams | None = None,
+        perturb: bool = False,
+        seed: int = 0,
+        racket_residual: ResidualModel | None = None,
+    ):
+        """Args: params, the ball model; perturb, apply the paper's post-table perturbations
+        (seeded by the context's seed parameter, ``seed`` by default); racket_residual, an optional
+        correction model for racket contacts (see physics/racket_residual.py)."""
+        super().__init__()
+        self.params = params or BallPhysicsParams()
+        self._perturb = perturb
+        self._residual = racket_residual
+        self._state_index = self.DeclareContinuousState(9)
+        self._events_index = self.DeclareAbstractState(AbstractValue.Make(()))
+        self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
+        self.racket_pose_port = self.DeclareAbstractInputPort("racket_pose", AbstractValue.Make(RigidTransform()))
+        self.racket_velocity_port = self.DeclareAbstractInputPort(
+            "racket_spatial_velocity", AbstractValue.Make(SpatialVelocity())
+        )
+        self.ball_state_port = self.DeclareVectorOutputPort(
+            "ball_state", 9, self.CalcBallState, prerequisites_of_calc={self.xc_ticket()}
+        )
+        self.contact_events_port = self.DeclareAbstractOutputPort(
+            "contact_events",
+            lambda: AbstractValue.Make(()),
+            self.CalcContactEvents,
+            prerequisites_of_calc={self.abstract_state_ticket(self._events_index)},
+        )
+        direction = WitnessFunctionDirection.kPositiveThenNonPositive
+        self._static_witnesses = [
+            self.MakeWitnessFunction(
+                kind.name.lower(),
+                direction,
+                lambda context, kind=kind: float(contact_gap(kind, self._state(context), self.params)),
+                UnrestrictedUpdateEvent(lambda context, event, state, kind=kind: self._ApplyContact(context, state, kind)),
+            )
+            for kind in (ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR)
+        ]
+        self._racket_witness = self.MakeWitnessFunction(
+            "racket", direction, self.CalcRacketGap, UnrestrictedUpdateEvent(self._ApplyRacketContact)
+        )
+
+    # ------------------------------------------------------------------------------ set-up
+    def SetBallState(self, context, state: np.ndarray) -> None:
+        """Starts an episode: sets the ball state (9,) and clears the contact events."""
+        state = np.asarray(state, dtype=float)
+        if state.shape != (9,) or not np.all(np.isfinite(state)):
+            raise ValueError(f"BallPlant.SetBallState: expected 9 finite values [p, v, w], got {state}")
+        context.SetContinuousState(state)
+        context.get_mutable_abstract_state(self._events_index).set_value(())
+
+    def SetSeed(self, context, seed: int) -> None:
+        """Sets the seed of the post-table perturbations for this context."""
+        context.get_mutable_numeric_parameter(self._seed_index).SetAtIndex(0, float(seed))
+
+    # ------------------------------------------------------------------------------ dynamics
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        state = self._state(context)
+        derivative = np.zeros(9)
+        derivative[:3] = state[3:6]
+        derivative[3:6] = flight_acceleration(state[3:6], state[6:9], self.params.aero)  # paper eq. (1)
+        derivatives.get_mutable_vector().SetFromVector(derivative)
+
+    def DoGetWitnessFunctions(self, context):
+        if self.racket_pose_port.HasValue(context):
+            return self._static_witnesses + [self._racket_witness]
+        return self._static_witnesses
+
+    # ------------------------------------------------------------------------------ outputs
+    def CalcBallState(self, context, output):
+        output.SetFromVector(self._state(context))
+
+    def CalcContactEvents(self, context, output):
+        output.set_value(context.get_abstract_state(self._events_index).get_value())
+
+    def CalcRacketGap(self, context) -> float:
+        """Distance from the ball's surface to the blade (a disc of radius R_b, thickness t), m."""
+        X_WR = self.racket_pose_port.Eval(context)
+        p_RB = X_WR.inverse().multiply(self._state(context)[:3])
+        closest = self._closest_blade_point(p_RB)
+        return float(np.linalg.norm(p_RB - closest) - self.params.aero.ball_radius)
+
+    # ------------------------------------------------------------------------------ contacts
+    def _ApplyContact(self, context, state, kind: ContactKind) -> None:
+        pre = self._state(context)
+        if kind == ContactKind.TABLE and pre[2] < self.params.aero.ball_radius - 1e-6:
+            return  # entered the table's footprint from the side, below the surface: no top contact
+        rng = None
+        if self._perturb and kind == ContactKind.TABLE:
+            seed = int(context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
+            rng = np.random.default_rng([seed, len(self._events(context))])
+        post = apply_impact(kind, pre, self.params, rng)
+        self._record(context, state, kind, pre, post)
+
+    def _ApplyRacketContact(self, context, event, state) -> None:
+        pre = self._state(context)
+        X_WR = self.racket_pose_port.Eval(context)
+        V_WR = self.racket_velocity_port.Eval(context)
+        R_WR = X_WR.rotation().matrix()
+        p_RB = X_WR.inverse().multiply(pre[:3])
+        p_RC = self._closest_blade_point(p_RB)
+        normal_R = p_RB - p_RC
+        normal_R /= max(np.linalg.norm(normal_R), 1e-12)
+        # Contact frame C: z along the normal towards the ball; x as close to the blade's x as possible.
+        x_R = np.array([1.0, 0.0, 0.0]) - normal_R[0] * normal_R
+        if np.linalg.norm(x_R) < 1e-6:
+            x_R = np.array([0.0, 1.0, 0.0]) - normal_R[1] * normal_R
+        x_R /= np.linalg.norm(x_R)
+        R_RC = np.column_stack([x_R, np.cross(normal_R, x_R), normal_R])
+        R_WC = R_WR @ R_RC
+        p_WC = X_WR.multiply(p_RC)
+        v_WRc = V_WR.translational() + np.cross(V_WR.rotational(), p_WC - X_WR.translation())
+        if np.dot(pre[3:6] - v_WRc, R_WC[:, 2]) >= 0.0:
+            return  # separating: a graze, not an impact
+        contact_offset = (R_RC.T @ p_RC)[:2]
+        v_post, w_post = contact.racket_impact(
+            pre[3:6], pre[6:9], v_WRc, R_WC, self.params.racket, self.params.aero.ball_radius,
+            contact_offset=contact_offset, residual=self._residual,
+        )  # paper eqs (7)-(8)
+        post = np.concatenate([pre[:3], v_post, w_post])
+        self._record(context, state, ContactKind.RACKET, pre, post)
+
+    def _closest_blade_point(self, p_RB: np.ndarray) -> np.ndarray:
+        racket = self.params.racket
+        radial = np.hypot(p_RB[0], p_RB[1])
+        scale = min(1.0, racket.blade_radius / radial) if radial > 0 else 1.0
+        half_thickness = 0.5 * racket.blade_thickness
+        return np.array([p_RB[0] * scale, p_RB[1] * scale, np.clip(p_RB[2], -half_thickness, half_thickness)])
+
+    def _record(self, context, state, kind, pre, post) -> None:
+        state.get_mutable_continuous_state().SetFromVector(post)
+        event = ContactEvent(kind, float(context.get_time()), pre.copy(), np.asarray(post, dtype=float).copy())
+        state.get_mutable_abstract_state(self._events_index).set_value(self._events(context) + (event,))
+
+    def _state(self, context) -> np.ndarray:
+        return context.get_continuous_state_vector().CopyToVector()
+
+    def _events(self, context) -> tuple:
+        return context.get_abstract_state(self._events_index).get_value()
