@@ -1,0 +1,244 @@
+"""``ace-drake <command>``: the project's stable command-line surface.
+
+With ``--json`` a command prints a single JSON object on stdout and nothing else; progress and
+logs go to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ace_drake.config import BallPhysicsParams, ConfigError, load_config
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+MODELS = REPO_ROOT / "models"
+DEFAULT_FITTED_PARAMS = MODELS / "ball_physics_fitted.yaml"
+
+
+def log(message: str) -> None:
+    """Progress and diagnostics: stderr, never stdout."""
+    print(message, file=sys.stderr, flush=True)
+
+
+def emit_json(payload: dict) -> None:
+    """The single JSON object of a ``--json`` command."""
+    json.dump(payload, sys.stdout, indent=2, default=_json_default)
+    sys.stdout.write("\n")
+
+
+def load_ball_params(path: str | None) -> BallPhysicsParams:
+    """The paper's ball model, or the parameter file ``path`` (a YAML like models/ball_physics_fitted.yaml)."""
+    return BallPhysicsParams() if path is None else load_config(BallPhysicsParams, path)
+
+
+# ------------------------------------------------------------------------------ commands
+
+
+def cmd_rally(args) -> int:
+    """The main job. Until the rally diagram exists: the ball demo (topspin, no spin, backspin)."""
+    from pydrake.geometry import Meshcat
+
+    from ace_drake.analysis.ball_demo import run_shots, spin_comparison_shots, summarize_shots
+
+    params = load_ball_params(args.params)
+    meshcat = Meshcat() if args.html else None
+    log("ball demo: the same launch with topspin, no spin and backspin through the BallPlant")
+    results = run_shots(spin_comparison_shots(args.spin), params, duration=args.duration, meshcat=meshcat, seed=args.seed)
+    rows = summarize_shots(results)
+    if args.html:
+        path = Path(args.html)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(meshcat.StaticHtml())
+        log(f"wrote Meshcat replay {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser")
+    if args.json:
+        emit_json({"command": "rally", "mode": "ball_demo", "shots": rows, "html": args.html})
+        return 0
+    print(f"{'shot':<10}{'net clearance':>15}{'bounce at (x, y) m':>22}{'t bounce':>10}{'speed after':>13}{'w_y after':>11}  contacts")
+    for row in rows:
+        clearance = "-" if row["net_clearance_m"] is None else f"{100 * row['net_clearance_m']:.1f} cm"
+        if "bounce_time_s" in row:
+            x, y = row["bounce_position_m"]
+            bounce = f"({x:+.2f}, {y:+.2f})"
+            timing = f"{row['bounce_time_s']:.3f} s"
+            speed = f"{row['speed_after_bounce_mps']:.2f} m/s"
+            spin = f"{row['spin_after_bounce_radps'][1]:.0f}"
+        else:
+            bounce = timing = speed = spin = "-"
+        print(f"{row['shot']:<10}{clearance:>15}{bounce:>22}{timing:>10}{speed:>13}{spin:>11}  {', '.join(row['contacts'])}")
+    return 0
+
+
+def cmd_physics_validate(args) -> int:
+    """Replay recorded (shot or bounce) -> bounce pairs through the ball model; report errors."""
+    from ace_drake.analysis.match_data import event_pairs, load_match_events
+    from ace_drake.analysis.physics_validation import format_summary, predict_pairs, summarize
+
+    params = load_ball_params(args.params)
+    pairs = event_pairs(load_match_events(args.data))
+    if args.player:
+        unknown = sorted(set(args.player) - set(pairs.players))
+        if unknown:
+            raise ConfigError(f"--player {unknown}: not in {args.data} (players: {sorted(set(pairs.players))})")
+        pairs = pairs.subset(np.isin(pairs.players, args.player))
+    log(f"replaying {len(pairs)} event pairs from {args.data} with {'the paper model' if args.params is None else args.params}")
+    summary = summarize(pairs, predict_pairs(pairs, params))
+    summary = {"command": "physics-validate", "data": str(args.data), "params": args.params or "paper", **summary}
+    if args.json:
+        emit_json(summary)
+    else:
+        print(format_summary(summary, f"ball model: {summary['params']}; data: {args.data}"))
+    return 0
+
+
+def cmd_physics_fit(args) -> int:
+    """Fit aerodynamic and table coefficients on some players, judge on the held-out ones."""
+    import yaml
+
+    from ace_drake.analysis.match_data import event_pairs, load_match_events
+    from ace_drake.analysis.physics_fit import DEFAULT_FIT_PARAMETERS, fit_physics
+    from ace_drake.analysis.physics_validation import format_summary, predict_pairs, summarize
+
+    pairs = event_pairs(load_match_events(args.data))
+    players = sorted(set(pairs.players))
+    unknown = sorted(set(args.holdout_player) - set(players))
+    if unknown:
+        raise ConfigError(f"--holdout-player {unknown}: not in {args.data} (players: {players})")
+    held_out = np.isin(pairs.players, args.holdout_player)
+    if held_out.all():
+        raise ConfigError("--holdout-player: every player is held out; nothing is left to fit on")
+    initial = load_ball_params(args.params)
+    names = tuple(args.parameter or DEFAULT_FIT_PARAMETERS)
+    fit_players = sorted(set(pairs.players[~held_out]))
+    log(f"fitting {names} on {int((~held_out).sum())} pairs ({', '.join(fit_players)}); "
+        f"holding out {int(held_out.sum())} pairs ({', '.join(args.holdout_player)})")
+    result = fit_physics(pairs.subset(~held_out), initial, names, max_evaluations=args.max_evaluations, progress=log)
+    figures = {}
+    for label, mask in [("fit_players", ~held_out), ("held_out_players", held_out)]:
+        subset = pairs.subset(mask)
+        figures[label] = {
+            "initial": summarize(subset, predict_pairs(subset, initial)),
+            "fitted": summarize(subset, predict_pairs(subset, result.params)),
+        }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    nested: dict[str, dict] = {}
+    for name, value in result.values.items():
+        group, field = name.split(".")
+        nested.setdefault(group, {})[field] = round(value, 6)
+    header = (
+        "# Ball-model coefficients fitted to recorded match data by `ace-drake physics-fit`.\n"
+        "# Fields not listed keep the paper's defaults (ace_drake/config.py); how this file was\n"
+        f"# produced, and its held-out figures, are in {out.with_suffix('.json').name}.\n"
+    )
+    out.write_text(header + yaml.safe_dump(nested, sort_keys=True))
+    sidecar = {
+        "command": "ace-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "date": datetime.date.today().isoformat(),
+        "data": {"file": Path(args.data).name, "sha256": _sha256(args.data), "pairs": len(pairs)},
+        "fit_players": fit_players,
+        "held_out_players": sorted(args.holdout_player),
+        "initial_params": args.params or "paper",
+        "fitted": result.values,
+        "optimizer": {"evaluations": result.evaluations, "message": result.message,
+                      "initial_cost": result.initial_cost, "final_cost": result.final_cost},
+        "figures": figures,
+    }
+    out.with_suffix(".json").write_text(json.dumps(sidecar, indent=2, default=_json_default) + "\n")
+    log(f"wrote {out} and {out.with_suffix('.json')}")
+    if args.json:
+        emit_json({"command": "physics-fit", "params_file": str(out), **sidecar})
+    else:
+        for label in ("initial", "fitted"):
+            print(format_summary(figures["held_out_players"][label], f"\nheld-out players, {label} model"))
+    return 0
+
+
+def cmd_bench(args) -> int:
+    """Benchmarks by name; medians and ratios measured side by side."""
+    from ace_drake.analysis import bench
+
+    if args.name != "ball":
+        raise ConfigError(f"bench: unknown benchmark {args.name!r}; available: ball")
+    figures = bench.bench_ball(repeats=args.repeats, progress=log)
+    if args.json:
+        emit_json(figures)
+    else:
+        for name, rate in figures["ball_seconds_per_wall_second"].items():
+            print(f"{name:<28}{rate:>12.1f} ball-s per wall-s   (median {figures['wall_seconds_median'][name]:.3f} s per run)")
+        for name, ratio in figures["ratios"].items():
+            print(f"{name:<40}{ratio:>8.2f}")
+    return 0
+
+
+# ------------------------------------------------------------------------------ parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ace-drake", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    rally = commands.add_parser("rally", help="the main job (for now: the ball demo through the BallPlant)")
+    rally.add_argument("--html", default="out/rally.html", help="Meshcat replay to write ('' for none)")
+    rally.add_argument("--duration", type=float, default=1.2, help="simulated seconds per shot")
+    rally.add_argument("--spin", type=float, default=250.0, help="spin rate of the top/backspin shots, rad/s")
+    rally.add_argument("--seed", type=int, default=0)
+    rally.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
+    rally.add_argument("--json", action="store_true")
+    rally.set_defaults(run=cmd_rally)
+
+    validate = commands.add_parser("physics-validate", help="replay recorded events through the ball model")
+    validate.add_argument("--data", required=True, help="match-data CSV (format of ace_match_events_elite.csv)")
+    validate.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
+    validate.add_argument("--player", action="append", help="only these players (repeatable)")
+    validate.add_argument("--json", action="store_true")
+    validate.set_defaults(run=cmd_physics_validate)
+
+    fit = commands.add_parser("physics-fit", help="fit ball-model coefficients on some players")
+    fit.add_argument("--data", required=True, help="match-data CSV")
+    fit.add_argument("--holdout-player", action="append", required=True, help="player to hold out (repeatable)")
+    fit.add_argument("--parameter", action="append", help="coefficient to fit (repeatable; default: all of FIT_BOUNDS)")
+    fit.add_argument("--params", help="starting parameter YAML (default: the paper's model)")
+    fit.add_argument("--out", default=str(DEFAULT_FITTED_PARAMS), help="where to write the fitted YAML (+ .json sidecar)")
+    fit.add_argument("--max-evaluations", type=int, default=200)
+    fit.add_argument("--json", action="store_true")
+    fit.set_defaults(run=cmd_physics_fit)
+
+    bench = commands.add_parser("bench", help="benchmarks (medians, p99, ratios)")
+    bench.add_argument("name", help="which benchmark: ball")
+    bench.add_argument("--repeats", type=int, default=5)
+    bench.add_argument("--json", action="store_true")
+    bench.set_defaults(run=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except (ConfigError, ValueError, FileNotFoundError) as error:
+        log(f"ace-drake {args.command}: error: {error}")
+        return 2
+
+
+def _sha256(path: str) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
