@@ -93,3 +93,35 @@ def build_ball_diagram(
     diagram = builder.Build()
     diagram.set_name("ball_diagram")
     return diagram
+
+
+def _documented_ball_diagram() -> Diagram:
+    """The ball diagram as documented: with a (static) racket connected, no Meshcat."""
+    return build_ball_diagram(racket=StaticRacket(RigidTransform()))
+
+
+# name -> builder of the diagram whose graph ``ace-drake diagrams`` renders into diagrams/.
+DOCUMENTED_DIAGRAMS = {
+    "ball_diagram": _documented_ball_diagram,
+}
+
+
+def graphviz_dot(diagram: Diagram, max_depth: int = 1) -> str:
+    """The diagram's Graphviz DOT text, normalised so that the same wiring always gives the same
+    text: system ids renumbered from 0 in order of first appearance (Drake's ids are global
+    counters that depend on what else the process built) and the edge lines sorted (Drake emits
+    them in an order that can change between processes)."""
+    import re
+
+    dot = diagram.GetGraphvizString(max_depth=max_depth)
+    numbering: dict[str, str] = {}
+
+    def renumber(match: re.Match) -> str:
+        number = numbering.setdefault(match.group(2), str(len(numbering)))
+        return match.group(1) + number
+
+    lines = re.sub(r"\b(digraph _|cluster|s)(\d+)", renumber, dot).split("\n")
+    edge_rows = [i for i, line in enumerate(lines) if " -> " in line]
+    for row, line in zip(edge_rows, sorted(lines[i] for i in edge_rows)):
+        lines[row] = line
+    return "\n".join(lines)
