@@ -2,7 +2,7 @@
 
 The residual of one (shot or bounce) -> bounce pair is the predicted landing point, flight time
 and post-bounce velocity and spin minus the recorded ones (see physics_validation.py), each scaled
-by a typical measurement error so that the terms are comparable; a soft-L1 loss keeps badly
+by a typical measurement error so that the terms are comparable; a Cauchy loss keeps badly
 estimated recordings from dominating. Fit on some players, judge on the others.
 """
 
@@ -91,6 +91,13 @@ def pair_residuals(pairs: EventPairs, params: BallPhysicsParams, scales: Residua
     return np.where(np.isfinite(residuals), residuals, scales.missing)
 
 
+# Which residual columns (of pair_residuals) identify which coefficients: the landing point and
+# time depend only on the flight model (the start states are recorded), the post-bounce velocity
+# and spin mostly on the table model. Fitting the two groups in turn keeps each least-squares
+# problem small and well conditioned.
+STAGES = (("flight", "aero.", slice(0, 3)), ("bounce", "table.", slice(3, 9)))
+
+
 def fit_physics(
     pairs: EventPairs,
     initial: BallPhysicsParams | None = None,
@@ -98,50 +105,59 @@ def fit_physics(
     max_evaluations: int = 200,
     progress: Callable[[str], None] | None = None,
     scales: ResidualScales = ResidualScales(),
+    loss: str = "cauchy",
 ) -> FitResult:
     """Least-squares fit of the coefficients ``names`` (keys of FIT_BOUNDS) to ``pairs``.
 
-    Deterministic: the same data and start give the same result. ``progress`` receives a line per
-    model evaluation (cost and values).
+    Two stages (see STAGES): the ``aero.*`` coefficients on landing point and time, then the
+    ``table.*`` coefficients on post-bounce velocity and spin, each with SciPy's trust-region
+    least squares and at most ``max_evaluations`` model evaluations. The default Cauchy loss
+    gives a recording that is far off (estimation glitches, a p90 landing error of ~60 cm) little
+    pull, so the fit follows the bulk of the data, which the median error measures. Deterministic:
+    the same data and start give the same result. ``progress`` receives a line per evaluation.
     """
     if len(pairs) == 0:
         raise ValueError("fit_physics: no event pairs to fit")
     unknown = [n for n in names if n not in FIT_BOUNDS]
     if unknown:
         raise ValueError(f"fit_physics: cannot fit {unknown}; choose from {sorted(FIT_BOUNDS)}")
-    initial = initial or BallPhysicsParams()
-    names = tuple(names)
-    lower = np.array([FIT_BOUNDS[n][0] for n in names])
-    upper = np.array([FIT_BOUNDS[n][1] for n in names])
-    x0 = np.clip([get_value(initial, n) for n in names], lower, upper)
+    params = initial or BallPhysicsParams()
     evaluations = [0]
+    messages = []
+    costs = []
+    for stage, prefix, columns in STAGES:
+        stage_names = tuple(n for n in names if n.startswith(prefix))
+        if not stage_names:
+            continue
+        lower = np.array([FIT_BOUNDS[n][0] for n in stage_names])
+        upper = np.array([FIT_BOUNDS[n][1] for n in stage_names])
+        x0 = np.clip([get_value(params, n) for n in stage_names], lower, upper)
+        start = params
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        values = pair_residuals(pairs, with_values(initial, names, x), scales).ravel()
-        evaluations[0] += 1
-        if progress is not None:
-            cost = float(np.sum(np.log1p(values**2 / 1.0)))
-            progress(f"eval {evaluations[0]:3d}  robust cost {cost:10.1f}  " + "  ".join(f"{v:.4g}" for v in x))
-        return values
+        def residuals(x: np.ndarray, start=start, stage_names=stage_names, columns=columns, stage=stage) -> np.ndarray:
+            values = pair_residuals(pairs, with_values(start, stage_names, x), scales)[:, columns].ravel()
+            evaluations[0] += 1
+            if progress is not None:
+                cost = float(np.sum(np.log1p(values**2)))
+                progress(f"{stage} eval {evaluations[0]:3d}  Cauchy cost {cost:9.1f}  "
+                         + "  ".join(f"{n}={v:.4g}" for n, v in zip(stage_names, x)))
+            return values
 
-    result = least_squares(
-        residuals,
-        x0,
-        bounds=(lower, upper),
-        loss="soft_l1",
-        x_scale="jac",
-        diff_step=1e-3,
-        max_nfev=max_evaluations,
-    )
-    fitted = with_values(initial, names, result.x)
-    initial_cost = float(np.sum(2 * (np.sqrt(1 + residuals(x0) ** 2) - 1))) / 2
+        initial_cost = float(np.sum(np.log1p(residuals(x0) ** 2)))
+        result = least_squares(
+            residuals, x0, bounds=(lower, upper), loss=loss, x_scale="jac",
+            diff_step=1e-2, max_nfev=max_evaluations,
+        )
+        params = with_values(start, stage_names, result.x)
+        messages.append(f"{stage}: {result.message}")
+        costs.append((initial_cost, float(result.cost)))
     return FitResult(
-        params=fitted,
-        values={n: float(v) for n, v in zip(names, result.x)},
-        initial_cost=initial_cost,
-        final_cost=float(result.cost),
+        params=params,
+        values={n: float(get_value(params, n)) for n in names},
+        initial_cost=sum(c[0] for c in costs),
+        final_cost=sum(c[1] for c in costs),
         evaluations=evaluations[0],
-        message=str(result.message),
+        message="; ".join(messages),
     )
 
 

@@ -61,7 +61,7 @@ class RallyReplay:
 
     key: which rally; start_time: its first event's recorded timestamp, s (the replay's 0).
     times (T,) s and states (T, 9) [p (m), v (m/s), w (rad/s)]: the simulated ball, sampled every
-    LOG_PERIOD (two samples share the time of each shot: before and after its reset).
+    LOG_PERIOD s; the state jumps between the samples around each recorded shot (the reset).
     contact_events: the simulated table, net and floor contacts, in time order.
     recorded: the recorded events replayed (those with a full state), in time order.
     bounces: one comparison per recorded bounce.
@@ -144,10 +144,13 @@ def replay_rally(
     The ball starts at the first event's recorded post-event state (normally the serve) and is set
     to the recorded post-shot state at each later shot. Events with NaN velocity or spin (some net
     events) are left out. Raises ValueError for an unknown or ambiguous rally, or events from more
-    than one rally without ``rally``.
+    than one rally without ``rally``. Each call builds one diagram, which Drake 1.51 never frees:
+    fine for a few rallies per process, not for thousands.
     """
     if rally is not None:
         events = select_rally(events, rally, player)
+    elif player is not None:
+        raise ValueError(f"replay_rally: player={player!r} given without rally=; pass the rally id too")
     else:
         keys = rally_keys(events)
         if len(keys) != 1:

@@ -1,0 +1,33 @@
+"""The tutorials run from start to end and write their files."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DATA = REPO_ROOT.parent / "shared/data/ace_match_events_elite.csv"
+EMPTY_MESHCAT_HTML = 2.3e6  # bytes: StaticHtml of an empty scene is about 2.2 MB of viewer code
+
+
+def test_tutorial_01_ball_flight_writes_png_and_html(tmp_path):
+    script = REPO_ROOT / "tutorials/01_ball_flight.py"
+    run = subprocess.run(
+        [sys.executable, str(script), "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO_ROOT,
+    )
+    assert run.returncode == 0, run.stderr
+    png = tmp_path / "ball_flight.png"
+    assert png.is_file() and png.stat().st_size > 50_000
+    html = [tmp_path / "spin_comparison.html"]
+    if DATA.is_file():
+        html.append(tmp_path / "rally_replay.html")
+        assert "median distance" in run.stdout
+    else:
+        assert "skipping part 3" in run.stdout
+    for path in html:
+        assert path.is_file() and path.stat().st_size > EMPTY_MESHCAT_HTML, path
+        assert "animation" in path.read_text()
+        assert str(path) in run.stdout
