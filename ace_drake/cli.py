@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams, ConfigError, load_config
+from ace_drake.config import BallPhysicsParams, ConfigError, load_config, to_dict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MODELS = REPO_ROOT / "models"
@@ -120,25 +120,29 @@ def cmd_physics_fit(args) -> int:
     log(f"fitting {names} on {int((~held_out).sum())} pairs ({', '.join(fit_players)}); "
         f"holding out {int(held_out.sum())} pairs ({', '.join(args.holdout_player)})")
     result = fit_physics(pairs.subset(~held_out), initial, names, max_evaluations=args.max_evaluations, progress=log)
-    figures = {}
-    for label, mask in [("fit_players", ~held_out), ("held_out_players", held_out)]:
-        subset = pairs.subset(mask)
-        figures[label] = {
-            "initial": summarize(subset, predict_pairs(subset, initial)),
-            "fitted": summarize(subset, predict_pairs(subset, result.params)),
-        }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    # Every field that was fitted or differs from the paper's defaults (a --params start), rounded.
+    final, defaults = to_dict(result.params), to_dict(BallPhysicsParams())
     nested: dict[str, dict] = {}
-    for name, value in result.values.items():
-        group, field = name.split(".")
-        nested.setdefault(group, {})[field] = round(value, 6)
+    for group, fields in final.items():
+        for field, value in fields.items():
+            if f"{group}.{field}" in result.values or value != defaults[group][field]:
+                nested.setdefault(group, {})[field] = round(value, 6) if isinstance(value, float) else value
     header = (
         "# Ball-model coefficients fitted to recorded match data by `ace-drake physics-fit`.\n"
         "# Fields not listed keep the paper's defaults (ace_drake/config.py); how this file was\n"
         f"# produced, and its held-out figures, are in {out.with_suffix('.json').name}.\n"
     )
     out.write_text(header + yaml.safe_dump(nested, sort_keys=True))
+    fitted = load_ball_params(str(out))  # the figures are those of the file as written (rounded)
+    figures = {}
+    for label, mask in [("fit_players", ~held_out), ("held_out_players", held_out)]:
+        subset = pairs.subset(mask)
+        figures[label] = {
+            "initial": summarize(subset, predict_pairs(subset, initial)),
+            "fitted": summarize(subset, predict_pairs(subset, fitted)),
+        }
     sidecar = {
         "command": "ace-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
         "date": datetime.date.today().isoformat(),
