@@ -10,10 +10,9 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from ace_drake.config import BallPhysicsParams
-from ace_drake.physics.contact import racket_impact, racket_restitution
+from ace_drake.physics.contact import racket_contact_features, racket_impact, racket_restitution
 from ace_drake.physics.racket_residual import (
     RacketResidualMLP,
-    contact_features,
     fit_racket_residual,
     load_residual,
     save_residual,
@@ -63,7 +62,7 @@ def _planted(features):
 def _observed(pre, v_racket, R_WC, offsets, rng=None):
     """'True' post states = linear model + planted distortion (+ small noise if rng); and the distortion."""
     v, w = pre[:, 3:6], pre[:, 6:9]
-    distortion = _planted(contact_features(v, w, v_racket, R_WC, offsets))
+    distortion = _planted(racket_contact_features(v, w, v_racket, R_WC, offsets))
     v_lin, w_lin = racket_impact(v, w, v_racket, R_WC, PARAMS.racket, RADIUS)
     post = pre.copy()
     post[:, 3:6] = v_lin + np.einsum("nij,nj->ni", R_WC, distortion[:, :3])
@@ -88,7 +87,7 @@ def test_fresh_model_is_exactly_the_linear_model():
     pre, v_racket, R_WC, offsets = _contacts(200, seed=3)
     v, w = pre[:, 3:6], pre[:, 6:9]
     residual = model.as_numpy()
-    correction = residual(contact_features(v, w, v_racket, R_WC, offsets))
+    correction = residual(racket_contact_features(v, w, v_racket, R_WC, offsets))
     assert correction.dtype == np.float64 and correction.shape == (200, 6)
     assert np.all(correction == 0.0)
     plain = racket_impact(v, w, v_racket, R_WC, PARAMS.racket, RADIUS)
@@ -111,12 +110,12 @@ def test_contact_features_are_what_racket_impact_passes():
         return np.tile(constant, (len(features), 1))
 
     v_post, w_post = racket_impact(v, w, v_racket, R_WC, PARAMS.racket, RADIUS, offsets, recording)
-    features = contact_features(v, w, v_racket, R_WC, offsets)
+    features = racket_contact_features(v, w, v_racket, R_WC, offsets)
     np.testing.assert_array_equal(seen[0], features)
     np.testing.assert_allclose(features[:, :3], np.einsum("nji,nj->ni", R_WC, v - v_racket), atol=1e-12)
     np.testing.assert_allclose(features[:, 3:6], np.einsum("nji,nj->ni", R_WC, w), atol=1e-12)
     np.testing.assert_array_equal(features[:, 6:], offsets)
-    np.testing.assert_array_equal(contact_features(v, w, v_racket, R_WC)[:, 6:], 0.0)
+    np.testing.assert_array_equal(racket_contact_features(v, w, v_racket, R_WC)[:, 6:], 0.0)
     # The correction is added in C: post - linear post = R_WC constant.
     v_lin, w_lin = racket_impact(v, w, v_racket, R_WC, PARAMS.racket, RADIUS)
     np.testing.assert_allclose(v_post - v_lin, R_WC @ constant[:3], atol=1e-12)
@@ -145,7 +144,7 @@ def test_fit_recovers_planted_distortion():
     # On fresh contacts the predicted correction is the planted distortion.
     pre, v_racket, R_WC, offsets = _contacts(2000, seed=1)
     _, planted = _observed(pre, v_racket, R_WC, offsets)
-    predicted = model.as_numpy()(contact_features(pre[:, 3:6], pre[:, 6:9], v_racket, R_WC, offsets))
+    predicted = model.as_numpy()(racket_contact_features(pre[:, 3:6], pre[:, 6:9], v_racket, R_WC, offsets))
     r2_velocity, r2_spin = _r2(predicted[:, :3], planted[:, :3]), _r2(predicted[:, 3:], planted[:, 3:])
     print(f"held-out R^2 of the correction: velocity {r2_velocity:.4f}, spin {r2_spin:.4f}")
     assert r2_velocity > 0.8

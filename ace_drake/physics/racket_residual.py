@@ -10,8 +10,9 @@ blade normal, towards the ball) and predicts additive corrections to the post-co
 
 ``racket_impact(..., residual=model.as_numpy())`` adds them to the linear model's post-contact
 velocity (relative to the racket) and spin before rotating back to world. A fresh network outputs
-exactly zero, so an untrained model is the linear model. ``fit_racket_residual`` fits one to
-observed (pre, post) contact pairs; ``save_residual`` / ``load_residual`` store it.
+exactly zero, so an untrained model is the linear model. ``contact.racket_contact_features``
+computes the features; ``fit_racket_residual`` fits a network to observed (pre, post) contact
+pairs; ``save_residual`` / ``load_residual`` store it.
 """
 
 from __future__ import annotations
@@ -101,19 +102,6 @@ class NumpyResidual:
         with torch.no_grad():
             out = self.model(torch.as_tensor(features, dtype=torch.float32))
         return out.numpy().astype(np.float64)
-
-
-def contact_features(v_W, w_W, v_WRc, R_WC, contact_offset=None) -> np.ndarray:
-    """The residual's input features (N, 8), computed exactly as ``racket_impact`` does.
-
-    Args:
-        v_W, w_W: (N, 3) ball velocity (m/s) and spin (rad/s) before contact, world frame.
-        v_WRc: (N, 3) velocity of the racket's material point at the contact, m/s.
-        R_WC: (N, 3, 3) contact frame in world (z = blade normal towards the ball).
-        contact_offset: (N, 2) contact point on the blade in C's x-y, m; None is the centre.
-    Returns [R_WC^T (v_W - v_WRc), R_WC^T w_W, contact_offset], (N, 8).
-    """
-    return racket_contact_features(v_W, w_W, v_WRc, R_WC, contact_offset)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,7 +199,7 @@ def fit_racket_residual(
     racket, radius = params.racket, params.aero.ball_radius
     v_pre, w_pre = pre_states[:, VELOCITY], pre_states[:, SPIN]
     v_obs, w_obs = post_states[:, VELOCITY], post_states[:, SPIN]
-    features = contact_features(v_pre, w_pre, racket_velocities, R_WC, contact_offsets)
+    features = racket_contact_features(v_pre, w_pre, racket_velocities, R_WC, contact_offsets)
     v_lin, w_lin = racket_impact(v_pre, w_pre, racket_velocities, R_WC, racket, radius)
     targets = np.concatenate(
         [np.einsum("nji,nj->ni", R_WC, v_obs - v_lin), np.einsum("nji,nj->ni", R_WC, w_obs - w_lin)], -1
