@@ -11,17 +11,22 @@ from ace_drake.config import BallPhysicsParams
 
 TABLE_COLOR = Rgba(0.05, 0.2, 0.45, 1.0)
 LINE_COLOR = Rgba(0.95, 0.95, 0.95, 1.0)
-NET_COLOR = Rgba(0.1, 0.1, 0.1, 0.6)
+NET_COLOR = Rgba(0.92, 0.92, 0.92, 0.85)
 BALL_COLOR = Rgba(1.0, 0.55, 0.0, 1.0)
 TRAIL_COLOR = Rgba(1.0, 0.75, 0.3, 0.6)
 
 
 def draw_table(meshcat: Meshcat, params: BallPhysicsParams, prefix: str = "/table") -> None:
-    """Adds the table top, its white lines, the net, four legs and the floor to ``meshcat``.
+    """Adds the table top, its white lines, the net, four legs and the floor to ``meshcat``, hides
+    Meshcat's grid and axes (the grid would cut through the scene at the playing surface) and
+    places the camera behind the robot's end of the table.
 
     The playing surface is at z = 0 (DESIGN.md frame); all sizes come from ``params``.
     """
     table, net = params.table, params.net
+    meshcat.SetProperty("/Grid", "visible", False)
+    meshcat.SetProperty("/Axes", "visible", False)
+    meshcat.SetCameraPose(np.array([-2.4, -1.5, 0.7]), np.array([0.2, 0.0, 0.0]))
     top_thickness = 0.03
     meshcat.SetObject(f"{prefix}/top", Box(table.length, table.width, top_thickness), TABLE_COLOR)
     meshcat.SetTransform(f"{prefix}/top", RigidTransform([0, 0, -0.5 * top_thickness]))
@@ -37,7 +42,7 @@ def draw_table(meshcat: Meshcat, params: BallPhysicsParams, prefix: str = "/tabl
         meshcat.SetObject(f"{prefix}/lines/{name}", shape, LINE_COLOR)
         meshcat.SetTransform(f"{prefix}/lines/{name}", RigidTransform(position))
     span = table.width + 2 * net.overhang
-    meshcat.SetObject(f"{prefix}/net", Box(0.004, span, net.height), NET_COLOR)
+    meshcat.SetObject(f"{prefix}/net", Box(0.01, span, net.height), NET_COLOR)
     meshcat.SetTransform(f"{prefix}/net", RigidTransform([0, 0, 0.5 * net.height]))
     leg_height = table.surface_height - top_thickness
     for i, (sx, sy) in enumerate([(1, 1), (1, -1), (-1, 1), (-1, -1)]):
