@@ -348,3 +348,13 @@ def test_simulate_rejects_bad_input():
         simulate(np.full(9, np.nan), PARAMS, 1.0)
     with pytest.raises(ValueError, match="dt"):
         simulate(np.zeros(9), PARAMS, 1.0, dt=0.0)
+
+
+def test_ball_entering_the_table_footprint_below_the_surface_is_no_table_contact():
+    # 1 cm below the playing surface, beside the table, moving under it: no top contact.
+    start = make_state([0.5, 0.5 * PARAMS.table.width + 0.1, -0.01], [0.0, -3.0, 0.0])
+    trajectory = simulate(start, PARAMS, 0.2, kinds=(ContactKind.TABLE,))
+    assert trajectory.events[0] == []
+    # The same ball 5 cm above the surface falls onto the table top.
+    above = make_state([0.5, 0.5 * PARAMS.table.width + 0.1, 0.05], [0.0, -3.0, 0.0])
+    assert simulate(above, PARAMS, 0.3, kinds=(ContactKind.TABLE,)).events[0][0].kind == ContactKind.TABLE

@@ -76,6 +76,16 @@ def contact_gap(kind: ContactKind, state: np.ndarray, params: BallPhysicsParams)
     raise ValueError(f"contact_gap: no static guard for {kind!r} (racket contact lives in BallPlant)")
 
 
+def is_contact(kind: ContactKind, state: np.ndarray, params: BallPhysicsParams) -> bool:
+    """Whether a guard crossing of ``kind`` at (9,) ``state`` is a real contact.
+
+    A ball that enters the table's footprint from the side below the playing surface crosses the
+    table guard without touching the top: that is not a table contact (the table's sides are not
+    modelled). Every other crossing is a contact.
+    """
+    return not (kind == ContactKind.TABLE and state[2] < params.aero.ball_radius - 1e-6)
+
+
 def apply_impact(
     kind: ContactKind,
     state: np.ndarray,
@@ -169,8 +179,7 @@ def simulate(
             for j, row in enumerate(rows[hit]):
                 kind = kinds[kind_index[j]]
                 time = t + elapsed[row] + tau[j]
-                if kind == ContactKind.TABLE and x_pre[j, 2] < params.aero.ball_radius - 1e-6:
-                    # Entered the table's footprint from the side below the surface: no top contact.
+                if not is_contact(kind, x_pre[j], params):
                     x_post = x_pre[j]
                 else:
                     x_post = apply_impact(kind, x_pre[j], params, rng)

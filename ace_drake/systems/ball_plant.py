@@ -17,7 +17,7 @@ from ace_drake.config import BallPhysicsParams
 from ace_drake.physics import contact
 from ace_drake.physics.contact import ResidualModel
 from ace_drake.physics.flight import flight_acceleration
-from ace_drake.physics.propagate import ContactEvent, ContactKind, apply_impact, contact_gap
+from ace_drake.physics.propagate import ContactEvent, ContactKind, apply_impact, contact_gap, is_contact
 
 
 class BallPlant(LeafSystem):
@@ -133,8 +133,8 @@ class BallPlant(LeafSystem):
     # ------------------------------------------------------------------------------ contacts
     def _ApplyContact(self, context, state, kind: ContactKind) -> None:
         pre = self._state(context)
-        if kind == ContactKind.TABLE and pre[2] < self.params.aero.ball_radius - 1e-6:
-            return  # entered the table's footprint from the side, below the surface: no top contact
+        if not is_contact(kind, pre, self.params):
+            return
         rng = None
         if self._perturb and kind == ContactKind.TABLE:
             seed = int(context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
