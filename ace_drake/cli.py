@@ -7,6 +7,7 @@ logs go to stderr.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import hashlib
 import json
@@ -165,6 +166,56 @@ def cmd_physics_fit(args) -> int:
     return 0
 
 
+def cmd_sysid(args) -> int:
+    """Identify each logged joint's delayed second-order model (paper eq. (9)); write the config."""
+    import yaml
+
+    from ace_drake.config import JOINT_NAMES, RobotDynamicsParams
+    from ace_drake.control.joint_model import ramp_tracking_lag
+    from ace_drake.control.sysid import identify_joint, load_joint_log
+
+    joint_log = load_joint_log(args.log)
+    unknown = sorted(set(joint_log.commands) - set(JOINT_NAMES))
+    if unknown:
+        raise ConfigError(f"{args.log}: unknown joint(s) {unknown}; the robot's joints are {list(JOINT_NAMES)}")
+    defaults = RobotDynamicsParams()
+    identified = {}
+    for name in joint_log.commands:
+        log(f"identifying {name} from {joint_log.times.size} samples at {1 / joint_log.period:.0f} Hz")
+        result = identify_joint(joint_log.times, joint_log.commands[name], joint_log.positions[name])
+        identified[name] = result
+        log(f"  K {result.process.gain:.4f}  w {result.process.natural_frequency:.1f} rad/s  "
+            f"zeta {result.process.damping_ratio:.3f}  tau_d {1000 * result.process.delay:.3f} ms  fit {result.fit_percent:.2f} %")
+    joints = [identified[n].params if n in identified else defaults.joints[i] for i, n in enumerate(JOINT_NAMES)]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    header = (
+        "# Joint dynamics (paper eq. (9)) identified by `ace-drake sysid`; joints in the order\n"
+        f"# {', '.join(JOINT_NAMES)}. Joints absent from the log keep the defaults. See {out.with_suffix('.json').name}.\n"
+    )
+    body = {"joints": [{"a": list(j.a), "b": list(j.b), "delay": j.delay} for j in joints],
+            "command_period": joint_log.period}
+    out.write_text(header + yaml.safe_dump(body, sort_keys=False))
+    load_config(RobotDynamicsParams, out)  # what was written must load
+    report = {
+        name: {**dataclasses.asdict(r.process), "rms_error": r.rms_error, "fit_percent": r.fit_percent,
+               "ramp_tracking_lag_s": ramp_tracking_lag(r.params)}
+        for name, r in identified.items()
+    }
+    sidecar = {
+        "command": "ace-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "date": datetime.date.today().isoformat(),
+        "log": {"file": Path(args.log).name, "sha256": _sha256(args.log), "samples": int(joint_log.times.size)},
+        "identified": report,
+        "defaulted": [n for n in JOINT_NAMES if n not in identified],
+    }
+    out.with_suffix(".json").write_text(json.dumps(sidecar, indent=2) + "\n")
+    log(f"wrote {out} and {out.with_suffix('.json')}")
+    if args.json:
+        emit_json({"params_file": str(out), **sidecar})
+    return 0
+
+
 def cmd_bench(args) -> int:
     """Benchmarks by name; medians and ratios measured side by side."""
     from ace_drake.analysis import bench
@@ -241,6 +292,12 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--max-evaluations", type=int, default=200)
     fit.add_argument("--json", action="store_true")
     fit.set_defaults(run=cmd_physics_fit)
+
+    sysid = commands.add_parser("sysid", help="identify the joints' delayed LTI models from a log")
+    sysid.add_argument("--log", required=True, help="CSV: time, <joint>_command, <joint>_position per joint")
+    sysid.add_argument("--out", default=str(MODELS / "joint_dynamics_identified.yaml"))
+    sysid.add_argument("--json", action="store_true")
+    sysid.set_defaults(run=cmd_sysid)
 
     bench = commands.add_parser("bench", help="benchmarks (medians, p99, ratios)")
     bench.add_argument("name", help="which benchmark: ball")

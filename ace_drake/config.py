@@ -148,6 +148,53 @@ class BallPhysicsParams:
 
 
 # ----------------------------------------------------------------------------------------------
+# Robot joint dynamics
+# ----------------------------------------------------------------------------------------------
+
+JOINT_NAMES = ("gantry_x", "gantry_y", "shoulder_yaw", "shoulder_pitch", "elbow", "wrist_1", "wrist_2", "wrist_3")
+
+
+@dataclasses.dataclass(frozen=True)
+class JointDynamicsParams:
+    """One joint of paper eq. (9): d/dt [q, q_aux] = A [q, q_aux] + b q*(t - tau_d), output q.
+
+    a: A in row-major order (4,); b: (2,); delay: tau_d, s. Here q_aux is the joint velocity, so
+    A = [[0, 1], [a21, a22]] and b = [0, b2] (the form ``control.joint_model`` and the system
+    identification produce); A must be Hurwitz. The paper publishes no values: the defaults are a
+    stiff, slightly underdamped servo (natural frequency 1000 rad/s, damping ratio 0.9, unit gain)
+    with a 2 ms input delay, i.e. a ramp-tracking lag tau_d + 2 zeta / omega = 3.8 ms, under the
+    paper's 5 ms.
+    """
+
+    a: tuple[float, ...] = (0.0, 1.0, -1.0e6, -1800.0)
+    b: tuple[float, ...] = (0.0, 1.0e6)
+    delay: float = 0.002
+
+    def __post_init__(self) -> None:
+        if len(self.a) != 4 or len(self.b) != 2:
+            raise ConfigError(f"a needs 4 values (row-major 2x2) and b 2, got {len(self.a)} and {len(self.b)}")
+        if self.a[0] != 0.0 or self.a[1] != 1.0 or self.b[0] != 0.0:
+            raise ConfigError(f"expected A = [[0, 1], [a21, a22]] and b = [0, b2] (q_aux = velocity), got a={self.a}, b={self.b}")
+        if not (self.a[2] < 0.0 and self.a[3] < 0.0):
+            raise ConfigError(f"A must be Hurwitz (a21 < 0 and a22 < 0), got a={self.a}")
+        if not 0.0 <= self.delay < 0.1:
+            raise ConfigError(f"delay must be in [0, 0.1) s, got {self.delay}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotDynamicsParams:
+    """The eight joints' dynamics (paper eq. (9)), in JOINT_NAMES order, and the command period."""
+
+    joints: tuple[JointDynamicsParams, ...] = tuple(JointDynamicsParams() for _ in JOINT_NAMES)
+    command_period: float = 0.001  # s, the 1 kHz robot interface
+
+    def __post_init__(self) -> None:
+        if len(self.joints) != len(JOINT_NAMES):
+            raise ConfigError(f"joints: expected {len(JOINT_NAMES)} ({', '.join(JOINT_NAMES)}), got {len(self.joints)}")
+        _require_positive(self, "command_period")
+
+
+# ----------------------------------------------------------------------------------------------
 # Loading
 # ----------------------------------------------------------------------------------------------
 

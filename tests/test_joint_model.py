@@ -1,0 +1,57 @@
+"""Joint model of paper eq. (9): exact sampling with fractional delays, conversions."""
+
+import numpy as np
+import pytest
+
+from ace_drake.config import ConfigError, JointDynamicsParams, RobotDynamicsParams, from_dict
+from ace_drake.control.joint_model import ProcessModel, discretize, ramp_tracking_lag, simulate_joint, step_response
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.001, 0.0023, 0.0049])
+def test_sampled_step_matches_the_analytic_response(delay):
+    joint = ProcessModel(1.0, 800.0, 0.7, delay).to_state_space()
+    command = np.r_[np.zeros(5), np.ones(55)]
+    times = np.arange(60) * 1e-3
+    np.testing.assert_allclose(simulate_joint(joint, command, 1e-3), step_response(joint, times - 0.005), atol=1e-12)
+
+
+def test_nothing_moves_before_the_delay_has_passed():
+    joint = ProcessModel(1.0, 1000.0, 0.9, 0.0034).to_state_space()
+    q = simulate_joint(joint, np.r_[0.0, np.ones(20)], 1e-3)  # the step is applied from t = 1 ms
+    assert np.all(q[:5] == 0.0)  # 1 + 3.4 ms: samples 0..4 are before it acts
+    assert q[5] > 0.0
+
+
+def test_step_response_hand_worked():
+    # Critically damped, w = 100 rad/s, no delay: q(t) = 1 - (1 + w t) e^{-w t}.
+    joint = ProcessModel(1.0, 100.0, 1.0, 0.0).to_state_space()
+    t = np.array([0.0, 0.01, 0.03])
+    np.testing.assert_allclose(step_response(joint, t), 1 - (1 + 100 * t) * np.exp(-100 * t), atol=1e-12)
+
+
+def test_process_model_round_trip_and_default_lag():
+    process = ProcessModel(1.05, 700.0, 0.8, 0.0021)
+    back = ProcessModel.from_state_space(process.to_state_space())
+    for field in ("gain", "natural_frequency", "damping_ratio", "delay"):
+        assert getattr(back, field) == pytest.approx(getattr(process, field), rel=1e-12)
+    default = JointDynamicsParams()
+    assert ramp_tracking_lag(default) == pytest.approx(0.002 + 2 * 0.9 / 1000)
+    assert ramp_tracking_lag(default) < 0.005  # the paper's tracking delay bound
+
+
+def test_discretize_splits_whole_and_fractional_periods():
+    phi, gamma0, gamma1, k = discretize(ProcessModel(1.0, 500.0, 0.8, 0.0025).to_state_space(), 1e-3)
+    assert k == 2
+    # DC: a constant input u held for ever gives zeta = (I - Phi)^-1 (Gamma0 + Gamma1) u = [u, 0].
+    np.testing.assert_allclose(np.linalg.solve(np.eye(2) - phi, gamma0 + gamma1), [1.0, 0.0], atol=1e-12)
+
+
+def test_config_rejects_unphysical_joints():
+    with pytest.raises(ConfigError, match="Hurwitz"):
+        JointDynamicsParams(a=(0.0, 1.0, 1e6, -10.0))
+    with pytest.raises(ConfigError, match="q_aux = velocity"):
+        JointDynamicsParams(a=(1.0, 1.0, -1e6, -10.0))
+    with pytest.raises(ConfigError, match="joints"):
+        from_dict(RobotDynamicsParams, {"joints": [{}] * 3})
+    with pytest.raises(ValueError, match="non-empty"):
+        simulate_joint(JointDynamicsParams(), np.zeros((2, 2)), 1e-3)
