@@ -53,7 +53,7 @@ def cmd_rally(args) -> int:
     meshcat = Meshcat() if args.html else None
     log("ball demo: the same launch with topspin, no spin and backspin through the BallPlant")
     results = run_shots(spin_comparison_shots(args.spin), params, duration=args.duration, meshcat=meshcat, seed=args.seed)
-    rows = summarize_shots(results)
+    rows = summarize_shots(results, params)
     if args.html:
         path = Path(args.html)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -145,8 +145,7 @@ def cmd_physics_fit(args) -> int:
             "fitted": summarize(subset, predict_pairs(subset, fitted)),
         }
     sidecar = {
-        "command": "ace-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "date": datetime.date.today().isoformat(),
+        **_provenance(),
         "data": {"file": Path(args.data).name, "sha256": _sha256(args.data), "pairs": len(pairs)},
         "fit_players": fit_players,
         "held_out_players": sorted(args.holdout_player),
@@ -203,8 +202,7 @@ def cmd_sysid(args) -> int:
         for name, r in identified.items()
     }
     sidecar = {
-        "command": "ace-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "date": datetime.date.today().isoformat(),
+        **_provenance(),
         "log": {"file": Path(args.log).name, "sha256": _sha256(args.log), "samples": int(joint_log.times.size)},
         "identified": report,
         "defaulted": [n for n in JOINT_NAMES if n not in identified],
@@ -318,6 +316,14 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError, FileNotFoundError) as error:
         log(f"ace-drake {args.command}: error: {error}")
         return 2
+
+
+def _provenance() -> dict:
+    """The command line and date that every artefact's sidecar records."""
+    return {
+        "command": "ace-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "date": datetime.date.today().isoformat(),
+    }
 
 
 def _sha256(path: str) -> str:

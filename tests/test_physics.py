@@ -1,13 +1,12 @@
 """Ball physics: eq. (1), eqs (2)-(8), net and floor maps, against hand-worked numbers."""
 
-import dataclasses
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ace_drake.config import AeroParams, BallPhysicsParams, ConfigError, NetParams, TableParams, from_dict
+from ace_drake.config import AeroParams, BallPhysicsParams, ConfigError, from_dict
 from ace_drake.physics import contact
 from ace_drake.physics.flight import flight_acceleration, magnus_coefficient, make_state, rk4_step
 from ace_drake.physics.propagate import ContactKind, apply_impact, simulate

@@ -90,8 +90,9 @@ def run_shots(
     return results
 
 
-def summarize_shots(results: list[ShotResult]) -> list[dict]:
+def summarize_shots(results: list[ShotResult], params: BallPhysicsParams | None = None) -> list[dict]:
     """Per shot: net clearance (m), first bounce position (m), time (s), speed and spin after it."""
+    net_height = (params or BallPhysicsParams()).net.height
     rows = []
     for result in results:
         crossing = np.flatnonzero(np.diff(np.sign(result.states[:, 0])) > 0)
@@ -100,7 +101,7 @@ def summarize_shots(results: list[ShotResult]) -> list[dict]:
             i = crossing[0]
             fraction = -result.states[i, 0] / (result.states[i + 1, 0] - result.states[i, 0])
             height = result.states[i, 2] + fraction * (result.states[i + 1, 2] - result.states[i, 2])
-            net_clearance = float(height - 0.1525)
+            net_clearance = float(height - net_height)
         bounce = result.first(ContactKind.TABLE)
         row = {
             "shot": result.name,

@@ -28,7 +28,8 @@ class PairPredictions:
 
     landing_error (N,) m, horizontal distance; time_error (N,) s, predicted minus recorded;
     velocity_error (N,) m/s and spin_error (N,) rad/s, norms of post-bounce differences;
-    predicted_contact (N, 9) state just before the predicted contact.
+    predicted_contact (N, 9) and predicted_post (N, 9): the states just before and just after the
+    predicted contact (after: the table model, eqs (2)-(6)).
     """
 
     landing_error: np.ndarray

@@ -15,7 +15,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
