@@ -216,10 +216,15 @@ def cmd_sysid(args) -> int:
 
 def cmd_bench(args) -> int:
     """Benchmarks by name; medians and ratios measured side by side."""
+    runners = {"ball": _bench_ball, "reach": _bench_reach}
+    if args.name not in runners:
+        raise ConfigError(f"bench: unknown benchmark {args.name!r}; available: {', '.join(runners)}")
+    return runners[args.name](args)
+
+
+def _bench_ball(args) -> int:
     from ace_drake.analysis import bench
 
-    if args.name != "ball":
-        raise ConfigError(f"bench: unknown benchmark {args.name!r}; available: ball")
     figures = bench.bench_ball(repeats=args.repeats, progress=log)
     if args.json:
         emit_json(figures)
@@ -228,6 +233,34 @@ def cmd_bench(args) -> int:
             print(f"{name:<28}{rate:>12.1f} ball-s per wall-s   (median {figures['wall_seconds_median'][name]:.3f} s per run)")
         for name, ratio in figures["ratios"].items():
             print(f"{name:<40}{ratio:>8.2f}")
+    return 0
+
+
+def _bench_reach(args) -> int:
+    from ace_drake.analysis.reach import bench_reach, robot_contact_points
+    from ace_drake.robot_model import RobotModel, load_scenario
+
+    if not args.data:
+        raise ConfigError("bench reach: --data FILE (a match-data CSV with shot_p1 events) is required")
+    points = robot_contact_points(args.data)
+    model = RobotModel(load_scenario(args.scenario))
+    log(f"bench reach: {len(points)} robot contact points from {args.data}, and their mirror in y")
+    figures = bench_reach(model, points, seed=args.seed, progress=log)
+    figures.update({"data": args.data, "data_sha256": _sha256(args.data), "scenario": str(args.scenario or "models/scenario.yaml")})
+    if args.json:
+        emit_json(figures)
+        return 0
+    for name in ("reach", "reach_mirrored_y"):
+        row = figures[name]
+        print(
+            f"{name:<18}{row['reached']:>5}/{row['points']:<5} reached ({100 * row['fraction_reached']:.1f}%)   "
+            f"IK solve median {1e3 * row['solve_time_median_s']:.1f} ms, p99 {1e3 * row['solve_time_p99_s']:.0f} ms"
+        )
+    swing = figures["fastest_swing"]
+    print(
+        f"fastest +x swing at hitting height: {figures['max_racket_speed_x_m_s']:.1f} m/s "
+        f"(racket at {swing['racket_position_m']} m, face {swing['normal_angle_deg']:.0f} deg from +x)"
+    )
     return 0
 
 
@@ -298,8 +331,11 @@ def build_parser() -> argparse.ArgumentParser:
     sysid.set_defaults(run=cmd_sysid)
 
     bench = commands.add_parser("bench", help="benchmarks (medians, p99, ratios)")
-    bench.add_argument("name", help="which benchmark: ball")
-    bench.add_argument("--repeats", type=int, default=5)
+    bench.add_argument("name", help="which benchmark: ball, reach")
+    bench.add_argument("--repeats", type=int, default=5, help="ball: timed runs per case")
+    bench.add_argument("--data", help="reach: match-data CSV whose shot_p1 events are the contact points")
+    bench.add_argument("--scenario", help="reach: robot scenario YAML (default models/scenario.yaml)")
+    bench.add_argument("--seed", type=int, default=0, help="reach: seed of the swing-speed search")
     bench.add_argument("--json", action="store_true")
     bench.set_defaults(run=cmd_bench)
 

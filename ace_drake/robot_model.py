@@ -1,0 +1,213 @@
+"""The robot's MultibodyPlant: loading a scenario, its limits, racket kinematics, inverse kinematics.
+
+One place builds the robot (``add_robot_to_plant``) for every use: the simulation diagrams (a
+kinematics-only plant registered with the diagram's SceneGraph for Meshcat, driven by
+``RobotKinematics``), and ``RobotModel``, a self-contained plant with its own SceneGraph for
+analysis (reach, inverse kinematics, collision queries). The plant's position vector is in
+``JOINT_NAMES`` order; velocities likewise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.multibody.inverse_kinematics import InverseKinematics
+from pydrake.multibody.math import SpatialVelocity
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import JacobianWrtVariable, ModelInstanceIndex
+from pydrake.planning import RobotDiagramBuilder
+from pydrake.solvers import Solve
+
+from ace_drake.config import JOINT_NAMES, ConfigError, Pose, RobotScenario, load_config
+
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+DEFAULT_SCENARIO = MODELS_DIR / "scenario.yaml"
+ROBOT_MODEL_NAME = "ace_robot"
+RACKET_FRAME = "racket_blade"  # origin at the blade centre, z along the forehand normal
+BALL_CUP_FRAME = "ball_cup"
+
+
+def load_scenario(path: str | Path | None = None) -> RobotScenario:
+    """The robot scenario from the ``robot`` section of a scenario YAML (default models/scenario.yaml)."""
+    return load_config(RobotScenario, path or DEFAULT_SCENARIO, section="robot")
+
+
+def pose_to_transform(pose: Pose) -> RigidTransform:
+    """The RigidTransform of a config Pose (xyz in m, roll-pitch-yaw in degrees)."""
+    return RigidTransform(RollPitchYaw(np.radians(pose.rpy_deg)), np.asarray(pose.xyz, dtype=float))
+
+
+def add_robot_to_plant(plant: MultibodyPlant, scenario: RobotScenario, models_dir: str | Path = MODELS_DIR) -> ModelInstanceIndex:
+    """Adds the court and the robot of ``scenario`` to an unfinalized ``plant``: parses both model
+    files (paths relative to ``models_dir``), welds the robot's base at ``scenario.base_pose`` and
+    sets every joint's position, velocity and acceleration limits from ``scenario.limits``.
+    Returns the robot's model instance."""
+    models_dir = Path(models_dir)
+    paths = [models_dir / scenario.court_model, models_dir / scenario.robot_model]
+    for path in paths:
+        if not path.is_file():
+            raise ConfigError(f"model file not found: {path}")
+    parser = Parser(plant)
+    parser.AddModels(str(paths[0]))
+    (robot,) = parser.AddModels(str(paths[1]))
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("base", robot), pose_to_transform(scenario.base_pose))
+    for name in JOINT_NAMES:
+        joint = plant.GetJointByName(name, robot)
+        limits = getattr(scenario.limits, name)
+        joint.set_position_limits([limits.lower], [limits.upper])
+        joint.set_velocity_limits([-limits.velocity], [limits.velocity])
+        joint.set_acceleration_limits([-limits.acceleration], [limits.acceleration])
+    return robot
+
+
+def check_joint_order(plant: MultibodyPlant, robot: ModelInstanceIndex) -> None:
+    """Raises unless the finalized plant's positions and velocities are the joints in JOINT_NAMES
+    order (every diagram relies on it)."""
+    starts = [plant.GetJointByName(name, robot).position_start() for name in JOINT_NAMES]
+    if starts != list(range(len(JOINT_NAMES))) or plant.num_positions() != len(JOINT_NAMES):
+        raise ConfigError(f"robot model: expected the plant's positions to be {JOINT_NAMES} in order, got starts {starts}")
+
+
+class RobotModel:
+    """The robot and court in a MultibodyPlant with its own SceneGraph, for analysis.
+
+    Kinematics only (nothing here is simulated): racket pose, spatial velocity and Jacobian,
+    collision queries and inverse kinematics. Joint vectors q (8,) are in JOINT_NAMES order,
+    m and rad; v (8,) in m/s and rad/s.
+    """
+
+    def __init__(self, scenario: RobotScenario | None = None, models_dir: str | Path = MODELS_DIR):
+        self.scenario = scenario or load_scenario()
+        builder = RobotDiagramBuilder(time_step=0.0)
+        self.plant = builder.plant()
+        self.robot = add_robot_to_plant(self.plant, self.scenario, models_dir)
+        self.plant.Finalize()
+        check_joint_order(self.plant, self.robot)
+        self.diagram = builder.Build()
+        self.scene_graph = self.diagram.scene_graph()
+        self._diagram_context = self.diagram.CreateDefaultContext()
+        self.plant_context = self.plant.GetMyMutableContextFromRoot(self._diagram_context)
+        self.racket_frame = self.plant.GetFrameByName(RACKET_FRAME, self.robot)
+        self.ball_cup_frame = self.plant.GetFrameByName(BALL_CUP_FRAME, self.robot)
+        limits = self.scenario.limits.as_arrays()
+        self.lower, self.upper = limits["lower"], limits["upper"]
+        self.velocity_limit, self.acceleration_limit = limits["velocity"], limits["acceleration"]
+        self.ready_pose = np.asarray(self.scenario.ready_pose, dtype=float)
+
+    # ------------------------------------------------------------------------------ kinematics
+    def _set(self, q: np.ndarray, v: np.ndarray | None = None) -> None:
+        self.plant.SetPositions(self.plant_context, _joint_vector(q, "q"))
+        self.plant.SetVelocities(self.plant_context, np.zeros(8) if v is None else _joint_vector(v, "v"))
+
+    def racket_pose(self, q: np.ndarray) -> RigidTransform:
+        """X_WR: the racket frame (blade centre, z along the forehand normal) in world."""
+        self._set(q)
+        return self.racket_frame.CalcPoseInWorld(self.plant_context)
+
+    def racket_spatial_velocity(self, q: np.ndarray, v: np.ndarray) -> SpatialVelocity:
+        """V_WR: the racket frame's spatial velocity in world, [w (rad/s), v (m/s)]."""
+        self._set(q, v)
+        return self.racket_frame.CalcSpatialVelocityInWorld(self.plant_context)
+
+    def racket_jacobian(self, q: np.ndarray) -> np.ndarray:
+        """J (6, 8) with V_WR = J v: rows [w; v] of the racket frame's origin, expressed in world."""
+        self._set(q)
+        world = self.plant.world_frame()
+        return self.plant.CalcJacobianSpatialVelocity(
+            self.plant_context, JacobianWrtVariable.kV, self.racket_frame, np.zeros(3), world, world
+        )
+
+    # ------------------------------------------------------------------------------ collisions
+    def colliding_pairs(self, q: np.ndarray, margin: float = 0.0) -> list[tuple[str, str, float]]:
+        """Pairs of collision geometries (robot-robot, robot-court) closer than ``margin`` (m) at
+        configuration q, as (name, name, signed distance) with body-qualified names."""
+        self._set(q)
+        query = self.scene_graph.get_query_output_port().Eval(self.scene_graph.GetMyContextFromRoot(self._diagram_context))
+        inspector = query.inspector()
+        pairs = []
+        for pair in query.ComputeSignedDistancePairwiseClosestPoints(max_distance=max(margin, 0.0) + 1e-9):
+            if pair.distance < margin:
+                names = [self.plant.GetBodyFromFrameId(inspector.GetFrameId(g)).name() + "/" + inspector.GetName(g) for g in (pair.id_A, pair.id_B)]
+                pairs.append((names[0], names[1], float(pair.distance)))
+        return pairs
+
+    # ------------------------------------------------------------------------------ inverse kinematics
+    def solve_racket_ik(
+        self,
+        p_WB: np.ndarray,
+        q_seed: np.ndarray | None = None,
+        max_normal_angle: float = np.radians(45.0),
+        blade_region: float = 0.04,
+        clearance: float = 0.01,
+    ) -> "IkResult":
+        """A configuration within the joint limits that puts a ball at ``p_WB`` (m) against the
+        forehand face, with the face normal within ``max_normal_angle`` (rad) of +x (facing the
+        opponent) and no robot geometry closer than ``clearance`` (m) to itself or the court.
+
+        The ball touches the face: its centre lies ball radius + half the blade thickness along
+        the normal from a point of the face within ``blade_region`` (m) of the blade centre.
+        Solved with Drake's InverseKinematics from ``q_seed``; by default from seeds placed behind
+        the point with the handle down, then rolled to either side (low balls over the table
+        need the handle sideways, or the wrist would be in the table).
+        """
+        p_WB = np.asarray(p_WB, dtype=float)
+        if p_WB.shape != (3,) or not np.all(np.isfinite(p_WB)):
+            raise ValueError(f"solve_racket_ik: p_WB must be 3 finite numbers (m), got {p_WB}")
+        standoff = 0.02 + 0.5 * 0.014  # ball radius + half the blade thickness, m
+        if q_seed is None:
+            seeds = [self.seed_for(p_WB, handle_roll) for handle_roll in (0.0, 1.5, -1.5)]
+        else:
+            seeds = [_joint_vector(q_seed, "q_seed")]
+        start = time.perf_counter()
+        for attempt, seed in enumerate(seeds, start=1):
+            ik = InverseKinematics(self.plant, self.plant_context, with_joint_limits=True)
+            world = self.plant.world_frame()
+            ik.AddPositionConstraint(
+                frameB=world, p_BQ=p_WB, frameA=self.racket_frame,
+                p_AQ_lower=[-blade_region, -blade_region, standoff - 1e-3],
+                p_AQ_upper=[blade_region, blade_region, standoff + 1e-3],
+            )
+            ik.AddAngleBetweenVectorsConstraint(world, [1.0, 0.0, 0.0], self.racket_frame, [0.0, 0.0, 1.0], 0.0, max_normal_angle)
+            if clearance is not None:
+                ik.AddMinimumDistanceLowerBoundConstraint(clearance, clearance + 0.05)
+            # Stay near the seed: among the many solutions (8 joints, 5 constraints) prefer the nearest.
+            ik.prog().AddQuadraticErrorCost(np.eye(8), seed, ik.q())
+            result = Solve(ik.prog(), seed)
+            if result.is_success():
+                return IkResult(True, result.GetSolution(ik.q()), time.perf_counter() - start, attempt)
+        return IkResult(False, result.GetSolution(ik.q()), time.perf_counter() - start, len(seeds))
+
+    def seed_for(self, p_WB: np.ndarray, handle_roll: float = 0.0) -> np.ndarray:
+        """An IK seed for a racket at p_WB: the ready pose with the gantry placed so that the
+        shoulder stands 0.75 m behind the point and level with it in y, and wrist_1 (the roll
+        about the forearm) at ``handle_roll`` rad."""
+        seed = self.ready_pose.copy()
+        seed[5] = handle_roll
+        X_WBase = pose_to_transform(self.scenario.base_pose)
+        shoulder_offset = 0.08  # shoulder axis ahead of the gantry's origin, m (ace_robot.sdf)
+        seed[0] = p_WB[0] - 0.75 - X_WBase.translation()[0] - shoulder_offset
+        seed[1] = p_WB[1] - X_WBase.translation()[1]
+        return np.clip(seed, self.lower, self.upper)
+
+
+@dataclasses.dataclass(frozen=True)
+class IkResult:
+    """The outcome of ``RobotModel.solve_racket_ik``: q (8,) is the solution (or the solver's last
+    iterate when success is False); solve_time in s over all attempts."""
+
+    success: bool
+    q: np.ndarray
+    solve_time: float
+    attempts: int
+
+
+def _joint_vector(value, name: str) -> np.ndarray:
+    value = np.asarray(value, dtype=float)
+    if value.shape != (len(JOINT_NAMES),) or not np.all(np.isfinite(value)):
+        raise ValueError(f"{name}: expected {len(JOINT_NAMES)} finite joint values ({', '.join(JOINT_NAMES)}), got {value}")
+    return value
