@@ -11,17 +11,23 @@ import dataclasses
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.geometry import Meshcat
+from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role, SceneGraph
 from pydrake.math import RigidTransform
 from pydrake.multibody.math import SpatialVelocity
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import ConstantValueSource, VectorLogSink
+from pydrake.systems.primitives import ConstantValueSource, TrajectorySource, VectorLogSink
+from pydrake.systems.rendering import MultibodyPositionToGeometryPose
+from pydrake.trajectories import PiecewisePolynomial, Trajectory
 
-from ace_drake.config import BallPhysicsParams
+from ace_drake.config import BallPhysicsParams, RobotScenario
 from ace_drake.physics.contact import ResidualModel
+from ace_drake.robot_model import add_robot_to_plant, check_joint_order, load_scenario
 from ace_drake.systems.ball_plant import BallPlant
-from ace_drake.systems.ball_visualizer import BallVisualizer
+from ace_drake.systems.ball_visualizer import BallVisualizer, set_court_view
+from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
+from ace_drake.systems.robot_kinematics import RobotKinematics
 
 SIMULATION_ACCURACY = 1e-6  # integrator target accuracy; places witness events within ~1e-8 s
 MAX_STEP = 1e-3  # s; keeps the racket from being tunnelled through at relative speeds up to 50 m/s
@@ -95,14 +101,95 @@ def build_ball_diagram(
     return diagram
 
 
+@dataclasses.dataclass(frozen=True)
+class RobotSystems:
+    """The robot's systems in a builder (``add_robot``): the kinematics-only plant (not itself a
+    system of the diagram), the SceneGraph it is registered with, the joints and the kinematics."""
+
+    plant: MultibodyPlant
+    scene_graph: SceneGraph
+    joint_plant: DelayedJointPlant
+    kinematics: RobotKinematics
+
+
+def add_robot(builder: DiagramBuilder, scenario: RobotScenario, meshcat: Meshcat | None = None) -> RobotSystems:
+    """Adds the robot's sub-diagram: ``joint_plant`` (DelayedJointPlant, paper eq. (9)) driving
+    ``robot_kinematics`` (racket pose and velocity, end-effector state) and, through
+    ``robot_geometry_pose``, the robot's geometry in ``scene_graph`` (court included), drawn in
+    Meshcat when ``meshcat`` is given. The joints' ``q_command`` input is left for the caller.
+
+    The MultibodyPlant is kinematics only: it is not added to the diagram (it would integrate its
+    own dynamics); the joint plant's positions pose its geometry instead.
+    """
+    scene_graph = builder.AddNamedSystem("scene_graph", SceneGraph())
+    plant = MultibodyPlant(time_step=0.0)
+    plant.RegisterAsSourceForSceneGraph(scene_graph)
+    robot = add_robot_to_plant(plant, scenario)
+    plant.Finalize()
+    check_joint_order(plant, robot)
+    joint_plant = builder.AddNamedSystem("joint_plant", DelayedJointPlant(scenario.dynamics))
+    kinematics = builder.AddNamedSystem("robot_kinematics", RobotKinematics(plant))
+    geometry_pose = builder.AddNamedSystem("robot_geometry_pose", MultibodyPositionToGeometryPose(plant))
+    builder.Connect(joint_plant.joint_state_port, kinematics.joint_state_port)
+    builder.Connect(joint_plant.q_port, geometry_pose.get_input_port())
+    builder.Connect(geometry_pose.get_output_port(), scene_graph.get_source_pose_port(plant.get_source_id()))
+    if meshcat is not None:
+        set_court_view(meshcat)
+        MeshcatVisualizer.AddToBuilder(
+            builder, scene_graph, meshcat, MeshcatVisualizerParams(role=Role.kIllustration, publish_period=0.01)
+        )
+    return RobotSystems(plant, scene_graph, joint_plant, kinematics)
+
+
+def build_swing_diagram(
+    command: Trajectory,
+    scenario: RobotScenario | None = None,
+    params: BallPhysicsParams | None = None,
+    meshcat: Meshcat | None = None,
+    log_period: float = 0.0,
+) -> Diagram:
+    """The robot playing a scripted joint command at the ball: ``command_source`` (the
+    trajectory q*(t), m and rad, sampled by the joints at 1 kHz) drives the robot of ``add_robot``,
+    whose racket is the BallPlant's racket. Loggers: ``ball_logger`` (ball state) and
+    ``joint_logger`` (joint state), every step when ``log_period`` is 0."""
+    scenario = scenario or load_scenario()
+    params = params or BallPhysicsParams()
+    if command.rows() != 8 or command.cols() != 1:
+        raise ValueError(f"build_swing_diagram: command must be an 8 x 1 trajectory, got {command.rows()} x {command.cols()}")
+    builder = DiagramBuilder()
+    ball = add_ball(builder, params)
+    robot = add_robot(builder, scenario, meshcat)
+    source = builder.AddNamedSystem("command_source", TrajectorySource(command))
+    builder.Connect(source.get_output_port(), robot.joint_plant.q_command_port)
+    builder.Connect(robot.kinematics.racket_pose_port, ball.racket_pose_port)
+    builder.Connect(robot.kinematics.racket_velocity_port, ball.racket_velocity_port)
+    if meshcat is not None:
+        visualizer = builder.AddNamedSystem("ball_visualizer", BallVisualizer(meshcat, params, draw_scene=False))
+        builder.Connect(ball.ball_state_port, visualizer.ball_state_port)
+    ball_logger = builder.AddNamedSystem("ball_logger", VectorLogSink(9, log_period))
+    builder.Connect(ball.ball_state_port, ball_logger.get_input_port())
+    joint_logger = builder.AddNamedSystem("joint_logger", VectorLogSink(16, log_period))
+    builder.Connect(robot.joint_plant.joint_state_port, joint_logger.get_input_port())
+    diagram = builder.Build()
+    diagram.set_name("robot_swing_diagram")
+    return diagram
+
+
 def _documented_ball_diagram() -> Diagram:
     """The ball diagram as documented: with a (static) racket connected, no Meshcat."""
     return build_ball_diagram(racket=StaticRacket(RigidTransform()))
 
 
+def _documented_swing_diagram() -> Diagram:
+    """The swing diagram as documented: the robot holding its ready pose, no Meshcat."""
+    ready = np.asarray(load_scenario().ready_pose, dtype=float)[:, None]
+    return build_swing_diagram(PiecewisePolynomial(ready))
+
+
 # name -> builder of the diagram whose graph ``ace-drake diagrams`` renders into diagrams/.
 DOCUMENTED_DIAGRAMS = {
     "ball_diagram": _documented_ball_diagram,
+    "robot_swing_diagram": _documented_swing_diagram,
 }
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -143,8 +144,8 @@ class RobotModel:
         q_seed: np.ndarray | None = None,
         max_normal_angle: float = np.radians(45.0),
         blade_region: float = 0.04,
-        clearance: float = 0.01,
-    ) -> "IkResult":
+        clearance: float | None = 0.01,
+    ) -> IkResult:
         """A configuration within the joint limits that puts a ball at ``p_WB`` (m) against the
         forehand face, with the face normal within ``max_normal_angle`` (rad) of +x (facing the
         opponent) and no robot geometry closer than ``clearance`` (m) to itself or the court.
@@ -163,9 +164,8 @@ class RobotModel:
             seeds = [self.seed_for(p_WB, handle_roll) for handle_roll in (0.0, 1.5, -1.5)]
         else:
             seeds = [_joint_vector(q_seed, "q_seed")]
-        start = time.perf_counter()
-        for attempt, seed in enumerate(seeds, start=1):
-            ik = InverseKinematics(self.plant, self.plant_context, with_joint_limits=True)
+
+        def constrain(ik: InverseKinematics) -> None:
             world = self.plant.world_frame()
             ik.AddPositionConstraint(
                 frameB=world, p_BQ=p_WB, frameA=self.racket_frame,
@@ -173,9 +173,50 @@ class RobotModel:
                 p_AQ_upper=[blade_region, blade_region, standoff + 1e-3],
             )
             ik.AddAngleBetweenVectorsConstraint(world, [1.0, 0.0, 0.0], self.racket_frame, [0.0, 0.0, 1.0], 0.0, max_normal_angle)
+
+        return self._solve_ik(constrain, seeds, clearance)
+
+    def solve_racket_pose_ik(
+        self,
+        p_WR: np.ndarray,
+        normal_W: np.ndarray,
+        q_seed: np.ndarray | None = None,
+        position_tolerance: float = 1e-3,
+        angle_tolerance: float = np.radians(0.5),
+        clearance: float | None = 0.01,
+    ) -> IkResult:
+        """A configuration within the joint limits with the blade centre at ``p_WR`` (m, within
+        ``position_tolerance``) and the forehand normal along ``normal_W`` (within
+        ``angle_tolerance`` rad), the blade free to roll about its normal, clear of the court and
+        itself by ``clearance`` (m; None skips the check)."""
+        p_WR = np.asarray(p_WR, dtype=float)
+        normal_W = np.asarray(normal_W, dtype=float)
+        if p_WR.shape != (3,) or normal_W.shape != (3,) or not np.all(np.isfinite(np.r_[p_WR, normal_W])) or np.linalg.norm(normal_W) < 1e-9:
+            raise ValueError(f"solve_racket_pose_ik: expected a position (3,) m and a non-zero normal (3,), got {p_WR}, {normal_W}")
+        if q_seed is None:
+            seeds = [self.seed_for(p_WR, handle_roll) for handle_roll in (0.0, 1.5, -1.5)]
+        else:
+            seeds = [_joint_vector(q_seed, "q_seed")]
+
+        def constrain(ik: InverseKinematics) -> None:
+            world = self.plant.world_frame()
+            tolerance = np.full(3, position_tolerance)
+            ik.AddPositionConstraint(self.racket_frame, np.zeros(3), world, p_WR - tolerance, p_WR + tolerance)
+            ik.AddAngleBetweenVectorsConstraint(world, normal_W, self.racket_frame, [0.0, 0.0, 1.0], 0.0, angle_tolerance)
+
+        return self._solve_ik(constrain, seeds, clearance)
+
+    def _solve_ik(self, constrain: Callable[[InverseKinematics], None], seeds: list[np.ndarray], clearance: float | None) -> IkResult:
+        """Drake's InverseKinematics with joint limits, the constraints ``constrain`` adds, an
+        optional minimum distance between all collision geometries, and a cost on the distance
+        from the seed (among the many solutions of a redundant arm, prefer the nearest), tried
+        from each seed in turn."""
+        start = time.perf_counter()
+        for attempt, seed in enumerate(seeds, start=1):
+            ik = InverseKinematics(self.plant, self.plant_context, with_joint_limits=True)
+            constrain(ik)
             if clearance is not None:
                 ik.AddMinimumDistanceLowerBoundConstraint(clearance, clearance + 0.05)
-            # Stay near the seed: among the many solutions (8 joints, 5 constraints) prefer the nearest.
             ik.prog().AddQuadraticErrorCost(np.eye(8), seed, ik.q())
             result = Solve(ik.prog(), seed)
             if result.is_success():

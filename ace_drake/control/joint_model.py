@@ -8,11 +8,13 @@ such a system exactly with a delay that is not a whole number of periods (tau_d 
     Phi = e^{A T}, Gamma0 = int_0^{T-f} e^{A s} ds b, Gamma1 = e^{A (T-f)} int_0^{f} e^{A s} ds b,
 
 which this module evaluates with matrix exponentials and runs through ``scipy.signal.lfilter``.
+``JointPropagator`` gives the exact state between samples as well, for the 1 kHz joint plant.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.linalg import expm
@@ -60,14 +62,22 @@ def ramp_tracking_lag(joint: JointDynamicsParams) -> float:
     return joint.delay + joint.a[3] / joint.a[2]
 
 
+def split_delay(delay: float, period: float) -> tuple[int, float]:
+    """tau_d = k T + f: the whole periods k >= 0 and the fraction 0 <= f < T (s) of a delay.
+
+    A delay within 1e-12 periods below a whole number of periods counts as that whole number, so
+    that 3 ms at 1 kHz is k = 3, f = 0 despite rounding."""
+    k = int(np.floor(delay / period + 1e-12))
+    return k, max(delay - k * period, 0.0)
+
+
 def discretize(joint: JointDynamicsParams, period: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Exact zero-order-hold sampling with a fractional delay: (Phi, Gamma0, Gamma1, k); see the
     module docstring. ``period`` is T in seconds."""
     if period <= 0:
         raise ValueError(f"discretize: period must be > 0 s, got {period}")
     A, b, _ = state_matrices(joint)
-    k = int(np.floor(joint.delay / period + 1e-12))
-    f = joint.delay - k * period
+    k, f = split_delay(joint.delay, period)
 
     def hold(duration: float) -> tuple[np.ndarray, np.ndarray]:
         # expm([[A, b], [0, 0]] t) = [[e^{At}, int_0^t e^{As} ds b], [0, 1]]
@@ -82,6 +92,90 @@ def discretize(joint: JointDynamicsParams, period: float) -> tuple[np.ndarray, n
     _, integral_f = hold(f)
     gamma1 = phi_rest @ integral_f
     return phi, gamma0, gamma1, k
+
+
+class JointPropagator:
+    """Exact inter-sample solution of paper eq. (9) for a set of joints, vectorised over joints.
+
+    Within one command period after a sample, joint i's delayed input u_i(t - tau_i) takes two
+    values: u_old on [0, f_i) and u_new from f_i on, where tau_i = k_i T + f_i (``split_delay``).
+    With the equilibrium zeta_eq(u) = -A^{-1} b u of a constant input, the solution is
+
+        s <= f:  zeta(s) = zeta_eq(u_old) + e^{A s} (zeta_0 - zeta_eq(u_old)),
+        s >  f:  zeta(s) = zeta_eq(u_new) + e^{A (s - f)} (zeta(f) - zeta_eq(u_new)),
+
+    which equals Phi(s) zeta_0 + G(s) u with G(s) = int_0^s e^{A sigma} dsigma b, and at s = T
+    ``discretize``'s Phi zeta + Gamma1 u_old + Gamma0 u_new. Writing it about the equilibrium keeps
+    a joint at rest exactly at rest and needs only e^{A s} of the 2x2 A, which has the closed form
+    (m = tr(A) / 2, omega = sqrt(det(A) - m^2), complex for an overdamped joint)
+
+        e^{A s} = e^{m s} (cos(omega s) I + sin(omega s) / omega (A - m I)),
+
+    with sin(omega s) / omega -> s at critical damping: one formula for every damping ratio, with
+    no ill-conditioned eigenvector matrix to fall back from. A must be invertible (the config
+    requires it Hurwitz).
+    """
+
+    def __init__(self, joints: Sequence[JointDynamicsParams], period: float):
+        """joints: the eq. (9) parameters of each joint; period: the command period T, s."""
+        if period <= 0:
+            raise ValueError(f"JointPropagator: period must be > 0 s, got {period}")
+        self.period = float(period)
+        split = [split_delay(joint.delay, period) for joint in joints]
+        self.whole_periods = np.array([k for k, _ in split], dtype=int)  # k_i
+        self.fractional_delays = np.array([f for _, f in split])  # f_i, s
+        A = np.array([state_matrices(joint)[0] for joint in joints])
+        b = np.array([state_matrices(joint)[1] for joint in joints])
+        self._equilibrium_per_input = -np.linalg.solve(A, b[..., None])[..., 0]  # -A^{-1} b, (n, 2)
+        self._half_trace = 0.5 * (A[:, 0, 0] + A[:, 1, 1])
+        self._A_shifted = A - self._half_trace[:, None, None] * np.eye(2)
+        self._omega = np.sqrt((np.linalg.det(A) - self._half_trace**2).astype(complex))
+        self._critical = self._omega == 0.0
+        self._omega_or_one = np.where(self._critical, 1.0, self._omega)
+        self._fraction_terms = self._exponential_terms(self.fractional_delays)
+
+    def propagate(self, zeta: np.ndarray, u_old: np.ndarray, u_new: np.ndarray, elapsed: float) -> np.ndarray:
+        """zeta (n, 2) = [q, q_dot] per joint ``elapsed`` seconds after a sample where it was ``zeta``.
+
+        u_old, u_new (n,): the delayed input before and after f_i (rad or m). Exact for any elapsed
+        time >= 0 over which the input takes only these two values, i.e. up to T after a sample.
+        """
+        late = elapsed > self.fractional_delays
+        at_fraction = self._hold(self._fraction_terms, zeta, u_old)
+        start = np.where(late[:, None], at_fraction, zeta)
+        held = np.where(late, u_new, u_old)
+        duration = np.where(late, elapsed - self.fractional_delays, elapsed)
+        return self._hold(self._exponential_terms(duration), start, held)
+
+    def _exponential_terms(self, durations: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """e^{m s}, cos(omega s) and sin(omega s) / omega (each (n,)) for durations s (n,), s."""
+        angle = self._omega * durations
+        sine_over_omega = np.where(self._critical, durations, (np.sin(angle) / self._omega_or_one).real)
+        return np.exp(self._half_trace * durations), np.cos(angle).real, sine_over_omega
+
+    def _hold(self, terms: tuple[np.ndarray, np.ndarray, np.ndarray], zeta: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """zeta_eq(u) + e^{A s} (zeta - zeta_eq(u)): the state after holding u for the duration s
+        that ``terms`` (from ``_exponential_terms``) were computed for."""
+        scale, cosine, sine_over_omega = terms
+        equilibrium = self._equilibrium_per_input * u[:, None]
+        deviation = zeta - equilibrium
+        shifted = (self._A_shifted @ deviation[..., None])[..., 0]  # (A - m I) deviation
+        return equilibrium + scale[:, None] * (cosine[:, None] * deviation + sine_over_omega[:, None] * shifted)
+
+
+def feedforward_command(joints, q: np.ndarray, q_dot: np.ndarray, q_ddot: np.ndarray) -> np.ndarray:
+    """The command that makes eq. (9) follow a desired motion exactly: with q_aux = q_dot the
+    second row reads q_ddot = a21 q + a22 q_dot + b2 u(t - tau_d), so the command due at t - tau_d
+    is u = (q_ddot - a21 q - a22 q_dot) / b2.
+
+    ``joints``: the joints' JointDynamicsParams (n); q, q_dot, q_ddot: (..., n) desired position,
+    velocity and acceleration at time t (rad or m, per s, per s^2). Returns u (..., n), the
+    command to issue tau_d earlier, i.e. at t - tau_d,i for joint i.
+    """
+    a21 = np.array([joint.a[2] for joint in joints])
+    a22 = np.array([joint.a[3] for joint in joints])
+    b2 = np.array([joint.b[1] for joint in joints])
+    return (np.asarray(q_ddot) - a21 * np.asarray(q) - a22 * np.asarray(q_dot)) / b2
 
 
 def simulate_joint(joint: JointDynamicsParams, command: np.ndarray, period: float) -> np.ndarray:

@@ -16,17 +16,23 @@ BALL_COLOR = Rgba(1.0, 0.55, 0.0, 1.0)
 TRAIL_COLOR = Rgba(1.0, 0.75, 0.3, 0.6)
 
 
+def set_court_view(meshcat: Meshcat) -> None:
+    """Hides Meshcat's grid and axes (the grid would cut through the scene at the playing surface)
+    and places the camera behind and beside the robot's end of the table."""
+    meshcat.SetProperty("/Grid", "visible", False)
+    meshcat.SetProperty("/Axes", "visible", False)
+    meshcat.SetCameraPose(np.array([-3.6, -2.2, 1.0]), np.array([0.0, 0.0, 0.0]))
+
+
 def draw_table(meshcat: Meshcat, params: BallPhysicsParams, prefix: str = "/table") -> None:
-    """Adds the table top, its white lines, the net, four legs and the floor to ``meshcat``, hides
-    Meshcat's grid and axes (the grid would cut through the scene at the playing surface) and
-    places the camera behind the robot's end of the table.
+    """Adds the table top, its white lines, the net, four legs and the floor to ``meshcat`` and sets
+    the court view (``set_court_view``). For diagrams without the robot's SceneGraph, which draws
+    its own court (models/table.sdf).
 
     The playing surface is at z = 0 (DESIGN.md frame); all sizes come from ``params``.
     """
     table, net = params.table, params.net
-    meshcat.SetProperty("/Grid", "visible", False)
-    meshcat.SetProperty("/Axes", "visible", False)
-    meshcat.SetCameraPose(np.array([-2.4, -1.5, 0.7]), np.array([0.2, 0.0, 0.0]))
+    set_court_view(meshcat)
     top_thickness = 0.03
     meshcat.SetObject(f"{prefix}/top", Box(table.length, table.width, top_thickness), TABLE_COLOR)
     meshcat.SetTransform(f"{prefix}/top", RigidTransform([0, 0, -0.5 * top_thickness]))

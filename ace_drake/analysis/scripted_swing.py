@@ -1,0 +1,226 @@
+"""A scripted swing: an open-loop joint trajectory, planned in advance, that returns one ball.
+
+This is the smallest demonstration that the robot model, its delayed joints and the BallPlant
+work together; it is not a controller (the model-based returner and the policy drive the robot
+through the control stack). The plan, from the true incoming ball state:
+
+1. predict the ball with the project's physics and hit it at the top of its bounce on the
+   robot's half;
+2. search racket normals and speeds (racket contact model, paper eqs (7)-(8)) for the one whose
+   return lands nearest a target on the opponent's half;
+3. inverse kinematics for that racket pose, and the joint velocities that give the racket that
+   velocity (velocity-limit-weighted least squares on the racket Jacobian);
+4. a cubic Hermite joint trajectory from the ready pose at rest through (q_hit, v_hit) at the hit
+   time, then braking to rest, within the position, velocity and acceleration limits;
+5. the command that makes the delayed joints (paper eq. (9)) follow it: the exact eq. (9)
+   inverse, issued tau_d early and sampled at the 1 kHz interface.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pydrake.geometry import Meshcat
+from pydrake.trajectories import PiecewisePolynomial
+
+from ace_drake.config import BallPhysicsParams, RobotScenario
+from ace_drake.control.joint_model import feedforward_command
+from ace_drake.physics.contact import racket_impact
+from ace_drake.physics.flight import make_state
+from ace_drake.physics.propagate import ContactEvent, ContactKind, simulate
+from ace_drake.robot_model import RobotModel
+
+# An incoming ball from the human's side: it bounces on the robot's half about 0.6 m behind the
+# net (0.45 s after the hit) and reaches the top of its bounce about 1.3 m behind the end line... 
+INCOMING_BALL = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (0.0, -80.0, 0.0))
+RETURN_TARGET = (0.8, 0.0)  # where the return should land on the opponent's half, m
+SWING_START = 0.05  # s after the episode starts; the robot waits at its ready pose until then
+
+
+@dataclasses.dataclass(frozen=True)
+class RacketPlan:
+    """The racket state at the hit: time (s), blade centre (3; m), forehand normal (3), velocity of
+    the blade centre (3; m/s), the ball state just before (9) and the predicted landing (2; m)."""
+
+    time: float
+    position: np.ndarray
+    normal: np.ndarray
+    velocity: np.ndarray
+    ball_state: np.ndarray
+    predicted_landing: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class ScriptedSwing:
+    """A planned swing: the racket plan, the joint state at the hit (8 + 8), the desired joint
+    trajectory q_d(t) and the 1 kHz command trajectory q*(t) (both 8 x 1 PiecewisePolynomials)."""
+
+    racket: RacketPlan
+    q_hit: np.ndarray
+    v_hit: np.ndarray
+    desired: PiecewisePolynomial
+    command: PiecewisePolynomial
+
+
+def plan_racket(ball_state: np.ndarray, params: BallPhysicsParams, target=RETURN_TARGET) -> RacketPlan:
+    """Steps 1-2 of the module docstring. Raises ValueError if the ball does not bounce on the
+    robot's half or no racket state in the search returns it."""
+    flight = simulate(ball_state, params, 2.0, stop_on=(ContactKind.FLOOR,))
+    bounces = [e for e in flight.events[0] if e.kind == ContactKind.TABLE and e.state_pre[0] < 0.0]
+    if not bounces:
+        raise ValueError("plan_racket: the ball does not bounce on the robot's half")
+    after = flight.times > bounces[0].time
+    rising = after & (flight.states[:, 0, 5] > 0.0)
+    apex_index = np.flatnonzero(after & ~rising)[0]  # first sample past the top of the bounce
+    hit_time = float(flight.times[apex_index])
+    ball = flight.states[apex_index, 0]
+
+    pitch, yaw, speed = np.meshgrid(np.radians(np.arange(-20, 41, 5)), np.radians(np.arange(-20, 21, 4)), np.arange(2.0, 9.1, 0.5), indexing="ij")
+    normals = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], axis=-1).reshape(-1, 3)
+    speeds = speed.reshape(-1, 1)
+    # Contact frame: z along the normal, x in the normal's vertical plane.
+    x_axis = np.cross(np.cross(normals, [0.0, 0.0, 1.0]), normals)
+    x_axis /= np.linalg.norm(x_axis, axis=-1, keepdims=True)
+    R_WC = np.stack([x_axis, np.cross(normals, x_axis), normals], axis=-1)
+    count = len(normals)
+    v_post, w_post = racket_impact(
+        np.broadcast_to(ball[3:6], (count, 3)), np.broadcast_to(ball[6:9], (count, 3)), speeds * normals, R_WC,
+        params.racket, params.aero.ball_radius,
+    )  # paper eqs (7)-(8)
+    returns = simulate(np.concatenate([np.broadcast_to(ball[:3], (count, 3)), v_post, w_post], axis=1), params, 2.0,
+                       stop_on=(ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR), record=False)
+    best, best_distance = None, np.inf
+    half_length, half_width = 0.5 * params.table.length, 0.5 * params.table.width
+    for index, event in enumerate(returns.stop_events):
+        if event is None or event.kind != ContactKind.TABLE:
+            continue
+        x, y = event.state_pre[:2]
+        if not (0.1 < x < half_length - 0.1 and abs(y) < half_width - 0.1):
+            continue
+        distance = np.hypot(x - target[0], y - target[1])
+        if distance < best_distance:
+            best, best_distance = index, distance
+    if best is None:
+        raise ValueError("plan_racket: no racket state in the search returns the ball")
+    normal = normals[best]
+    radius_and_half_blade = params.aero.ball_radius + 0.5 * params.racket.blade_thickness
+    return RacketPlan(
+        time=hit_time,
+        position=ball[:3] - radius_and_half_blade * normal,
+        normal=normal,
+        velocity=speeds[best, 0] * normal,
+        ball_state=ball.copy(),
+        predicted_landing=returns.stop_events[best].state_pre[:2].copy(),
+    )
+
+
+def plan_scripted_swing(model: RobotModel, ball_state: np.ndarray, params: BallPhysicsParams, target=RETURN_TARGET) -> ScriptedSwing:
+    """The whole plan of the module docstring for one incoming ball (9,), with the robot at rest
+    at its ready pose at t = 0. Raises ValueError when a step has no solution within limits."""
+    racket = plan_racket(ball_state, params, target)
+    ik = model.solve_racket_pose_ik(racket.position, racket.normal)
+    if not ik.success:
+        raise ValueError(f"plan_scripted_swing: no configuration puts the racket at {racket.position.round(3)}")
+    q_hit = ik.q
+    # Joint velocities for the racket velocity: least squares weighted by each joint's speed limit,
+    # so that fast joints do more of the work. The blade's angular velocity is left free.
+    jacobian = model.racket_jacobian(q_hit)[3:]
+    weights = np.diag(model.velocity_limit**2)
+    v_hit = weights @ jacobian.T @ np.linalg.solve(jacobian @ weights @ jacobian.T, racket.velocity)
+    if np.any(np.abs(v_hit) > model.velocity_limit):
+        raise ValueError(f"plan_scripted_swing: the hit needs joint speeds {np.abs(v_hit).round(1)} over the limits")
+
+    # Braking after the hit: constant deceleration to rest over the time the slowest joint needs.
+    brake_time = max(0.05, float(np.max(np.abs(v_hit) / model.acceleration_limit)))
+    q_rest = np.clip(q_hit + 0.5 * v_hit * brake_time, model.lower, model.upper)
+    ready = model.ready_pose
+    zero = np.zeros(8)
+    desired = None
+    for approach in np.arange(0.15, racket.time - SWING_START + 1e-9, 0.01):
+        start = racket.time - approach
+        candidate = PiecewisePolynomial.CubicHermite(
+            [0.0, start, racket.time, racket.time + brake_time],
+            np.column_stack([ready, ready, q_hit, q_rest]),
+            np.column_stack([zero, zero, v_hit, zero]),
+        )
+        if start >= SWING_START and _within_limits(model, candidate):
+            desired = candidate
+            break
+    if desired is None:
+        raise ValueError("plan_scripted_swing: no swing within the joint limits reaches the hit in time")
+    return ScriptedSwing(racket, q_hit, v_hit, desired, _command_for(desired, model.scenario))
+
+
+def run_scripted_swing(
+    swing: ScriptedSwing,
+    ball_state: np.ndarray,
+    scenario: RobotScenario,
+    params: BallPhysicsParams,
+    duration: float = 1.6,
+    meshcat: Meshcat | None = None,
+) -> tuple[tuple[ContactEvent, ...], dict]:
+    """Simulates the swing diagram (diagrams.build_swing_diagram) with the ball starting at
+    ``ball_state`` and the robot at rest at its ready pose; returns the ball's contact events and
+    the logs {"time", "ball" (T, 9), "joint_time", "joints" (T, 16)}. With ``meshcat`` the run is
+    recorded and published."""
+    from ace_drake.diagrams import build_swing_diagram, make_simulator
+
+    diagram = build_swing_diagram(swing.command, scenario, params, meshcat)
+    context = diagram.CreateDefaultContext()
+    ball = diagram.GetSubsystemByName("ball")
+    ball.SetBallState(ball.GetMyMutableContextFromRoot(context), ball_state)
+    joints = diagram.GetSubsystemByName("joint_plant")
+    joints.SetJointState(joints.GetMyMutableContextFromRoot(context), np.asarray(scenario.ready_pose, dtype=float))
+    simulator = make_simulator(diagram, context)
+    if meshcat is not None:
+        meshcat.StartRecording(frames_per_second=100.0, set_visualizations_while_recording=False)
+    simulator.AdvanceTo(duration)
+    if meshcat is not None:
+        meshcat.StopRecording()
+        meshcat.PublishRecording()
+    events = ball.contact_events_port.Eval(ball.GetMyContextFromRoot(context))
+    ball_log = diagram.GetSubsystemByName("ball_logger").FindLog(context)
+    joint_log = diagram.GetSubsystemByName("joint_logger").FindLog(context)
+    logs = {"time": ball_log.sample_times(), "ball": ball_log.data().T, "joint_time": joint_log.sample_times(), "joints": joint_log.data().T}
+    return events, logs
+
+
+def _within_limits(model: RobotModel, trajectory: PiecewisePolynomial, step: float = 1e-3) -> bool:
+    """Whether the trajectory's positions, velocities and accelerations stay within the limits at
+    ``step``-spaced samples (the Hermite segments' extremes lie at their ends or one interior
+    point, which 1 ms sampling resolves to well under the margins that matter here)."""
+    times = np.arange(trajectory.start_time(), trajectory.end_time() + step / 2, step)
+    q = np.array([trajectory.value(t)[:, 0] for t in times])
+    velocity = trajectory.derivative(1)
+    acceleration = trajectory.derivative(2)
+    v = np.array([velocity.value(t)[:, 0] for t in times])
+    a = np.array([acceleration.value(t)[:, 0] for t in times])
+    return bool(
+        np.all(q >= model.lower - 1e-9) and np.all(q <= model.upper + 1e-9)
+        and np.all(np.abs(v) <= model.velocity_limit + 1e-9)
+        and np.all(np.abs(a) <= model.acceleration_limit + 1e-9)
+    )
+
+
+def _command_for(desired: PiecewisePolynomial, scenario: RobotScenario) -> PiecewisePolynomial:
+    """The 1 kHz command that makes the joints follow ``desired``: sample n (issued at t_n = n T and
+    held for T) is the eq. (9) inverse at the middle of the interval in which the joint feels it,
+    t_n + tau_d + T/2. Returned as a zero-order hold whose steps sit half a period before the
+    sample instants, so the joints' sampling at t_n never falls on a step."""
+    dynamics = scenario.dynamics
+    period = dynamics.command_period
+    delays = np.array([joint.delay for joint in dynamics.joints])
+    end = desired.end_time() + 0.1
+    sample_times = np.arange(0.0, end, period)
+    velocity, acceleration = desired.derivative(1), desired.derivative(2)
+    commands = np.empty((len(sample_times), 8))
+    for row, t_n in enumerate(sample_times):
+        felt = np.clip(t_n + delays + 0.5 * period, desired.start_time(), desired.end_time())
+        q = np.array([desired.value(t)[i, 0] for i, t in enumerate(felt)])
+        q_dot = np.array([velocity.value(t)[i, 0] for i, t in enumerate(felt)])
+        q_ddot = np.array([acceleration.value(t)[i, 0] for i, t in enumerate(felt)])
+        commands[row] = feedforward_command(dynamics.joints, q, q_dot, q_ddot)
+    breaks = np.r_[sample_times - 0.5 * period, sample_times[-1] + 0.5 * period]
+    breaks[0] = 0.0
+    return PiecewisePolynomial.ZeroOrderHold(breaks, np.vstack([commands, commands[-1]]).T)
