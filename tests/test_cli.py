@@ -100,3 +100,20 @@ def test_bench_ball_reports_rates_and_ratios(capsys):
     assert result["ratios"]["batched_over_single_propagator"] == pytest.approx(
         rates["propagator_1000_balls"] / rates["propagator_1_ball"]
     )
+
+
+def test_bench_reach_reports_coverage_and_swing_speed(capsys, tmp_path):
+    data = tmp_path / "events.csv"
+    data.write_text(
+        "player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\n"
+        "A,/g/r/e1,shot_p1,1.0,[-1.9 0.3 0.2],[6 0 1],[0 0 0]\n"
+        "A,/g/r/e2,shot_p1,2.0,[-2.4 -0.7 0.3],[6 0 1],[0 0 0]\n"
+    )
+    figures = run_json(capsys, "bench", "reach", "--data", str(data), "--json")
+    assert figures["reach"]["points"] == 2 and figures["reach"]["fraction_reached"] == 1.0
+    assert figures["reach_mirrored_y"]["fraction_reached"] == 1.0
+    assert figures["reach"]["solve_time_median_s"] > 0
+    assert figures["max_racket_speed_x_m_s"] >= 20.0
+    assert len(figures["fastest_swing"]["q_hit"]) == 8
+    assert main(["bench", "reach"]) == 2
+    assert "--data FILE" in capsys.readouterr().err

@@ -55,3 +55,20 @@ def test_config_rejects_unphysical_joints():
         from_dict(RobotDynamicsParams, {"joints": [{}] * 3})
     with pytest.raises(ValueError, match="non-empty"):
         simulate_joint(JointDynamicsParams(), np.zeros((2, 2)), 1e-3)
+
+
+def test_feedforward_command_makes_the_delayed_joint_follow_a_motion():
+    # Desired q_d(t) = 0.3 sin(2 pi 3 t); command u(t_n) = inverse of eq. (9) at t_n + tau + T/2.
+    from ace_drake.control.joint_model import feedforward_command
+
+    joint = ProcessModel(1.0, 900.0, 0.8, 0.0023).to_state_space()
+    period, omega = 1e-3, 2 * np.pi * 3
+    t_n = np.arange(400) * period
+    felt = t_n + joint.delay + 0.5 * period
+    command = feedforward_command([joint], 0.3 * np.sin(omega * felt)[:, None], 0.3 * omega * np.cos(omega * felt)[:, None],
+                                  -0.3 * omega**2 * np.sin(omega * felt)[:, None])[:, 0]
+    q = simulate_joint(joint, command, period)
+    error = q[100:] - 0.3 * np.sin(omega * t_n[100:])
+    assert np.max(np.abs(error)) < 2e-4  # rad; against 0.3 rad of motion and 3.2 ms of lag uncompensated
+    lagging = simulate_joint(joint, 0.3 * np.sin(omega * t_n), period)
+    assert np.max(np.abs(lagging[100:] - 0.3 * np.sin(omega * t_n[100:]))) > 10 * np.max(np.abs(error))

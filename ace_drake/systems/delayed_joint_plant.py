@@ -32,6 +32,11 @@ class DelayedJointPlant(LeafSystem):
     discrete system updating at the same instants is seen one sample later (one more period of
     delay); a time-dependent source is seen at t_n itself.
 
+    Between samples the velocity ripples: each step of the held command kicks the stiff servo
+    (1000 rad/s against 1 kHz sampling by default), so at the sample instants the joint velocity
+    of a smooth swing sits several percent from its mean over the period (9% in the scripted
+    swing of analysis/scripted_swing.py) while the position stays on the smooth motion.
+
     The outputs are the exact solution at the context's time (``JointPropagator``), computed from
     the discrete state: the joints move continuously between samples, so contact times against a
     racket driven by them are exact, and the outputs do not depend on q_command directly. The joint
