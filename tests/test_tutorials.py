@@ -31,3 +31,27 @@ def test_tutorial_01_ball_flight_writes_png_and_html(tmp_path):
         assert path.is_file() and path.stat().st_size > EMPTY_MESHCAT_HTML, path
         assert "animation" in path.read_text()
         assert str(path) in run.stdout
+
+
+def test_tutorial_02_robot_writes_png_and_html(tmp_path):
+    script = REPO_ROOT / "tutorials/02_robot.py"
+    run = subprocess.run(
+        [sys.executable, str(script), "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO_ROOT,
+    )
+    assert run.returncode == 0, run.stderr
+    png = tmp_path / "robot.png"
+    assert png.is_file() and png.stat().st_size > 50_000
+    if DATA.is_file():
+        assert "solved in" in run.stdout
+    else:
+        assert "skipping part 3" in run.stdout
+    # Printed only when the events show a racket contact followed by a bounce on the human's half.
+    assert "the ball was returned" in run.stdout
+    for path in [tmp_path / "joint_tour.html", tmp_path / "scripted_swing.html"]:
+        assert path.is_file() and path.stat().st_size > EMPTY_MESHCAT_HTML, path
+        assert "animation" in path.read_text()
+        assert str(path) in run.stdout
