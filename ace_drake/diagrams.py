@@ -196,8 +196,8 @@ DOCUMENTED_DIAGRAMS = {
 def graphviz_dot(diagram: Diagram, max_depth: int = 1) -> str:
     """The diagram's Graphviz DOT text, normalised so that the same wiring always gives the same
     text: system ids renumbered from 0 in order of first appearance (Drake's ids are global
-    counters that depend on what else the process built) and the edge lines sorted (Drake emits
-    them in an order that can change between processes)."""
+    counters that depend on what else the process built; SceneGraph's source ports likewise) and
+    the edge lines sorted (Drake emits them in an order that can change between processes)."""
     import re
 
     dot = diagram.GetGraphvizString(max_depth=max_depth)
@@ -207,7 +207,11 @@ def graphviz_dot(diagram: Diagram, max_depth: int = 1) -> str:
         number = numbering.setdefault(match.group(2), str(len(numbering)))
         return match.group(1) + number
 
-    lines = re.sub(r"\b(digraph _|cluster|s)(\d+)", renumber, dot).split("\n")
+    dot = re.sub(r"\b(digraph _|cluster|s)(\d+)", renumber, dot)
+    # SceneGraph names its per-source input ports after global source ids: renumber those too.
+    sources: dict[str, str] = {}
+    dot = re.sub(r"\bSource_(\d+)_", lambda m: f"Source_{sources.setdefault(m.group(1), str(len(sources)))}_", dot)
+    lines = dot.split("\n")
     edge_rows = [i for i, line in enumerate(lines) if " -> " in line]
     for row, line in zip(edge_rows, sorted(lines[i] for i in edge_rows)):
         lines[row] = line
