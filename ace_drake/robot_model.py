@@ -24,7 +24,7 @@ from pydrake.multibody.tree import JacobianWrtVariable, ModelInstanceIndex
 from pydrake.planning import RobotDiagramBuilder
 from pydrake.solvers import Solve
 
-from ace_drake.config import JOINT_NAMES, ConfigError, Pose, RobotScenario, load_config
+from ace_drake.config import JOINT_NAMES, BallPhysicsParams, ConfigError, Pose, RobotScenario, load_config
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 DEFAULT_SCENARIO = MODELS_DIR / "scenario.yaml"
@@ -159,11 +159,9 @@ class RobotModel:
         p_WB = np.asarray(p_WB, dtype=float)
         if p_WB.shape != (3,) or not np.all(np.isfinite(p_WB)):
             raise ValueError(f"solve_racket_ik: p_WB must be 3 finite numbers (m), got {p_WB}")
-        standoff = 0.02 + 0.5 * 0.014  # ball radius + half the blade thickness, m
-        if q_seed is None:
-            seeds = [self.seed_for(p_WB, handle_roll) for handle_roll in (0.0, 1.5, -1.5)]
-        else:
-            seeds = [_joint_vector(q_seed, "q_seed")]
+        ball = BallPhysicsParams()
+        standoff = ball.aero.ball_radius + 0.5 * ball.racket.blade_thickness  # m
+        seeds = self._seeds(p_WB, q_seed)
 
         def constrain(ik: InverseKinematics) -> None:
             world = self.plant.world_frame()
@@ -193,10 +191,7 @@ class RobotModel:
         normal_W = np.asarray(normal_W, dtype=float)
         if p_WR.shape != (3,) or normal_W.shape != (3,) or not np.all(np.isfinite(np.r_[p_WR, normal_W])) or np.linalg.norm(normal_W) < 1e-9:
             raise ValueError(f"solve_racket_pose_ik: expected a position (3,) m and a non-zero normal (3,), got {p_WR}, {normal_W}")
-        if q_seed is None:
-            seeds = [self.seed_for(p_WR, handle_roll) for handle_roll in (0.0, 1.5, -1.5)]
-        else:
-            seeds = [_joint_vector(q_seed, "q_seed")]
+        seeds = self._seeds(p_WR, q_seed)
 
         def constrain(ik: InverseKinematics) -> None:
             world = self.plant.world_frame()
@@ -205,6 +200,12 @@ class RobotModel:
             ik.AddAngleBetweenVectorsConstraint(world, normal_W, self.racket_frame, [0.0, 0.0, 1.0], 0.0, angle_tolerance)
 
         return self._solve_ik(constrain, seeds, clearance)
+
+    def _seeds(self, p_W: np.ndarray, q_seed: np.ndarray | None) -> list[np.ndarray]:
+        """The given seed, or seeds behind p_W with the handle down, then rolled to either side."""
+        if q_seed is not None:
+            return [_joint_vector(q_seed, "q_seed")]
+        return [self.seed_for(p_W, handle_roll) for handle_roll in (0.0, 1.5, -1.5)]
 
     def _solve_ik(self, constrain: Callable[[InverseKinematics], None], seeds: list[np.ndarray], clearance: float | None) -> IkResult:
         """Drake's InverseKinematics with joint limits, the constraints ``constrain`` adds, an
