@@ -9,16 +9,21 @@ DATA = REPO_ROOT.parent / "shared/data/ace_match_events_elite.csv"
 EMPTY_MESHCAT_HTML = 2.3e6  # bytes: StaticHtml of an empty scene is about 2.2 MB of viewer code
 
 
-def test_tutorial_01_ball_flight_writes_png_and_html(tmp_path):
-    script = REPO_ROOT / "tutorials/01_ball_flight.py"
+def run_tutorial(name: str, out: Path) -> subprocess.CompletedProcess:
+    """Runs tutorials/<name> with --out ``out`` from the repository root; asserts it succeeded."""
     run = subprocess.run(
-        [sys.executable, str(script), "--out", str(tmp_path)],
+        [sys.executable, str(REPO_ROOT / "tutorials" / name), "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=300,
         cwd=REPO_ROOT,
     )
     assert run.returncode == 0, run.stderr
+    return run
+
+
+def test_tutorial_01_ball_flight_writes_png_and_html(tmp_path):
+    run = run_tutorial("01_ball_flight.py", tmp_path)
     png = tmp_path / "ball_flight.png"
     assert png.is_file() and png.stat().st_size > 50_000
     html = [tmp_path / "spin_comparison.html"]
@@ -34,15 +39,7 @@ def test_tutorial_01_ball_flight_writes_png_and_html(tmp_path):
 
 
 def test_tutorial_02_robot_writes_png_and_html(tmp_path):
-    script = REPO_ROOT / "tutorials/02_robot.py"
-    run = subprocess.run(
-        [sys.executable, str(script), "--out", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=REPO_ROOT,
-    )
-    assert run.returncode == 0, run.stderr
+    run = run_tutorial("02_robot.py", tmp_path)
     png = tmp_path / "robot.png"
     assert png.is_file() and png.stat().st_size > 50_000
     if DATA.is_file():

@@ -31,8 +31,9 @@ from ace_drake.physics.flight import make_state
 from ace_drake.physics.propagate import ContactEvent, ContactKind, simulate
 from ace_drake.robot_model import RobotModel
 
-# An incoming ball from the human's side: it bounces on the robot's half about 0.6 m behind the
-# net (0.45 s after the hit) and reaches the top of its bounce about 1.3 m behind the end line... 
+# An incoming ball from the human's side: it bounces on the robot's half 0.64 m behind the net
+# (0.45 s after the human's hit) and reaches the top of its bounce above the robot's end line
+# (x = -1.37 m) 0.68 s after the hit.
 INCOMING_BALL = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (0.0, -80.0, 0.0))
 RETURN_TARGET = (0.8, 0.0)  # where the return should land on the opponent's half, m
 SWING_START = 0.05  # s after the episode starts; the robot waits at its ready pose until then
@@ -191,11 +192,9 @@ def _within_limits(model: RobotModel, trajectory: PiecewisePolynomial, step: flo
     ``step``-spaced samples (the Hermite segments' extremes lie at their ends or one interior
     point, which 1 ms sampling resolves to well under the margins that matter here)."""
     times = np.arange(trajectory.start_time(), trajectory.end_time() + step / 2, step)
-    q = np.array([trajectory.value(t)[:, 0] for t in times])
-    velocity = trajectory.derivative(1)
-    acceleration = trajectory.derivative(2)
-    v = np.array([velocity.value(t)[:, 0] for t in times])
-    a = np.array([acceleration.value(t)[:, 0] for t in times])
+    q = trajectory.vector_values(times).T
+    v = trajectory.derivative(1).vector_values(times).T
+    a = trajectory.derivative(2).vector_values(times).T
     return bool(
         np.all(q >= model.lower - 1e-9) and np.all(q <= model.upper + 1e-9)
         and np.all(np.abs(v) <= model.velocity_limit + 1e-9)
@@ -210,17 +209,15 @@ def _command_for(desired: PiecewisePolynomial, scenario: RobotScenario) -> Piece
     sample instants, so the joints' sampling at t_n never falls on a step."""
     dynamics = scenario.dynamics
     period = dynamics.command_period
-    delays = np.array([joint.delay for joint in dynamics.joints])
-    end = desired.end_time() + 0.1
-    sample_times = np.arange(0.0, end, period)
+    sample_times = np.arange(0.0, desired.end_time() + 0.1, period)
     velocity, acceleration = desired.derivative(1), desired.derivative(2)
     commands = np.empty((len(sample_times), 8))
-    for row, t_n in enumerate(sample_times):
-        felt = np.clip(t_n + delays + 0.5 * period, desired.start_time(), desired.end_time())
-        q = np.array([desired.value(t)[i, 0] for i, t in enumerate(felt)])
-        q_dot = np.array([velocity.value(t)[i, 0] for i, t in enumerate(felt)])
-        q_ddot = np.array([acceleration.value(t)[i, 0] for i, t in enumerate(felt)])
-        commands[row] = feedforward_command(dynamics.joints, q, q_dot, q_ddot)
+    for joint, params in enumerate(dynamics.joints):
+        felt = np.clip(sample_times + params.delay + 0.5 * period, desired.start_time(), desired.end_time())
+        commands[:, joint] = feedforward_command(
+            [params], desired.vector_values(felt)[joint, :, None],
+            velocity.vector_values(felt)[joint, :, None], acceleration.vector_values(felt)[joint, :, None],
+        )[:, 0]
     breaks = np.r_[sample_times - 0.5 * period, sample_times[-1] + 0.5 * period]
     breaks[0] = 0.0
     return PiecewisePolynomial.ZeroOrderHold(breaks, np.vstack([commands, commands[-1]]).T)
