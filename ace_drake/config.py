@@ -276,6 +276,59 @@ class RobotScenario:
             raise ConfigError(f"ready_pose outside the joint limits: {'; '.join(outside)}")
 
 
+@dataclasses.dataclass(frozen=True)
+class ControlParams:
+    """The rally control stack (paper, Methods *Feasible action for optimal control* and *Reset
+    trajectories*; ``ace_drake/control``). Times in s; fractions are of the hardware limits of
+    ``RobotLimits``. The paper gives the 32 ms segment, the 1 kHz sampling and the 5 ms budget;
+    the margins are this project's, chosen so that the delayed joints (eq. (9)) that follow the
+    commands stay inside the hardware limits (``ace-drake bench safety`` measures it).
+    """
+
+    segment_samples: int = 32  # T: one policy step is this many command periods (32 ms at 1 kHz)
+    observation_lead: float = 0.005  # the observation is built this long before its segment starts
+    # Command limits = hardware limits shrunk by these, so that the servo's lag, overshoot and
+    # inter-sample ripple (eq. (9); ~9% velocity ripple at 1 kHz) stay inside the hardware limits.
+    position_margin: float = 0.02  # rad or m inside each position limit
+    velocity_fraction: float = 0.85
+    acceleration_fraction: float = 0.85
+    # The feasible set of the action mapping (eq. (12)) is an inner approximation of what the spline
+    # QP can reach: reachability assumes this fraction of the command acceleration, and the
+    # control-invariant part assumes braking at ``stop_fraction`` of it after ``reaction_time``.
+    reach_fraction: float = 0.8
+    stop_fraction: float = 0.6
+    reaction_time: float = 0.006
+    boundary_samples: int = 24  # velocities sampled along each side of a feasible set's polygon
+    # Command periods per cubic piece of the segment spline: 1 (a knot at every 1 kHz sample); with
+    # longer pieces the spline cannot follow the feasible set's bang-bang bounds (measured: the
+    # QP became infeasible within 10 adversarial steps for 2, 4 and 8).
+    knot_samples: int = 1
+    qp_solver: str = "daqp"  # "daqp", or a Drake MathematicalProgram solver: "clarabel", "osqp"
+    # Reset and protective-stop trajectories (Ruckig, jerk-limited and time-optimal): the jerk limit
+    # is the command acceleration reached from zero in ``jerk_time``.
+    jerk_time: float = 0.002
+    reset_pose: tuple[float, ...] | None = None  # stationary reset configuration; None: the ready pose
+    # Collision checking of segment + reset: conservative advancement on Drake's distance queries;
+    # every point of the robot stays at least ``collision_margin`` (m) from the court and itself.
+    collision_margin: float = 0.005
+    collision_influence: float = 0.3  # distances beyond this (m) are not computed
+
+    def __post_init__(self) -> None:
+        _require_positive(self, "segment_samples", "boundary_samples", "knot_samples", "jerk_time", "collision_influence")
+        if self.segment_samples % self.knot_samples:
+            raise ConfigError(f"segment_samples ({self.segment_samples}) must be a multiple of knot_samples ({self.knot_samples})")
+        _require_non_negative(self, "observation_lead", "position_margin", "reaction_time", "collision_margin")
+        for name in ("velocity_fraction", "acceleration_fraction", "reach_fraction", "stop_fraction"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        if not self.stop_fraction < self.reach_fraction:
+            raise ConfigError(f"stop_fraction ({self.stop_fraction}) must be < reach_fraction ({self.reach_fraction})")
+        if self.qp_solver not in ("daqp", "clarabel", "osqp"):
+            raise ConfigError(f"qp_solver must be daqp, clarabel or osqp, got {self.qp_solver!r}")
+        if self.reset_pose is not None and len(self.reset_pose) != len(JOINT_NAMES):
+            raise ConfigError(f"reset_pose: expected {len(JOINT_NAMES)} values, got {len(self.reset_pose)}")
+
+
 # ----------------------------------------------------------------------------------------------
 # Loading
 # ----------------------------------------------------------------------------------------------

@@ -1,0 +1,192 @@
+"""Per-joint feasible sets of terminal (position, velocity) 32 ms ahead (paper, Methods *Feasible
+action for optimal control*).
+
+For joint i starting a segment of duration T at (q0, v0, a0), the feasible set F_i is the set of
+terminal states (q_T, v_T) that
+
+1. the spline QP can reach: an inner approximation of the reachable set of a double integrator
+   under |a| <= A_r = reach_fraction * A, |v| <= V (A, V the command limits), starting from the
+   state after the QP's first knot interval h, over which the acceleration ramps from a0 to zero:
+   (q1, v1) = (q0 + v0 h + a0 h^2 / 3, v0 + a0 h / 2) over T' = T - h;
+2. lie in a control-invariant set: from (q_T, v_T), with any terminal acceleration |a_T| <= A
+   towards the limit ramped away over h, a stop at A_s = stop_fraction * A after a reaction time
+   tau ends inside [lower, upper], and a state moving away from a limit is one the QP can have
+   reached without crossing it (q_T <= upper - v_T^2 / (2 A_r) for v_T < 0, mirrored).
+
+Both sets are convex, so F_i is convex: each is {(q, v): v in [v_a, v_b], lo(v) <= q <= hi(v)}
+with lo convex and hi concave. The reachable bounds are the bang-bang motions: with peak velocity
+w (``_reach_upper``),
+
+    q_max(v) = g(min(w*, V)), g(w) = q1 - (v1^2 + v^2) / (2 A_r) + w T' + w (v1 + v) / A_r - w^2 / A_r,
+    w* = (A_r T' + v1 + v) / 2   (accelerate at +A_r to w, cruise, decelerate at -A_r to v),
+
+and q_min(v) mirrors it. Every state the mapping produces lies in F, and F of that state again
+contains states (braking at A_r > A_s reduces the stopping "energy" q + v tau + v^2 / (2 A_s)
+faster than the worst-case ramp adds to it), which is the recursive feasibility the spline QP
+relies on; ``tests/test_spline_qp.py`` checks it on thousands of states and actions.
+
+F_i is represented by a convex polygon with vertices on its boundary (``boundary_samples``
+velocities between v_a and v_b, at each the ends lo(v) and hi(v)): an inner approximation, since a
+chord of a convex set lies inside it. Its centre is the midpoint of the velocity range and, at that
+velocity, of the position range. Everything is vectorised over the eight joints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ace_drake.config import JOINT_NAMES, ControlParams
+from ace_drake.control.trajectory import CommandLimits
+
+
+class InfeasibleStartError(ValueError):
+    """The start state lies outside the control-invariant set: no terminal state is feasible."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FeasibleSets:
+    """The eight joints' feasible sets of terminal (q, v) (``feasible_sets``).
+
+    centre (8, 2): (q, v) centres; scale (8, 2): half-widths of each polygon's bounding box (the
+    shape function f of eq. (12) scales by them); vertices (8, 2K, 2): polygon vertices, counter-
+    clockwise in the (q, v) plane; normals (8, 2K, 2) and offsets (8, 2K): the polygon as
+    half-planes normal . y <= offset (degenerate edges have a zero normal and are ignored).
+    """
+
+    centre: np.ndarray
+    scale: np.ndarray
+    vertices: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+
+    def boundary_distance(self, direction: np.ndarray) -> np.ndarray:
+        """t (..., 8) such that centre + t * direction lies on the polygon's boundary, for
+        directions (..., 8, 2) in (q, v) units; inf for a zero direction."""
+        direction = np.asarray(direction, dtype=float)
+        along = np.einsum("jek,...jk->...je", self.normals, direction)  # n_e . d
+        room = self.offsets - np.einsum("jek,jk->je", self.normals, self.centre)  # b_e - n_e . c >= 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            candidates = np.where(along > 1e-300, room / along, np.inf)
+        return np.min(candidates, axis=-1)
+
+    def contains(self, y: np.ndarray, tolerance: float = 1e-9) -> np.ndarray:
+        """Whether terminal states y (..., 8, 2) lie in each joint's polygon, (..., 8) booleans."""
+        y = np.asarray(y, dtype=float)
+        excess = np.einsum("jek,...jk->...je", self.normals, y) - self.offsets
+        scale = np.abs(self.offsets) + 1.0
+        return np.all(excess <= tolerance * scale, axis=-1)
+
+
+def invariant_bounds(v: np.ndarray, limits: CommandLimits, control: ControlParams, knot_period: float) -> tuple[np.ndarray, np.ndarray]:
+    """The control-invariant position bounds (lo, hi) (..., 8) at terminal velocities v (..., 8):
+    part 2 of the module docstring. Units: rad or m and per second."""
+    A = limits.acceleration
+    A_s = control.stop_fraction * A
+    A_r = control.reach_fraction * A
+    h, tau = knot_period, control.reaction_time
+
+    def stopping_pad(speed: np.ndarray) -> np.ndarray:
+        # Distance still covered towards the limit when moving towards it at ``speed``: the
+        # worst-case terminal acceleration A ramped out over h, the reaction time, then braking.
+        moving = np.maximum(speed, 0.0)
+        ramped = np.maximum(speed + 0.5 * A * h, 0.0)
+        return moving * h + A * h * h / 3.0 + ramped * tau + ramped**2 / (2.0 * A_s)
+
+    def path_pad(speed: np.ndarray) -> np.ndarray:
+        # Moving away from the limit: the QP came from a turn no closer than the limit.
+        away = np.minimum(speed, 0.0)
+        return away**2 / (2.0 * A_r)
+
+    hi = limits.upper - np.maximum(stopping_pad(v), path_pad(v))
+    lo = limits.lower + np.maximum(stopping_pad(-v), path_pad(-v))
+    return lo, hi
+
+
+def _reach_upper(q1, v1, v, A_r, V, duration):
+    """q_max(v): the largest terminal position reachable with terminal velocity v (module docstring)."""
+    peak = np.minimum(0.5 * (A_r * duration + v1 + v), V)
+    return q1 - (v1**2 + v**2) / (2.0 * A_r) + peak * duration + peak * (v1 + v) / A_r - peak**2 / A_r
+
+
+def reachable_bounds(q0, v0, a0, v, limits: CommandLimits, control: ControlParams, knot_period: float, duration: float):
+    """The reachable position bounds (lo, hi) (..., 8) at terminal velocities v (..., 8) from the
+    start (q0, v0, a0) (8,): part 1 of the module docstring; and the reachable velocity range
+    (v_min, v_max) (8,)."""
+    A_r = control.reach_fraction * limits.acceleration
+    V = limits.velocity
+    h = knot_period
+    q1 = q0 + v0 * h + a0 * h * h / 3.0
+    v1 = np.clip(v0 + 0.5 * a0 * h, -V, V)
+    rest = duration - h
+    hi = _reach_upper(q1, v1, v, A_r, V, rest)
+    lo = -_reach_upper(-q1, -v1, -v, A_r, V, rest)
+    return lo, hi, np.maximum(-V, v1 - A_r * rest), np.minimum(V, v1 + A_r * rest)
+
+
+def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> FeasibleSets:
+    """The feasible sets of the eight joints for a segment starting at (q0, v0, a0) (8,) each
+    (rad or m, per s, per s^2), sampled every ``period`` s (the command period), with the QP's
+    knots every ``control.knot_samples`` samples.
+
+    Where a position limit cuts the reachable velocity range, the velocity range [v_a, v_b] is
+    found on a grid of ``VELOCITY_GRID`` velocities across it (to 1/(VELOCITY_GRID - 1) of the
+    range, from the inside). Raises
+    InfeasibleStartError naming the joints whose set is empty (a start outside the control-
+    invariant set, e.g. moving fast at a position limit)."""
+    q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q0, v0, a0))
+    duration = control.segment_samples * period
+    knot_period = control.knot_samples * period
+
+    def bounds(v):
+        lo_r, hi_r, _, _ = reachable_bounds(q0, v0, a0, v, limits, control, knot_period, duration)
+        lo_c, hi_c = invariant_bounds(v, limits, control, knot_period)
+        return np.maximum(lo_r, lo_c), np.minimum(hi_r, hi_c)
+
+    # The velocity range of F: where the (concave) width hi - lo is >= 0, within the reachable
+    # range. Away from the position limits that is the whole reachable range (its ends, where the
+    # reachable set narrows to a point, are open up to round-off); otherwise search a grid.
+    _, _, v_low, v_high = reachable_bounds(q0, v0, a0, v0, limits, control, knot_period, duration)
+    # Polygon vertices at K velocities from v_a to v_b, and the centre's velocity as one more row.
+    fractions = _polygon_fractions(control.boundary_samples)
+    v = v_low + fractions * (v_high - v_low)
+    lo, hi = bounds(v)
+    ends = [0, control.boundary_samples - 1]
+    if np.any(hi[ends] < lo[ends] - 1e-9 * (1.0 + np.abs(q0))):
+        grid = v_low + _GRID * (v_high - v_low)  # (VELOCITY_GRID, 8)
+        lo, hi = bounds(grid)
+        open_ = hi >= lo
+        feasible = np.any(open_, axis=0)
+        if not np.all(feasible):
+            empty = [name for name, ok in zip(JOINT_NAMES, feasible) if not ok]
+            raise InfeasibleStartError(f"no feasible terminal state for joint(s) {empty} from q={q0}, v={v0}, a={a0}")
+        joints = np.arange(q0.size)
+        v_low = grid[np.argmax(open_, axis=0), joints]
+        v_high = grid[open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0), joints]
+        v = v_low + fractions * (v_high - v_low)
+        lo, hi = bounds(v)
+    hi = np.maximum(hi, lo)  # round-off at the ends
+    centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)
+    lo, hi, v = lo[:-1], hi[:-1], v[:-1]
+    # Counter-clockwise in (q, v): up the right side (hi) with increasing v, down the left (lo).
+    right = np.stack([hi.T, v.T], axis=-1)  # (8, K, 2)
+    left = np.stack([lo.T, v.T], axis=-1)[:, ::-1]
+    vertices = np.concatenate([right, left], axis=1)  # (8, 2K, 2)
+    edges = np.roll(vertices, -1, axis=1) - vertices
+    normals = np.stack([edges[..., 1], -edges[..., 0]], axis=-1)  # outward for counter-clockwise
+    offsets = np.einsum("jek,jek->je", normals, vertices)
+    scale = np.stack([0.5 * (hi.max(axis=0) - lo.min(axis=0)), 0.5 * (v_high - v_low)], axis=-1)
+    return FeasibleSets(centre=centre, scale=np.maximum(scale, 1e-12), vertices=vertices, normals=normals, offsets=offsets)
+
+
+def _polygon_fractions(samples: int) -> np.ndarray:
+    """(samples + 1, 1): 0 .. 1 in ``samples`` steps, then 0.5 (the centre's row)."""
+    fractions = np.linspace(0.0, 1.0, samples + 1)
+    fractions[:-1] = np.linspace(0.0, 1.0, samples)
+    fractions[-1] = 0.5
+    return fractions[:, None]
+
+
+VELOCITY_GRID = 129
+_GRID = np.linspace(0.0, 1.0, VELOCITY_GRID)[:, None]

@@ -1,0 +1,196 @@
+"""The segment QP (paper, Methods *Optimization problem formulation*): per joint, a cubic spline
+over one 32 ms segment from the current (q, v, a) to the mapped terminal (q_T, v_T), minimising the
+integrated squared jerk, within the command limits at the 1 kHz samples.
+
+With knots at the N samples (every h = 1 ms), a C2 cubic spline has piecewise-linear acceleration,
+so it is fixed by the knot accelerations a_1 .. a_N (a_0 = the current acceleration):
+
+    v_{k+1} = v_k + h (a_k + a_{k+1}) / 2,   q_{k+1} = q_k + h v_k + h^2 (2 a_k + a_{k+1}) / 6,
+    integral of jerk^2 = sum_k (a_{k+1} - a_k)^2 / h,
+
+a QP in N unknowns per joint with box bounds |a_k| <= A, two-sided rows |v_k| <= V and
+lower <= q_k <= upper (k = 1 .. N-1; acceleration is linear between knots, so its bound holds
+everywhere), and two equalities v_N = v_T, q_N = q_T. The terminal acceleration a_N is free: it is
+the next segment's a_0. The matrices are built once; a solve changes only the linear cost term
+and the bounds. Solved with DAQP (the paper's solver; an exact active-set method) or, for
+comparison, through Drake's MathematicalProgram with Clarabel or OSQP.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import daqp
+import numpy as np
+
+from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+
+EQUALITY = 5  # DAQP's sense flag for an equality row
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentSolution:
+    """A spline QP's outcome: ``trajectory`` (N + 1 samples from the start) when ``success``;
+    otherwise None, with the solver's ``status``. ``worst_violation`` is the largest constraint
+    violation of the returned samples (rad or m, per s, per s^2), checked after every solve."""
+
+    success: bool
+    trajectory: JointTrajectory | None
+    status: str
+    worst_violation: float
+
+
+class SplineQp:
+    """The jerk-minimising spline QP for the eight joints (module docstring), built once.
+
+    ``solve`` is the fast path (DAQP, one small QP per joint); ``solver`` "clarabel" or "osqp"
+    solves the same problem as one MathematicalProgram through Drake instead.
+    """
+
+    def __init__(self, limits: CommandLimits, samples: int = 32, period: float = 0.001, knot_samples: int = 1, solver: str = "daqp", tolerance: float = 1e-6):
+        """limits: the command limits; samples N and period h (s): the segment's 1 kHz samples;
+        knot_samples: samples per spline piece (N must be a multiple); solver: "daqp",
+        "clarabel" or "osqp"; tolerance: the largest constraint violation (in the constraints'
+        units) accepted from a solver before the solve counts as failed."""
+        if samples < 2 or period <= 0 or knot_samples < 1 or samples % knot_samples:
+            raise ValueError(f"SplineQp: need samples >= 2, period > 0 s and samples a multiple of knot_samples, got {samples}, {period}, {knot_samples}")
+        if solver not in ("daqp", "clarabel", "osqp"):
+            raise ValueError(f"SplineQp: solver must be daqp, clarabel or osqp, got {solver!r}")
+        self.limits, self.samples, self.period, self.solver, self.tolerance = limits, samples, period, solver, tolerance
+        N, h = samples, period
+        M = samples // knot_samples  # spline pieces
+        self.knots = M
+        # Sample accelerations from the knots' (linear interpolation), then sample velocities and
+        # positions as linear maps of the sample accelerations (the v0, q0 terms apart): exact,
+        # since the acceleration is linear between consecutive samples too.
+        knot_times = np.arange(M + 1) * knot_samples
+        self._interpolation = np.array([np.interp(k, knot_times, np.eye(M + 1)[j]) for k in range(N + 1) for j in range(M + 1)]).reshape(N + 1, M + 1)
+        velocity_map = np.zeros((N + 1, N + 1))
+        position_map = np.zeros((N + 1, N + 1))
+        for k in range(N):
+            velocity_map[k + 1] = velocity_map[k]
+            velocity_map[k + 1, k] += h / 2
+            velocity_map[k + 1, k + 1] += h / 2
+            position_map[k + 1] = position_map[k] + h * velocity_map[k]
+            position_map[k + 1, k] += h * h / 3
+            position_map[k + 1, k + 1] += h * h / 6
+        self._velocity_map = velocity_map @ self._interpolation  # (N + 1, M + 1) over the knots
+        self._position_map = position_map @ self._interpolation
+        self._times = h * np.arange(N + 1)
+        difference = np.diff(np.eye(M + 1), axis=0)  # (M, M + 1): a_{j+1} - a_j
+        hessian = 2.0 / (knot_samples * h) * difference.T @ difference  # of 0.5 x' H x over [a_0, x]
+        # Rows: v_1 .. v_{N-1}, q_1 .. q_{N-1}, then v_N, q_N (the equalities).
+        rows = np.concatenate([self._velocity_map[1:N], self._position_map[1:N], self._velocity_map[N:], self._position_map[N:]])
+        # DAQP works on a scaled problem: unknowns x = a / A (per joint) and unit-norm rows.
+        self._row_norms = np.linalg.norm(rows[:, 1:], axis=1)
+        self._rows_start = rows[:, 0]
+        self._rows = np.ascontiguousarray(rows[:, 1:] / self._row_norms[:, None])
+        self._hessian = np.ascontiguousarray(hessian[1:, 1:])
+        self._hessian_cross = hessian[1:, 0]  # times a_0: the linear term
+        self._sense = np.zeros(M + rows.shape[0], dtype=np.int32)
+        self._sense[-2:] = EQUALITY
+        self._bound_scale = np.concatenate([np.ones(M), 1.0 / self._row_norms])
+        self._daqp = daqp.Model()
+        self._daqp.settings = {**self._daqp.settings, "primal_tol": 1e-9}
+        self._daqp.setup(self._hessian, np.zeros(M), self._rows, np.ones(self._sense.size), -np.ones(self._sense.size), self._sense)
+        self._program = None
+
+    # ------------------------------------------------------------------------------ solving
+    def solve(self, q0, v0, a0, q_terminal, v_terminal) -> SegmentSolution:
+        """The segment from (q0, v0, a0) to (q_terminal, v_terminal), each (8,), in rad or m,
+        per s and per s^2."""
+        q0, v0, a0, q_terminal, v_terminal = (np.asarray(x, dtype=float) for x in (q0, v0, a0, q_terminal, v_terminal))
+        if not all(x.shape == (8,) and np.all(np.isfinite(x)) for x in (q0, v0, a0, q_terminal, v_terminal)):
+            raise ValueError("SplineQp.solve: q0, v0, a0, q_terminal, v_terminal must each be 8 finite values")
+        lower, upper = self._row_bounds(q0, v0, a0, q_terminal, v_terminal)  # (8, M + rows)
+        linear = a0[:, None] * self._hessian_cross  # (8, M)
+        if self.solver == "daqp":
+            accelerations, status = self._solve_daqp(linear, lower, upper)
+        else:
+            accelerations, status = self._solve_program(linear, lower, upper)
+        if accelerations is None:
+            return SegmentSolution(False, None, status, np.inf)
+        return self._checked(q0, v0, a0, accelerations, q_terminal, v_terminal, status)
+
+    def _row_bounds(self, q0, v0, a0, q_terminal, v_terminal):
+        """Bounds (8, N + rows) of [x; rows x], the start's contribution moved to the right."""
+        N, M, limits = self.samples, self.knots, self.limits
+        inner = self._times[1:N]
+        start_v = v0[:, None] + a0[:, None] * self._rows_start[None, : N - 1]
+        start_q = q0[:, None] + v0[:, None] * inner + a0[:, None] * self._rows_start[None, N - 1 : 2 * N - 2]
+        end_v = v0 + a0 * self._rows_start[-2]
+        end_q = q0 + v0 * self._times[N] + a0 * self._rows_start[-1]
+        box = np.repeat(limits.acceleration[:, None], M, axis=1)
+        speed = limits.velocity[:, None]
+        upper = np.concatenate([box, speed - start_v, limits.upper[:, None] - start_q, (v_terminal - end_v)[:, None], (q_terminal - end_q)[:, None]], axis=1)
+        lower = np.concatenate([-box, -speed - start_v, limits.lower[:, None] - start_q, (v_terminal - end_v)[:, None], (q_terminal - end_q)[:, None]], axis=1)
+        return lower, upper
+
+    def _solve_daqp(self, linear, lower, upper):
+        """One scaled QP per joint: unknowns x = a / A and each row divided by its norm, so
+        row . a <= b becomes (row / |row|) . x <= b / (A |row|), and the cost 0.5 a' H a + f' a
+        becomes (up to the factor A^2) 0.5 x' H x + (f / A)' x. H and the rows are then the same
+        for every joint: one DAQP workspace, set up once, takes new cost vectors and bounds."""
+        M = self.knots
+        solution = np.empty((8, M))
+        for joint in range(8):
+            A = self.limits.acceleration[joint]
+            scale = self._bound_scale / A
+            self._daqp.update(f=linear[joint] / A, bupper=upper[joint] * scale, blower=lower[joint] * scale)
+            x, _, exitflag, _ = self._daqp.solve()
+            if exitflag < 1:
+                return None, f"daqp exit flag {exitflag} on joint {joint}"
+            solution[joint] = A * x
+        return solution, "daqp: solved"
+
+    def _solve_program(self, linear, lower, upper):
+        from pydrake.solvers import ClarabelSolver, OsqpSolver
+
+        if self._program is None:
+            self._build_program()
+        program, variables, cost, box, rows = self._program
+        N = self.knots
+        cost.evaluator().UpdateCoefficients(np.kron(np.eye(8), self._hessian), linear.ravel())
+        box.evaluator().set_bounds(lower[:, :N].ravel(), upper[:, :N].ravel())
+        rows.evaluator().set_bounds(lower[:, N:].ravel(), upper[:, N:].ravel())
+        solver = ClarabelSolver() if self.solver == "clarabel" else OsqpSolver()
+        result = solver.Solve(program)
+        if not result.is_success():
+            return None, f"{self.solver}: {result.get_solution_result()}"
+        return result.GetSolution(variables).reshape(8, N), f"{self.solver}: solved"
+
+    def _build_program(self) -> None:
+        """The same QP for all eight joints as one MathematicalProgram (block-diagonal)."""
+        from pydrake.solvers import MathematicalProgram
+
+        N = self.knots
+        program = MathematicalProgram()
+        variables = program.NewContinuousVariables(8 * N, "a")
+        cost = program.AddQuadraticCost(np.kron(np.eye(8), self._hessian), np.zeros(8 * N), variables, is_convex=True)
+        box = program.AddBoundingBoxConstraint(np.zeros(8 * N), np.zeros(8 * N), variables)
+        rows_per_joint = self._rows.shape[0]
+        unscaled = self._rows * self._row_norms[:, None]
+        rows = program.AddLinearConstraint(np.kron(np.eye(8), unscaled), np.zeros(8 * rows_per_joint), np.zeros(8 * rows_per_joint), variables)
+        self._program = (program, variables, cost, box, rows)
+
+    # ------------------------------------------------------------------------------ checking
+    def _checked(self, q0, v0, a0, accelerations, q_terminal, v_terminal, status) -> SegmentSolution:
+        """Samples of the solved spline, accepted only if they meet every constraint to within
+        the tolerance (never execute a solver's garbage)."""
+        knots = np.concatenate([a0[:, None], accelerations], axis=1)  # (8, M + 1)
+        v = v0[:, None] + knots @ self._velocity_map.T
+        q = q0[:, None] + v0[:, None] * self._times + knots @ self._position_map.T
+        a = knots @ self._interpolation.T
+        limits, tolerance = self.limits, self.tolerance
+        worst = max(
+            float(np.max(np.abs(knots[:, 1:]) - limits.acceleration[:, None])),
+            float(np.max(np.abs(v) - limits.velocity[:, None])),
+            float(np.max(np.maximum(q - limits.upper[:, None], limits.lower[:, None] - q))),
+            float(np.max(np.abs(v[:, -1] - v_terminal))),
+            float(np.max(np.abs(q[:, -1] - q_terminal))),
+        )
+        worst = max(worst, 0.0)
+        if not np.isfinite(worst) or worst > tolerance:
+            return SegmentSolution(False, None, f"{status}, but a constraint is violated by {worst:.3g}", worst)
+        trajectory = JointTrajectory(self.period, q.T.copy(), v.T.copy(), a.T.copy())
+        return SegmentSolution(True, trajectory, status, worst)
