@@ -303,7 +303,7 @@ class ControlParams:
     # longer pieces the spline cannot follow the feasible set's bang-bang bounds (measured: the
     # QP became infeasible within 10 adversarial steps for 2, 4 and 8).
     knot_samples: int = 1
-    qp_solver: str = "daqp"  # "daqp", or a Drake MathematicalProgram solver: "clarabel", "osqp"
+    qp_solver: str = "daqp"  # "daqp", or "clarabel" through Drake's MathematicalProgram
     # Reset and protective-stop trajectories (Ruckig, jerk-limited and time-optimal): the jerk limit
     # is the command acceleration reached from zero in ``jerk_time``.
     jerk_time: float = 0.002
@@ -323,8 +323,8 @@ class ControlParams:
                 raise ConfigError(f"{name} must be in (0, 1], got {getattr(self, name)}")
         if not self.stop_fraction < self.reach_fraction:
             raise ConfigError(f"stop_fraction ({self.stop_fraction}) must be < reach_fraction ({self.reach_fraction})")
-        if self.qp_solver not in ("daqp", "clarabel", "osqp"):
-            raise ConfigError(f"qp_solver must be daqp, clarabel or osqp, got {self.qp_solver!r}")
+        if self.qp_solver not in ("daqp", "clarabel"):
+            raise ConfigError(f"qp_solver must be daqp or clarabel, got {self.qp_solver!r}")
         if self.reset_pose is not None and len(self.reset_pose) != len(JOINT_NAMES):
             raise ConfigError(f"reset_pose: expected {len(JOINT_NAMES)} values, got {len(self.reset_pose)}")
 

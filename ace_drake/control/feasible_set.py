@@ -67,7 +67,7 @@ class FeasibleSets:
         direction = np.asarray(direction, dtype=float)
         along = np.einsum("jek,...jk->...je", self.normals, direction)  # n_e . d
         room = self.offsets - np.einsum("jek,jk->je", self.normals, self.centre)  # b_e - n_e . c >= 0
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             candidates = np.where(along > 1e-300, room / along, np.inf)
         return np.min(candidates, axis=-1)
 
@@ -190,3 +190,13 @@ def _polygon_fractions(samples: int) -> np.ndarray:
 
 VELOCITY_GRID = 129
 _GRID = np.linspace(0.0, 1.0, VELOCITY_GRID)[:, None]
+
+
+def in_invariant_set(q, v, limits: CommandLimits, control: ControlParams, period: float, tolerance: float = 0.0) -> np.ndarray:
+    """Whether joint states (q, v) (..., 8) lie in the control-invariant part of the feasible
+    sets (part 2 of the module docstring), with any acceleration within the command limits:
+    the states the mapping produces, and from which ``feasible_sets`` is never empty.
+    ``tolerance``: how far outside (rad or m, and per s) still counts as inside."""
+    lo, hi = invariant_bounds(np.asarray(v, dtype=float), limits, control, control.knot_samples * period)
+    q = np.asarray(q, dtype=float)
+    return (lo - tolerance <= q) & (q <= hi + tolerance) & (np.abs(v) <= limits.velocity + tolerance)

@@ -13,7 +13,9 @@ lower <= q_k <= upper (k = 1 .. N-1; acceleration is linear between knots, so it
 everywhere), and two equalities v_N = v_T, q_N = q_T. The terminal acceleration a_N is free: it is
 the next segment's a_0. The matrices are built once; a solve changes only the linear cost term
 and the bounds. Solved with DAQP (the paper's solver; an exact active-set method) or, for
-comparison, through Drake's MathematicalProgram with Clarabel or OSQP.
+comparison, through Drake's MathematicalProgram with Clarabel (an interior-point method; OSQP,
+first-order, left acceleration-bound violations of 2e-2 at its default tolerances and reported
+the problem infeasible at 1e-9 ones, so it is not offered).
 """
 
 from __future__ import annotations
@@ -43,19 +45,19 @@ class SegmentSolution:
 class SplineQp:
     """The jerk-minimising spline QP for the eight joints (module docstring), built once.
 
-    ``solve`` is the fast path (DAQP, one small QP per joint); ``solver`` "clarabel" or "osqp"
-    solves the same problem as one MathematicalProgram through Drake instead.
+    ``solve`` is the fast path (DAQP, one small QP per joint); ``solver`` "clarabel" solves the
+    same problem as one MathematicalProgram through Drake instead.
     """
 
     def __init__(self, limits: CommandLimits, samples: int = 32, period: float = 0.001, knot_samples: int = 1, solver: str = "daqp", tolerance: float = 1e-6):
         """limits: the command limits; samples N and period h (s): the segment's 1 kHz samples;
-        knot_samples: samples per spline piece (N must be a multiple); solver: "daqp",
-        "clarabel" or "osqp"; tolerance: the largest constraint violation (in the constraints'
+        knot_samples: samples per spline piece (N must be a multiple); solver: "daqp" or
+        "clarabel"; tolerance: the largest constraint violation (in the constraints'
         units) accepted from a solver before the solve counts as failed."""
         if samples < 2 or period <= 0 or knot_samples < 1 or samples % knot_samples:
             raise ValueError(f"SplineQp: need samples >= 2, period > 0 s and samples a multiple of knot_samples, got {samples}, {period}, {knot_samples}")
-        if solver not in ("daqp", "clarabel", "osqp"):
-            raise ValueError(f"SplineQp: solver must be daqp, clarabel or osqp, got {solver!r}")
+        if solver not in ("daqp", "clarabel"):
+            raise ValueError(f"SplineQp: solver must be daqp or clarabel, got {solver!r}")
         self.limits, self.samples, self.period, self.solver, self.tolerance = limits, samples, period, solver, tolerance
         N, h = samples, period
         M = samples // knot_samples  # spline pieces
@@ -144,7 +146,7 @@ class SplineQp:
         return solution, "daqp: solved"
 
     def _solve_program(self, linear, lower, upper):
-        from pydrake.solvers import ClarabelSolver, OsqpSolver
+        from pydrake.solvers import ClarabelSolver
 
         if self._program is None:
             self._build_program()
@@ -153,8 +155,7 @@ class SplineQp:
         cost.evaluator().UpdateCoefficients(np.kron(np.eye(8), self._hessian), linear.ravel())
         box.evaluator().set_bounds(lower[:, :N].ravel(), upper[:, :N].ravel())
         rows.evaluator().set_bounds(lower[:, N:].ravel(), upper[:, N:].ravel())
-        solver = ClarabelSolver() if self.solver == "clarabel" else OsqpSolver()
-        result = solver.Solve(program)
+        result = ClarabelSolver().Solve(program)
         if not result.is_success():
             return None, f"{self.solver}: {result.get_solution_result()}"
         return result.GetSolution(variables).reshape(8, N), f"{self.solver}: solved"

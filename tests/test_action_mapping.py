@@ -1,0 +1,113 @@
+"""Feasible sets and the action mapping of paper eq. (12): centre to centre, boundary to
+boundary, inside the feasible set, and inverted exactly."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ace_drake.config import ControlParams, RobotLimits, RobotScenario
+from ace_drake.control.action_mapping import ACTION_SIZE, inverse_map_action, map_action
+from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
+from ace_drake.control.trajectory import CommandLimits
+
+CONTROL = ControlParams()
+LIMITS = CommandLimits.from_config(RobotLimits(), CONTROL)
+PERIOD = 0.001
+READY = np.array(RobotScenario().ready_pose)
+
+
+def invariant_state(seed: int, edge: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A random joint state (q, v, a) in the control-invariant set; with ``edge``, pushed onto its
+    boundary towards a position limit (the hardest starts)."""
+    rng = np.random.default_rng(seed)
+    while True:
+        v = rng.uniform(-1, 1, 8) * LIMITS.velocity * rng.choice([0.2, 1.0])
+        q = rng.uniform(LIMITS.lower, LIMITS.upper)
+        a = rng.uniform(-1, 1, 8) * LIMITS.acceleration
+        if edge:
+            # Slide q to where the invariant set ends in the direction of motion.
+            for _ in range(40):
+                step = q + np.sign(v + 1e-9) * 0.02 * (LIMITS.upper - LIMITS.lower)
+                inside = in_invariant_set(step, v, LIMITS, CONTROL, PERIOD)
+                q = np.where(inside, step, q)
+            a = np.sign(v + 1e-9) * LIMITS.acceleration  # accelerating towards the limit
+        if np.all(in_invariant_set(q, v, LIMITS, CONTROL, PERIOD)):
+            return q, v, a
+
+
+actions = st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=ACTION_SIZE, max_size=ACTION_SIZE).map(np.array)
+extreme_actions = st.lists(st.sampled_from([-1.0, 1.0]), min_size=ACTION_SIZE, max_size=ACTION_SIZE).map(np.array)
+
+
+def test_at_rest_the_centre_is_standing_still():
+    sets = feasible_sets(READY, np.zeros(8), np.zeros(8), LIMITS, CONTROL, PERIOD)
+    q, v = map_action(np.zeros(ACTION_SIZE), sets)
+    np.testing.assert_allclose(q, READY, atol=1e-12)
+    np.testing.assert_allclose(v, 0.0, atol=1e-12)
+    # Far from the limits the velocity range is what A_r reaches over the segment after the
+    # first knot interval: 0.8 * 0.85 * 40 m/s^2 * 31 ms for the gantry.
+    assert sets.scale[0, 1] == pytest.approx(0.8 * 0.85 * 40.0 * 0.031)
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), edge=st.booleans(), action=st.one_of(actions, extreme_actions))
+def test_every_action_maps_into_the_feasible_and_invariant_sets(seed, edge, action):
+    q0, v0, a0 = invariant_state(seed, edge)
+    sets = feasible_sets(q0, v0, a0, LIMITS, CONTROL, PERIOD)
+    q, v = map_action(action, sets)
+    assert np.all(sets.contains(np.stack([q, v], axis=-1)))
+    assert np.all(in_invariant_set(q, v, LIMITS, CONTROL, PERIOD, tolerance=1e-9))  # on its boundary up to round-off
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), edge=st.booleans(), action=actions)
+def test_the_inverse_recovers_the_action(seed, edge, action):
+    sets = feasible_sets(*invariant_state(seed, edge), LIMITS, CONTROL, PERIOD)
+    np.testing.assert_allclose(inverse_map_action(*map_action(action, sets), sets), action, atol=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), edge=st.booleans(), action=actions)
+def test_centre_to_centre_and_boundary_to_boundary(seed, edge, action):
+    sets = feasible_sets(*invariant_state(seed, edge), LIMITS, CONTROL, PERIOD)
+    q, v = map_action(np.zeros(ACTION_SIZE), sets)
+    np.testing.assert_allclose(np.stack([q, v], axis=-1), sets.centre, atol=1e-12)
+    # Scale the action onto the square's boundary: every joint's pair has infinity-norm 1.
+    pairs = action.reshape(2, 8)
+    size = np.max(np.abs(pairs), axis=0)
+    on_square = np.where(size > 1e-6, pairs / np.maximum(size, 1e-6), 1.0).ravel()
+    q, v = map_action(on_square, sets)
+    # On the boundary: the ray from the centre through the point leaves the set right there.
+    t = sets.boundary_distance(np.stack([q, v], axis=-1) - sets.centre)
+    np.testing.assert_allclose(t, 1.0, rtol=1e-9)
+    # And the mapping is monotone along a ray: half the action lands half way.
+    q_half, v_half = map_action(0.5 * on_square, sets)
+    np.testing.assert_allclose(np.stack([q_half, v_half], axis=-1), 0.5 * (sets.centre + np.stack([q, v], axis=-1)), atol=1e-12)
+
+
+def test_points_outside_the_set_invert_beyond_the_box():
+    sets = feasible_sets(READY, np.zeros(8), np.zeros(8), LIMITS, CONTROL, PERIOD)
+    q, v = map_action(np.ones(ACTION_SIZE), sets)
+    beyond = inverse_map_action(sets.centre[:, 0] + 2.0 * (q - sets.centre[:, 0]), sets.centre[:, 1] + 2.0 * (v - sets.centre[:, 1]), sets)
+    np.testing.assert_allclose(beyond, 2.0, rtol=1e-9)
+
+
+def test_bad_actions_raise():
+    sets = feasible_sets(READY, np.zeros(8), np.zeros(8), LIMITS, CONTROL, PERIOD)
+    with pytest.raises(ValueError, match="16 values"):
+        map_action(np.zeros(8), sets)
+    with pytest.raises(ValueError, match=r"\[-1, 1\]"):
+        map_action(np.full(ACTION_SIZE, 1.5), sets)
+    with pytest.raises(ValueError, match=r"\[-1, 1\]"):
+        map_action(np.full(ACTION_SIZE, np.nan), sets)
+
+
+def test_a_start_outside_the_invariant_set_raises():
+    # At the upper limit of gantry_x, moving towards it at full speed: no stop is possible.
+    q = READY.copy()
+    q[0] = LIMITS.upper[0]
+    v = np.zeros(8)
+    v[0] = LIMITS.velocity[0]
+    with pytest.raises(InfeasibleStartError, match="gantry_x"):
+        feasible_sets(q, v, np.zeros(8), LIMITS, CONTROL, PERIOD)
