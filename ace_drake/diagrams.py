@@ -21,13 +21,19 @@ from pydrake.systems.primitives import ConstantValueSource, TrajectorySource, Ve
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 from pydrake.trajectories import PiecewisePolynomial, Trajectory
 
-from ace_drake.config import BallPhysicsParams, RobotScenario
+from ace_drake.config import BallPhysicsParams, ControlParams, RobotScenario
+from ace_drake.control.stack import ControlStack
 from ace_drake.physics.contact import ResidualModel
 from ace_drake.robot_model import add_robot_to_plant, check_joint_order, load_scenario
+from ace_drake.systems.action_mapper import ActionMapper
 from ace_drake.systems.ball_plant import BallPlant
 from ace_drake.systems.ball_visualizer import BallVisualizer, set_court_view
 from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
+from ace_drake.systems.policy_controller import PolicyController
+from ace_drake.systems.reset_mpc import ResetMpc
 from ace_drake.systems.robot_kinematics import RobotKinematics
+from ace_drake.systems.safety_supervisor import SafetySupervisor
+from ace_drake.systems.spline_qp import SplineQp
 
 SIMULATION_ACCURACY = 1e-6  # integrator target accuracy; places witness events within ~1e-8 s
 MAX_STEP = 1e-3  # s; keeps the racket from being tunnelled through at relative speeds up to 50 m/s
@@ -173,6 +179,95 @@ def build_swing_diagram(
     diagram = builder.Build()
     diagram.set_name("robot_swing_diagram")
     return diagram
+
+
+@dataclasses.dataclass(frozen=True)
+class ControlSystems:
+    """The control stack's systems in a builder (``add_control_stack``)."""
+
+    stack: ControlStack
+    policy_controller: PolicyController
+    action_mapper: ActionMapper
+    spline_qp: SplineQp
+    reset_mpc: ResetMpc
+    supervisor: SafetySupervisor
+
+
+def make_control_stack(scenario: RobotScenario, control: ControlParams, check_collisions: bool = True) -> ControlStack:
+    """The shared control stack with Drake collision checking of every plan (margin and
+    influence distance from ``control``), or none when ``check_collisions`` is False."""
+    checker = None
+    if check_collisions:
+        from ace_drake.robot_collision import TrajectoryCollisionChecker
+
+        checker = TrajectoryCollisionChecker(scenario, margin=control.collision_margin, influence=control.collision_influence).check
+    return ControlStack(scenario, control, checker)
+
+
+def add_control_stack(builder: DiagramBuilder, robot: RobotSystems, stack: ControlStack, policy, observation_size: int) -> ControlSystems:
+    """Adds the rally control stack (paper, Fig. 1c) in front of the robot's joints:
+    ``policy_controller`` (every 32 ms) -> ``action_mapper`` (eq. (12)) -> ``spline_qp`` ->
+    ``reset_mpc`` -> ``safety_supervisor`` -> the joints' q_command. The supervisor's
+    segment_start_state feeds the mapper and the QP; its ``light_curtain`` input and the policy's
+    ``observation`` input are left for the caller."""
+    period = stack.period
+    policy_controller = builder.AddNamedSystem("policy_controller", PolicyController(policy, observation_size, stack.control, period))
+    mapper = builder.AddNamedSystem("action_mapper", ActionMapper(stack))
+    qp = builder.AddNamedSystem("spline_qp", SplineQp(stack))
+    reset = builder.AddNamedSystem("reset_mpc", ResetMpc(stack))
+    supervisor = builder.AddNamedSystem("safety_supervisor", SafetySupervisor(stack))
+    builder.Connect(policy_controller.action_port, mapper.action_port)
+    builder.Connect(policy_controller.action_valid_port, mapper.action_valid_port)
+    builder.Connect(supervisor.segment_start_state_port, mapper.segment_start_state_port)
+    builder.Connect(supervisor.segment_start_state_port, qp.segment_start_state_port)
+    builder.Connect(mapper.target_port, qp.target_port)
+    builder.Connect(qp.segment_port, reset.segment_port)
+    builder.Connect(qp.segment_port, supervisor.segment_port)
+    builder.Connect(reset.reset_port, supervisor.reset_port)
+    builder.Connect(supervisor.q_command_port, robot.joint_plant.q_command_port)
+    return ControlSystems(stack, policy_controller, mapper, qp, reset, supervisor)
+
+
+def build_controlled_robot_diagram(
+    policy,
+    scenario: RobotScenario | None = None,
+    control: ControlParams | None = None,
+    meshcat: Meshcat | None = None,
+    check_collisions: bool = True,
+    log_period: float = 0.001,
+) -> Diagram:
+    """The robot under the rally control stack with no ball: ``add_robot`` + ``add_control_stack``,
+    the policy observing the robot state where its next segment starts (the supervisor's
+    segment_start_state, 24 values; the rally diagram adds the ball's sensor histories), the
+    light curtain as the diagram's input port ``light_curtain``, and loggers of the commanded
+    state (``command_logger``, [q, v, a]) and the joints (``joint_logger``, [q, v]) every
+    ``log_period`` s. Initialise an episode with ``start_controlled_robot``."""
+    scenario = scenario or load_scenario()
+    control = control or ControlParams()
+    builder = DiagramBuilder()
+    robot = add_robot(builder, scenario, meshcat)
+    stack = make_control_stack(scenario, control, check_collisions)
+    systems = add_control_stack(builder, robot, stack, policy, observation_size=24)
+    builder.Connect(systems.supervisor.segment_start_state_port, systems.policy_controller.observation_port)
+    builder.ExportInput(systems.supervisor.light_curtain_port, "light_curtain")
+    command_logger = builder.AddNamedSystem("command_logger", VectorLogSink(24, log_period))
+    builder.Connect(systems.supervisor.commanded_state_port, command_logger.get_input_port())
+    joint_logger = builder.AddNamedSystem("joint_logger", VectorLogSink(16, log_period))
+    builder.Connect(robot.joint_plant.joint_state_port, joint_logger.get_input_port())
+    diagram = builder.Build()
+    diagram.set_name("controlled_robot_diagram")
+    return diagram
+
+
+def start_controlled_robot(diagram: Diagram, context, q=None, light_curtain: float = 0.0) -> None:
+    """Sets an episode's start in ``context``: the joints at rest at q (default: the reset pose)
+    with the supervisor's plan to stand there, and the light curtain input fixed at its value."""
+    supervisor = diagram.GetSubsystemByName("safety_supervisor")
+    joint_plant = diagram.GetSubsystemByName("joint_plant")
+    q = np.asarray(supervisor.stack.reset_pose if q is None else q, dtype=float)
+    supervisor.Initialize(supervisor.GetMyMutableContextFromRoot(context), q)
+    joint_plant.SetJointState(joint_plant.GetMyMutableContextFromRoot(context), q)
+    diagram.get_input_port(0).FixValue(context, [light_curtain])
 
 
 def _documented_ball_diagram() -> Diagram:

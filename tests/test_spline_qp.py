@@ -8,10 +8,10 @@ from hypothesis import strategies as st
 
 from ace_drake.control.action_mapping import ACTION_SIZE, map_action
 from ace_drake.control.feasible_set import feasible_sets, in_invariant_set
-from ace_drake.control.spline_qp import SplineQp
+from ace_drake.control.spline_qp import SegmentQp
 from tests.test_action_mapping import CONTROL, LIMITS, PERIOD, READY, invariant_state
 
-QP = SplineQp(LIMITS, CONTROL.segment_samples, PERIOD, CONTROL.knot_samples)
+QP = SegmentQp(LIMITS, CONTROL.segment_samples, PERIOD, CONTROL.knot_samples)
 T = CONTROL.segment_samples * PERIOD
 
 
@@ -52,14 +52,14 @@ def test_bad_input_raises():
     with pytest.raises(ValueError, match="8 finite values"):
         QP.solve(READY, np.zeros(8), np.zeros(8), READY, np.full(8, np.nan))
     with pytest.raises(ValueError, match="solver"):
-        SplineQp(LIMITS, solver="gurobi")
+        SegmentQp(LIMITS, solver="gurobi")
 
 
 def test_mathematical_program_solves_the_same_problem():
     sets = feasible_sets(READY, np.zeros(8), np.zeros(8), LIMITS, CONTROL, PERIOD)
     q_terminal, v_terminal = map_action(np.tile([0.5, -0.5], 8), sets)
     reference = QP.solve(READY, np.zeros(8), np.zeros(8), q_terminal, v_terminal)
-    other = SplineQp(LIMITS, CONTROL.segment_samples, PERIOD, CONTROL.knot_samples, solver="clarabel")
+    other = SegmentQp(LIMITS, CONTROL.segment_samples, PERIOD, CONTROL.knot_samples, solver="clarabel")
     solution = other.solve(READY, np.zeros(8), np.zeros(8), q_terminal, v_terminal)
     assert reference.success and solution.success, solution.status
     np.testing.assert_allclose(solution.trajectory.q, reference.trajectory.q, atol=1e-7)

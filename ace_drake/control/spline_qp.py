@@ -42,7 +42,7 @@ class SegmentSolution:
     worst_violation: float
 
 
-class SplineQp:
+class SegmentQp:
     """The jerk-minimising spline QP for the eight joints (module docstring), built once.
 
     ``solve`` is the fast path (DAQP, one small QP per joint); ``solver`` "clarabel" solves the
@@ -55,9 +55,9 @@ class SplineQp:
         "clarabel"; tolerance: the largest constraint violation (in the constraints'
         units) accepted from a solver before the solve counts as failed."""
         if samples < 2 or period <= 0 or knot_samples < 1 or samples % knot_samples:
-            raise ValueError(f"SplineQp: need samples >= 2, period > 0 s and samples a multiple of knot_samples, got {samples}, {period}, {knot_samples}")
+            raise ValueError(f"SegmentQp: need samples >= 2, period > 0 s and samples a multiple of knot_samples, got {samples}, {period}, {knot_samples}")
         if solver not in ("daqp", "clarabel"):
-            raise ValueError(f"SplineQp: solver must be daqp or clarabel, got {solver!r}")
+            raise ValueError(f"SegmentQp: solver must be daqp or clarabel, got {solver!r}")
         self.limits, self.samples, self.period, self.solver, self.tolerance = limits, samples, period, solver, tolerance
         N, h = samples, period
         M = samples // knot_samples  # spline pieces
@@ -103,7 +103,7 @@ class SplineQp:
         per s and per s^2."""
         q0, v0, a0, q_terminal, v_terminal = (np.asarray(x, dtype=float) for x in (q0, v0, a0, q_terminal, v_terminal))
         if not all(x.shape == (8,) and np.all(np.isfinite(x)) for x in (q0, v0, a0, q_terminal, v_terminal)):
-            raise ValueError("SplineQp.solve: q0, v0, a0, q_terminal, v_terminal must each be 8 finite values")
+            raise ValueError("SegmentQp.solve: q0, v0, a0, q_terminal, v_terminal must each be 8 finite values")
         lower, upper = self._row_bounds(q0, v0, a0, q_terminal, v_terminal)  # (8, M + rows)
         linear = a0[:, None] * self._hessian_cross  # (8, M)
         if self.solver == "daqp":

@@ -1,0 +1,187 @@
+"""One control step of the rally controller (paper, Fig. 1c and Methods *Feasible action for
+optimal control*, *Reset trajectories*), as plain Python shared by the Drake systems, the
+benchmarks and the tutorial.
+
+Every 32 ms the policy's action (16,) becomes a proposal:
+
+    feasible sets at the segment's start state -> eq. (12) mapping -> spline QP (segment)
+        -> reset to the stationary reset pose (Ruckig) -> collision check of segment + reset,
+
+and the supervisor executes segment + reset only if every stage succeeded and the motion is
+collision-free; otherwise it keeps the plan it has, whose reset was checked when it was accepted
+(the paper's fallback to the previous reset). A plan is therefore always a collision-free motion
+within the command limits that ends at rest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ace_drake.config import ControlParams, RobotScenario
+from ace_drake.control.action_mapping import inverse_map_action, map_action
+from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets
+from ace_drake.control.reset import ResetPlanner
+from ace_drake.control.spline_qp import SegmentQp
+from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """The outcome of one stage of a control step: ``value`` when ``ok``, else ``reason``."""
+
+    ok: bool
+    value: object = None
+    reason: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Proposal:
+    """What one action would make the robot do: ``plan`` = segment then reset when ``safe``.
+
+    reason: why it is not safe ("" when it is); target: the mapped terminal (q_T, v_T) (8,) each,
+    or None if the mapping failed; seconds: wall time of each stage, s (for benchmarks).
+    """
+
+    safe: bool
+    reason: str
+    plan: JointTrajectory | None
+    segment: JointTrajectory | None
+    reset: JointTrajectory | None
+    target: tuple[np.ndarray, np.ndarray] | None
+    seconds: dict[str, float]
+
+
+class ControlStack:
+    """The mapping, segment QP, reset planner and collision check, built once.
+
+    ``collision_check`` is any callable taking a JointTrajectory and returning an object with a
+    boolean ``free`` (``robot_collision.TrajectoryCollisionChecker.check``); None checks nothing
+    (for studies of the maths alone). Joint vectors are in JOINT_NAMES order.
+    """
+
+    def __init__(
+        self,
+        scenario: RobotScenario | None = None,
+        control: ControlParams | None = None,
+        collision_check: Callable[[JointTrajectory], object] | None = None,
+    ):
+        self.scenario = scenario or RobotScenario()
+        self.control = control or ControlParams()
+        self.period = self.scenario.dynamics.command_period
+        self.limits = CommandLimits.from_config(self.scenario.limits, self.control)
+        self.reset_pose = np.asarray(self.control.reset_pose or self.scenario.ready_pose, dtype=float)
+        if np.any(self.reset_pose < self.limits.lower) or np.any(self.reset_pose > self.limits.upper):
+            raise ValueError(f"ControlStack: the reset pose {self.reset_pose} is outside the command limits [{self.limits.lower}, {self.limits.upper}]")
+        self.qp = SegmentQp(self.limits, self.control.segment_samples, self.period, self.control.knot_samples, self.control.qp_solver)
+        self.resets = ResetPlanner(self.limits, self.period)
+        self.collision_check = collision_check
+
+    @property
+    def segment_duration(self) -> float:
+        """T, s: one policy step."""
+        return self.control.segment_samples * self.period
+
+    # ------------------------------------------------------------------------------ the stages
+    def map(self, q, v, a, action) -> Stage:
+        """Feasible sets at (q, v, a) and the eq. (12) mapping of ``action`` (16,): value
+        (q_T, v_T), (8,) each."""
+        try:
+            sets = feasible_sets(q, v, a, self.limits, self.control, self.period)
+        except InfeasibleStartError as error:
+            return Stage(False, reason=f"infeasible start: {error}")
+        return Stage(True, map_action(action, sets))
+
+    def segment(self, q, v, a, target: tuple[np.ndarray, np.ndarray]) -> Stage:
+        """The spline QP from (q, v, a) to the target (q_T, v_T): value the segment."""
+        solution = self.qp.solve(q, v, a, *target)
+        if not solution.success:
+            return Stage(False, reason=f"segment QP failed: {solution.status}")
+        return Stage(True, solution.trajectory)
+
+    def reset(self, segment: JointTrajectory) -> Stage:
+        """The reset from the segment's end to the reset pose: value the reset trajectory."""
+        try:
+            return Stage(True, self.resets.plan_reset(*segment.state(-1), self.reset_pose))
+        except RuntimeError as error:
+            return Stage(False, reason=f"reset planning failed: {error}")
+
+    def check(self, plan: JointTrajectory) -> Stage:
+        """The collision check of a whole plan: value the checker's report (None unchecked)."""
+        if self.collision_check is None:
+            return Stage(True)
+        report = self.collision_check(plan)
+        return Stage(bool(report.free), report, "" if report.free else f"collision predicted: {report}")
+
+    def propose(self, q, v, a, action) -> Proposal:
+        """The proposal for ``action`` (16,) in [-1, 1] from the segment's start state (q, v, a):
+        the four stages in order, stopping at the first that fails."""
+        seconds: dict[str, float] = {}
+
+        def timed(name: str, stage_function, *args) -> Stage:
+            start = time.perf_counter()
+            stage = stage_function(*args)
+            seconds[name] = time.perf_counter() - start
+            return stage
+
+        mapped = timed("map", self.map, q, v, a, action)
+        if not mapped.ok:
+            return Proposal(False, mapped.reason, None, None, None, None, seconds)
+        target = mapped.value
+        segment = timed("segment", self.segment, q, v, a, target)
+        if not segment.ok:
+            return Proposal(False, segment.reason, None, None, None, target, seconds)
+        reset = timed("reset", self.reset, segment.value)
+        if not reset.ok:
+            return Proposal(False, reset.reason, None, segment.value, None, target, seconds)
+        plan = segment.value.then(reset.value)
+        checked = timed("check", self.check, plan)
+        if not checked.ok:
+            return Proposal(False, checked.reason, None, segment.value, reset.value, target, seconds)
+        return Proposal(True, "", plan, segment.value, reset.value, target, seconds)
+
+    def action_towards(self, q, v, a, q_goal) -> np.ndarray:
+        """An action (16,) that moves the joints from the start (q, v, a) towards q_goal (8,)
+        about as fast as the limits allow (for controllers that think in joint targets): each
+        joint aims at the velocity of the braking curve to its goal, v* = sign(e) min(V,
+        sqrt(2 A_s |e|)) with e = q_goal - q, i.e. at the terminal state (q + (v + v*) T / 2, v*),
+        through the inverse mapping, clipped onto the action box (a target outside the feasible
+        set gives the boundary point in its direction). The start must lie in the control-
+        invariant set (InfeasibleStartError otherwise)."""
+        q, v = np.asarray(q, dtype=float), np.asarray(v, dtype=float)
+        sets = feasible_sets(q, v, a, self.limits, self.control, self.period)
+        error = np.asarray(q_goal, dtype=float) - q
+        braking = self.control.stop_fraction * self.limits.acceleration
+        v_target = np.sign(error) * np.minimum(self.limits.velocity, np.sqrt(2.0 * braking * np.abs(error)))
+        q_target = q + 0.5 * (v + v_target) * self.segment_duration
+        return np.clip(inverse_map_action(q_target, v_target, sets), -1.0, 1.0)
+
+    def protective_stop(self, q, v, a) -> tuple[JointTrajectory, bool]:
+        """The fastest stop within the command limits from (q, v, a), and whether it is
+        collision-free (if not, the caller keeps its checked plan instead)."""
+        stop = self.resets.plan_stop(q, v, a)
+        free = self.collision_check is None or bool(self.collision_check(stop).free)
+        return stop, free
+
+    def initial_plan(self, q, v=None, a=None) -> tuple[JointTrajectory, bool]:
+        """A plan to start from at (q, v, a) (v, a default zero): at rest, standing still; moving,
+        the reset from there. Returns it and whether it is collision-free."""
+        q = np.asarray(q, dtype=float)
+        v = np.zeros_like(q) if v is None else np.asarray(v, dtype=float)
+        a = np.zeros_like(q) if a is None else np.asarray(a, dtype=float)
+        if not np.any(v) and not np.any(a):
+            plan = JointTrajectory.stationary(q, self.period)
+        else:
+            plan = self.resets.plan_reset(q, v, a, self.reset_pose)
+        free = self.collision_check is None or bool(self.collision_check(plan).free)
+        return plan, free
+
+
+def plan_state(plan: JointTrajectory, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q, v, a) of ``plan`` at sample ``index``; after its end it rests at its last sample."""
+    if index < 0:
+        raise ValueError(f"plan_state: sample index must be >= 0, got {index}")
+    return plan.state(min(index, plan.samples))

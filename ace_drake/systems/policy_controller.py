@@ -1,0 +1,102 @@
+"""PolicyController: calls a policy every 32 ms on an observation built 5 ms before its segment."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ace_drake.config import ControlParams
+from ace_drake.control.action_mapping import ACTION_SIZE
+
+
+def as_policy(policy) -> Callable[[np.ndarray], np.ndarray | None]:
+    """A callable observation (n,) -> action (16,) or None from a Python callable or a
+    ``torch.nn.Module`` (run without gradients on a float32 batch of one; its output is the
+    action)."""
+    try:
+        import torch
+    except ImportError:  # torch is a dependency, but the controller does not need it for callables
+        torch = None
+    if torch is not None and isinstance(policy, torch.nn.Module):
+        module = policy.eval()
+
+        def call(observation: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                output = module(torch.as_tensor(observation, dtype=torch.float32)[None])
+            return np.asarray(output[0] if not isinstance(output, tuple) else output[0][0], dtype=float)
+
+        return call
+    if not callable(policy):
+        raise TypeError(f"PolicyController: the policy must be callable or a torch.nn.Module, got {type(policy).__name__}")
+    return policy
+
+
+class PolicyController(LeafSystem):
+    """Runs a policy every segment (paper: every 32 ms), on the observation 5 ms before the segment
+    it commands starts (paper, Extended Data Fig. 1), and holds its action.
+
+    Input ports:
+        observation (n,): whatever the policy reads (here: anything the diagram wires in).
+    Output ports:
+        action (16,): the latest action, in [-1, 1] (row-major (2, 8): terminal positions, then
+            velocities; ``control.action_mapping``).
+        action_valid (1,): 1 if the latest call produced an action, 0 if the policy returned None
+            (it wants no new segment, e.g. after its hit) or something that is not 16 finite
+            numbers (counted in ``invalid_actions`` of the state).
+    State:
+        discrete: [action (16), action_valid (1), calls (1), invalid_actions (1)].
+    Events:
+        periodic discrete update every T = segment_samples * command_period (32 ms), offset
+        T - observation_lead (27 ms): the policy's call for the segment starting at the next
+        multiple of T.
+
+    A finite action outside [-1, 1] is clipped into the box (the mapping's domain); a policy's
+    tanh head never needs it.
+    """
+
+    def __init__(self, policy, observation_size: int, control: ControlParams | None = None, command_period: float = 0.001):
+        """Args: policy, a callable observation -> action | None or a torch.nn.Module;
+        observation_size: n; control: the segment length and observation lead; command_period, s."""
+        super().__init__()
+        self.control = control or ControlParams()
+        self._policy = as_policy(policy)
+        segment = self.control.segment_samples * command_period
+        if not 0.0 <= self.control.observation_lead < segment:
+            raise ValueError(f"PolicyController: the observation lead must be in [0, {segment}) s, got {self.control.observation_lead}")
+        self.segment_duration = segment
+        self.observation_port = self.DeclareVectorInputPort("observation", observation_size)
+        self._state_index = self.DeclareDiscreteState(ACTION_SIZE + 3)
+        self.action_port = self.DeclareVectorOutputPort(
+            "action", ACTION_SIZE, self.CalcAction, prerequisites_of_calc={self.xd_ticket()}
+        )
+        self.action_valid_port = self.DeclareVectorOutputPort(
+            "action_valid", 1, self.CalcActionValid, prerequisites_of_calc={self.xd_ticket()}
+        )
+        self.DeclarePeriodicDiscreteUpdateEvent(segment, segment - self.control.observation_lead, self.UpdateAction)
+
+    def UpdateAction(self, context, discrete_state):
+        """Calls the policy on the observation now; stores its action (or marks none)."""
+        state = context.get_discrete_state(self._state_index).get_value().copy()
+        output = self._policy(self.observation_port.Eval(context))
+        state[ACTION_SIZE + 1] += 1
+        action = None if output is None else np.asarray(output, dtype=float)
+        if action is not None and (action.shape != (ACTION_SIZE,) or not np.all(np.isfinite(action))):
+            state[ACTION_SIZE + 2] += 1
+            action = None
+        state[ACTION_SIZE] = 0.0 if action is None else 1.0
+        if action is not None:
+            state[:ACTION_SIZE] = np.clip(action, -1.0, 1.0)
+        discrete_state.get_mutable_vector(self._state_index).SetFromVector(state)
+
+    def CalcAction(self, context, output: BasicVector):
+        output.SetFromVector(context.get_discrete_state(self._state_index).get_value()[:ACTION_SIZE])
+
+    def CalcActionValid(self, context, output: BasicVector):
+        output.SetFromVector(context.get_discrete_state(self._state_index).get_value()[ACTION_SIZE : ACTION_SIZE + 1])
+
+    def counts(self, context) -> tuple[int, int]:
+        """(policy calls, invalid outputs) so far in this context."""
+        state = context.get_discrete_state(self._state_index).get_value()
+        return int(state[ACTION_SIZE + 1]), int(state[ACTION_SIZE + 2])

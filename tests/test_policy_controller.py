@@ -1,0 +1,72 @@
+"""PolicyController: when it calls the policy, what it holds, torch modules and bad outputs."""
+
+import numpy as np
+import pytest
+import torch
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource
+
+from ace_drake.config import ControlParams
+from ace_drake.systems.policy_controller import PolicyController
+
+
+def controller_diagram(policy, observation=(1.0, 2.0, 3.0)):
+    builder = DiagramBuilder()
+    dut = builder.AddNamedSystem("dut", PolicyController(policy, len(observation), ControlParams()))
+    source = builder.AddSystem(ConstantVectorSource(np.asarray(observation)))
+    builder.Connect(source.get_output_port(), dut.observation_port)
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    return dut, simulator, dut.GetMyContextFromRoot(simulator.get_context())
+
+
+def test_the_policy_runs_5_ms_before_each_32_ms_segment():
+    seen = []
+
+    def policy(observation):
+        seen.append(observation.copy())
+        return np.full(16, 0.25 * len(seen))
+
+    dut, simulator, context = controller_diagram(policy)
+    # Drake handles an event at t when it advances from t: look just after.
+    simulator.AdvanceTo(0.0269)
+    assert dut.counts(context) == (0, 0) and dut.action_valid_port.Eval(context)[0] == 0.0
+    simulator.AdvanceTo(0.0271)
+    assert dut.counts(context) == (1, 0)
+    np.testing.assert_array_equal(dut.action_port.Eval(context), 0.25)
+    assert dut.action_valid_port.Eval(context)[0] == 1.0
+    simulator.AdvanceTo(0.0589)
+    assert dut.counts(context)[0] == 1
+    simulator.AdvanceTo(0.0591)
+    assert dut.counts(context)[0] == 2
+    np.testing.assert_array_equal(seen[0], [1.0, 2.0, 3.0])
+    # Finite actions beyond the box are clipped into it (2 * 0.25 * ... = 0.5, then 0.75, 1.0, 1.25).
+    simulator.AdvanceTo(0.0271 + 3 * 0.032)
+    np.testing.assert_array_equal(dut.action_port.Eval(context), 1.0)
+
+
+def test_none_and_garbage_mean_no_segment():
+    outputs = iter([np.ones(16), None, np.full(16, np.nan), np.ones(3)])
+    dut, simulator, context = controller_diagram(lambda observation: next(outputs))
+    valid = []
+    for k in range(4):
+        simulator.AdvanceTo(0.0271 + 0.032 * k)
+        valid.append(dut.action_valid_port.Eval(context)[0])
+    assert valid == [1.0, 0.0, 0.0, 0.0]
+    assert dut.counts(context) == (4, 2)
+
+
+def test_a_torch_module_is_a_policy():
+    torch.manual_seed(0)
+    module = torch.nn.Sequential(torch.nn.Linear(3, 16), torch.nn.Tanh())
+    dut, simulator, context = controller_diagram(module)
+    simulator.AdvanceTo(0.0271)
+    with torch.no_grad():
+        expected = module(torch.tensor([[1.0, 2.0, 3.0]])).numpy()[0]
+    np.testing.assert_allclose(dut.action_port.Eval(context), expected, rtol=1e-6)
+
+
+def test_not_a_policy_raises():
+    with pytest.raises(TypeError, match="callable"):
+        PolicyController(42, 3)
