@@ -216,7 +216,7 @@ def cmd_sysid(args) -> int:
 
 def cmd_bench(args) -> int:
     """Benchmarks by name; medians and ratios measured side by side."""
-    runners = {"ball": _bench_ball, "reach": _bench_reach}
+    runners = {"ball": _bench_ball, "reach": _bench_reach, "control": _bench_control, "safety": _bench_safety}
     if args.name not in runners:
         raise ConfigError(f"bench: unknown benchmark {args.name!r}; available: {', '.join(runners)}")
     return runners[args.name](args)
@@ -234,6 +234,41 @@ def _bench_ball(args) -> int:
         for name, ratio in figures["ratios"].items():
             print(f"{name:<40}{ratio:>8.2f}")
     return 0
+
+
+def _bench_control(args) -> int:
+    from ace_drake.analysis.control_bench import bench_control
+
+    if args.steps < 1:
+        raise ConfigError(f"bench control: --steps must be >= 1, got {args.steps}")
+    figures = bench_control(steps=args.steps, seed=args.seed, progress=log)
+    if args.json:
+        emit_json(figures)
+        return 0
+    print(f"one control step on 1 thread over {figures['steps']} steps: median {figures['step']['median_ms']:.3f} ms, p99 {figures['step']['p99_ms']:.3f} ms")
+    for name, row in figures["stages"].items():
+        print(f"  {name:<10} median {row['median_ms']:.3f} ms   p99 {row['p99_ms']:.3f} ms")
+    qp = figures["qp"]
+    print(
+        f"spline QP alone ({qp['problems']} problems): DAQP median {qp['daqp']['median_ms']:.3f} ms, "
+        f"MathematicalProgram + Clarabel median {qp['mathematical_program_clarabel']['median_ms']:.3f} ms "
+        f"({qp['median_ratio_clarabel_to_daqp']:.0f}x)"
+    )
+    return 0
+
+
+def _bench_safety(args) -> int:
+    from ace_drake.analysis.control_bench import bench_safety
+
+    if args.cases < 1 or args.workers < 1:
+        raise ConfigError(f"bench safety: --cases and --workers must be >= 1, got {args.cases} and {args.workers}")
+    figures = bench_safety(cases=args.cases, seed=args.seed, workers=args.workers, progress=log)
+    if args.json:
+        emit_json(figures)
+        return 0
+    for name, value in figures.items():
+        print(f"{name:<28}{value}")
+    return 0 if figures["violations"] == 0 else 1
 
 
 def _bench_reach(args) -> int:
@@ -331,11 +366,14 @@ def build_parser() -> argparse.ArgumentParser:
     sysid.set_defaults(run=cmd_sysid)
 
     bench = commands.add_parser("bench", help="benchmarks (medians, p99, ratios)")
-    bench.add_argument("name", help="which benchmark: ball, reach")
+    bench.add_argument("name", help="which benchmark: ball, reach, control, safety")
     bench.add_argument("--repeats", type=int, default=5, help="ball: timed runs per case")
     bench.add_argument("--data", help="reach: match-data CSV whose shot_p1 events are the contact points")
     bench.add_argument("--scenario", help="reach: robot scenario YAML (default models/scenario.yaml)")
-    bench.add_argument("--seed", type=int, default=0, help="reach: seed of the swing-speed search")
+    bench.add_argument("--seed", type=int, default=0, help="reach: seed of the swing-speed search; control, safety: of the states and actions")
+    bench.add_argument("--steps", type=int, default=1000, help="control: timed control steps")
+    bench.add_argument("--cases", type=int, default=1000, help="safety: random cases (start state + action sequence)")
+    bench.add_argument("--workers", type=int, default=1, help="safety: processes (the figures do not depend on it)")
     bench.add_argument("--json", action="store_true")
     bench.set_defaults(run=cmd_bench)
 

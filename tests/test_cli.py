@@ -117,3 +117,23 @@ def test_bench_reach_reports_coverage_and_swing_speed(capsys, tmp_path):
     assert len(figures["fastest_swing"]["q_hit"]) == 8
     assert main(["bench", "reach"]) == 2
     assert "--data FILE" in capsys.readouterr().err
+
+
+def test_bench_control_reports_step_latency_and_the_qp_side_by_side(capsys):
+    figures = run_json(capsys, "bench", "control", "--steps", "20", "--json")
+    assert figures["steps"] == 20 and figures["threads"] == 1
+    assert set(figures["stages"]) == {"policy", "map", "segment", "reset", "check"}
+    assert 0 < figures["step"]["median_ms"] <= figures["step"]["p99_ms"] <= figures["step"]["max_ms"]
+    qp = figures["qp"]
+    assert qp["problems"] > 0 and qp["max_position_difference"] < 1e-6
+    assert qp["median_ratio_clarabel_to_daqp"] == pytest.approx(
+        qp["mathematical_program_clarabel"]["median_ms"] / qp["daqp"]["median_ms"]
+    )
+
+
+def test_bench_safety_reports_zero_violations(capsys):
+    figures = run_json(capsys, "bench", "safety", "--cases", "20", "--seed", "3", "--json")
+    assert figures["cases"] == 20 and figures["steps"] >= 20
+    assert figures["accepted"] + figures["refused"] == figures["steps"]
+    assert figures["violations"] == 0
+    assert main(["bench", "safety", "--cases", "0"]) == 2

@@ -34,6 +34,7 @@ velocity, of the position range. Everything is vectorised over the eight joints.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -110,19 +111,7 @@ def _reach_upper(q1, v1, v, A_r, V, duration):
     return q1 - (v1**2 + v**2) / (2.0 * A_r) + peak * duration + peak * (v1 + v) / A_r - peak**2 / A_r
 
 
-def reachable_bounds(q0, v0, a0, v, limits: CommandLimits, control: ControlParams, knot_period: float, duration: float):
-    """The reachable position bounds (lo, hi) (..., 8) at terminal velocities v (..., 8) from the
-    start (q0, v0, a0) (8,): part 1 of the module docstring; and the reachable velocity range
-    (v_min, v_max) (8,)."""
-    A_r = control.reach_fraction * limits.acceleration
-    V = limits.velocity
-    h = knot_period
-    q1 = q0 + v0 * h + a0 * h * h / 3.0
-    v1 = np.clip(v0 + 0.5 * a0 * h, -V, V)
-    rest = duration - h
-    hi = _reach_upper(q1, v1, v, A_r, V, rest)
-    lo = -_reach_upper(-q1, -v1, -v, A_r, V, rest)
-    return lo, hi, np.maximum(-V, v1 - A_r * rest), np.minimum(V, v1 + A_r * rest)
+_SIDES = np.array([1.0, -1.0])[:, None, None]  # s: the upper bound (+1) and the lower (-1)
 
 
 def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> FeasibleSets:
@@ -132,22 +121,39 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
 
     Where a position limit cuts the reachable velocity range, the velocity range [v_a, v_b] is
     found on a grid of ``VELOCITY_GRID`` velocities across it (to 1/(VELOCITY_GRID - 1) of the
-    range, from the inside). Raises
-    InfeasibleStartError naming the joints whose set is empty (a start outside the control-
-    invariant set, e.g. moving fast at a position limit)."""
+    range, from the inside). Raises InfeasibleStartError naming the joints whose set is empty (a
+    start outside the control-invariant set, e.g. moving fast at a position limit)."""
     q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q0, v0, a0))
-    duration = control.segment_samples * period
-    knot_period = control.knot_samples * period
+    A, V = limits.acceleration, limits.velocity
+    A_r, A_s = control.reach_fraction * A, control.stop_fraction * A
+    h, tau = control.knot_samples * period, control.reaction_time
+    rest = control.segment_samples * period - h
+    # The start after the first knot interval's ramp of a0 to zero (module docstring, part 1).
+    q1 = q0 + v0 * h + a0 * h * h / 3.0
+    v1 = np.clip(v0 + 0.5 * a0 * h, -V, V)
+    signed_q1, signed_v1 = _SIDES * q1, _SIDES * v1
+    signed_limit = np.empty((2, 1, q0.size))  # upper, -lower
+    signed_limit[0, 0], signed_limit[1, 0] = limits.upper, -limits.lower
+    corner = A * h * h / 3.0
 
-    def bounds(v):
-        lo_r, hi_r, _, _ = reachable_bounds(q0, v0, a0, v, limits, control, knot_period, duration)
-        lo_c, hi_c = invariant_bounds(v, limits, control, knot_period)
-        return np.maximum(lo_r, lo_c), np.minimum(hi_r, hi_c)
+    def bounds(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) (K, 8) at velocities v (K, 8): both sides at once, the lower one mirrored
+        (s = -1: q -> -q, v -> -v), each the tighter of reachability and invariance."""
+        x = _SIDES * v  # (2, K, 8)
+        reach = _reach_upper(signed_q1, signed_v1, x, A_r, V, rest)
+        # Invariance (part 2): the stopping pad towards the limit, the path pad away from it.
+        ramped = np.maximum(x + 0.5 * A * h, 0.0)
+        pad = np.maximum(
+            np.maximum(x, 0.0) * h + corner + ramped * tau + ramped**2 / (2.0 * A_s),
+            np.minimum(x, 0.0) ** 2 / (2.0 * A_r),
+        )
+        side = _SIDES * np.minimum(reach, signed_limit - pad)
+        return side[1], side[0]
 
     # The velocity range of F: where the (concave) width hi - lo is >= 0, within the reachable
     # range. Away from the position limits that is the whole reachable range (its ends, where the
     # reachable set narrows to a point, are open up to round-off); otherwise search a grid.
-    _, _, v_low, v_high = reachable_bounds(q0, v0, a0, v0, limits, control, knot_period, duration)
+    v_low, v_high = np.maximum(-V, v1 - A_r * rest), np.minimum(V, v1 + A_r * rest)
     # Polygon vertices at K velocities from v_a to v_b, and the centre's velocity as one more row.
     fractions = _polygon_fractions(control.boundary_samples)
     v = v_low + fractions * (v_high - v_low)
@@ -170,9 +176,7 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)
     lo, hi, v = lo[:-1], hi[:-1], v[:-1]
     # Counter-clockwise in (q, v): up the right side (hi) with increasing v, down the left (lo).
-    right = np.stack([hi.T, v.T], axis=-1)  # (8, K, 2)
-    left = np.stack([lo.T, v.T], axis=-1)[:, ::-1]
-    vertices = np.concatenate([right, left], axis=1)  # (8, 2K, 2)
+    vertices = np.concatenate([np.stack([hi.T, v.T], axis=-1), np.stack([lo.T, v.T], axis=-1)[:, ::-1]], axis=1)  # (8, 2K, 2)
     edges = np.roll(vertices, -1, axis=1) - vertices
     normals = np.stack([edges[..., 1], -edges[..., 0]], axis=-1)  # outward for counter-clockwise
     offsets = np.einsum("jek,jek->je", normals, vertices)
@@ -180,6 +184,7 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     return FeasibleSets(centre=centre, scale=np.maximum(scale, 1e-12), vertices=vertices, normals=normals, offsets=offsets)
 
 
+@functools.lru_cache(maxsize=8)
 def _polygon_fractions(samples: int) -> np.ndarray:
     """(samples + 1, 1): 0 .. 1 in ``samples`` steps, then 0.5 (the centre's row)."""
     fractions = np.linspace(0.0, 1.0, samples + 1)

@@ -8,7 +8,8 @@ so it is fixed by the knot accelerations a_1 .. a_N (a_0 = the current accelerat
     v_{k+1} = v_k + h (a_k + a_{k+1}) / 2,   q_{k+1} = q_k + h v_k + h^2 (2 a_k + a_{k+1}) / 6,
     integral of jerk^2 = sum_k (a_{k+1} - a_k)^2 / h,
 
-a QP in N unknowns per joint with box bounds |a_k| <= A, two-sided rows |v_k| <= V and
+a QP in N unknowns per joint with box bounds |a_k| <= A (tighter for a_N near the velocity
+limit: ``CommandLimits.acceleration_bounds``, so that the reset can start there), two-sided rows |v_k| <= V and
 lower <= q_k <= upper (k = 1 .. N-1; acceleration is linear between knots, so its bound holds
 everywhere), and two equalities v_N = v_T, q_N = q_T. The terminal acceleration a_N is free: it is
 the next segment's a_0. The matrices are built once; a solve changes only the linear cost term
@@ -123,9 +124,13 @@ class SegmentQp:
         end_v = v0 + a0 * self._rows_start[-2]
         end_q = q0 + v0 * self._times[N] + a0 * self._rows_start[-1]
         box = np.repeat(limits.acceleration[:, None], M, axis=1)
+        low_box = -box.copy()
+        # The terminal acceleration starts the reset: no more than its jerk-limited ramp to zero
+        # can take without passing the velocity limit.
+        low_box[:, -1], box[:, -1] = limits.acceleration_bounds(v_terminal)
         speed = limits.velocity[:, None]
         upper = np.concatenate([box, speed - start_v, limits.upper[:, None] - start_q, (v_terminal - end_v)[:, None], (q_terminal - end_q)[:, None]], axis=1)
-        lower = np.concatenate([-box, -speed - start_v, limits.lower[:, None] - start_q, (v_terminal - end_v)[:, None], (q_terminal - end_q)[:, None]], axis=1)
+        lower = np.concatenate([low_box, -speed - start_v, limits.lower[:, None] - start_q, (v_terminal - end_v)[:, None], (q_terminal - end_q)[:, None]], axis=1)
         return lower, upper
 
     def _solve_daqp(self, linear, lower, upper):

@@ -38,6 +38,16 @@ class CommandLimits:
             jerk=acceleration / control.jerk_time,
         )
 
+    def acceleration_bounds(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The accelerations (lower, upper) (..., 8) allowed at velocity v (..., 8): within the
+        acceleration limit, and small enough that ramping them to zero at the jerk limit keeps
+        |v| <= V (v + a^2 / (2 J) <= V for a > 0, mirrored), so that a reset or stop that starts
+        there stays within the velocity limits."""
+        v = np.asarray(v, dtype=float)
+        upper = np.sqrt(2.0 * self.jerk * np.maximum(self.velocity - v, 0.0))
+        lower = np.sqrt(2.0 * self.jerk * np.maximum(self.velocity + v, 0.0))
+        return -np.minimum(self.acceleration, lower), np.minimum(self.acceleration, upper)
+
     def violations(self, trajectory: "JointTrajectory", tolerance: float = 1e-9) -> dict[str, int]:
         """How many samples break each bound (position, velocity, acceleration), with a relative
         ``tolerance`` for round-off."""
@@ -93,6 +103,11 @@ class JointTrajectory:
     def from_sample(self, index: int) -> "JointTrajectory":
         """The rest of this trajectory from sample ``index`` on (that sample becomes row 0)."""
         return JointTrajectory(self.period, self.q[index:], self.v[index:], self.a[index:])
+
+    def until(self, index: int) -> "JointTrajectory":
+        """This trajectory up to sample ``index`` (at most its end), that sample included."""
+        end = min(index, self.samples) + 1
+        return JointTrajectory(self.period, self.q[:end], self.v[:end], self.a[:end])
 
     @staticmethod
     def stationary(q: np.ndarray, period: float) -> "JointTrajectory":

@@ -1,0 +1,351 @@
+"""Benchmarks of the rally control stack: the latency of one control step (``bench control``) and
+the safety of the supervisor and joints under random and adversarial actions (``bench safety``).
+
+Both drive ``control.stack.ControlStack``, the same code the Drake systems call; the safety
+benchmark runs the joints' eq. (9) model on the command stream it produces (exactly sampled, as
+the DelayedJointPlant does), because 100,000 cases through a Simulator would take days.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from ace_drake.config import ControlParams, RobotScenario
+from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.control.feasible_set import in_invariant_set
+from ace_drake.control.joint_model import discretize
+from ace_drake.control.stack import ControlStack, plan_state
+from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+
+# The actor network's size for the latency budget: the observation of issue 7's actor (ball
+# position and spin histories with timestamps, robot state, skill state: about 128 numbers) through
+# three hidden layers of 256 to the 16 action means. Keep in step with the trained policy.
+ACTOR_LAYERS = (128, 256, 256, 256, ACTION_SIZE)
+
+
+def actor_network(seed: int = 0):
+    """A torch MLP of ACTOR_LAYERS (ReLU, tanh output): the policy's cost per call."""
+    import torch
+
+    torch.manual_seed(seed)
+    layers = []
+    for inputs, outputs in zip(ACTOR_LAYERS[:-1], ACTOR_LAYERS[1:]):
+        layers += [torch.nn.Linear(inputs, outputs), torch.nn.ReLU()]
+    layers[-1] = torch.nn.Tanh()
+    return torch.nn.Sequential(*layers).eval()
+
+
+def make_stack(scenario: RobotScenario | None = None, control: ControlParams | None = None, check_collisions: bool = True) -> ControlStack:
+    """The control stack with the Drake collision checker, as the diagrams build it."""
+    from ace_drake.diagrams import make_control_stack
+    from ace_drake.robot_model import load_scenario
+
+    return make_control_stack(scenario or load_scenario(), control or ControlParams(), check_collisions)
+
+
+def random_action(rng: np.random.Generator, kind: str, step: int) -> np.ndarray:
+    """An action of one of the ACTION_KINDS: uniform in the box, random corners, all +1, all -1,
+    +1 and -1 alternating over steps, or alternating within the action."""
+    if kind == "uniform":
+        return rng.uniform(-1.0, 1.0, ACTION_SIZE)
+    if kind == "corners":
+        return rng.choice([-1.0, 1.0], ACTION_SIZE)
+    if kind == "plus":
+        return np.ones(ACTION_SIZE)
+    if kind == "minus":
+        return -np.ones(ACTION_SIZE)
+    if kind == "alternating_steps":
+        return np.full(ACTION_SIZE, 1.0 if step % 2 == 0 else -1.0)
+    if kind == "alternating_components":
+        return np.tile([1.0, -1.0], ACTION_SIZE // 2) * (1.0 if step % 2 == 0 else -1.0)
+    raise ValueError(f"random_action: unknown kind {kind!r}; expected one of {ACTION_KINDS}")
+
+
+ACTION_KINDS = ("uniform", "corners", "plus", "minus", "alternating_steps", "alternating_components")
+
+
+def _percentiles(samples) -> dict[str, float]:
+    samples = np.asarray(samples) * 1e3
+    return {"median_ms": float(np.median(samples)), "p99_ms": float(np.percentile(samples, 99)), "max_ms": float(np.max(samples))}
+
+
+def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, progress: Callable[[str], None] | None = None) -> dict:
+    """Latency of full control steps (actor MLP, mapping, spline QP, reset, collision check) on
+    one thread, from the states a random policy visits starting at the ready pose (episodes of
+    20 steps); and the spline QP alone through DAQP and through MathematicalProgram (Clarabel) on
+    the same problems. Times in ms: median, p99, max."""
+    import torch
+
+    say = progress or (lambda _: None)
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(seed)
+    stack = make_stack()
+    actor = actor_network(seed)
+    clarabel = ControlStack(stack.scenario, dataclasses.replace(stack.control, qp_solver="clarabel"))
+    totals, stages, problems = [], {"policy": [], "map": [], "segment": [], "reset": [], "check": []}, []
+    refused = 0
+    observation = torch.zeros(1, ACTOR_LAYERS[0])
+    plan, _ = stack.initial_plan(stack.reset_pose)
+    for step in range(steps + 1):  # the first step warms up
+        if step % 20 == 0:
+            plan, _ = stack.initial_plan(stack.reset_pose)
+        q, v, a = plan_state(plan, 0)
+        observation[0, :24] = torch.as_tensor(np.concatenate([q, v, a]), dtype=torch.float32)
+        start = time.perf_counter()
+        with torch.no_grad():
+            action = actor(observation)[0].numpy().astype(float)
+        policy_seconds = time.perf_counter() - start
+        # The untrained actor's actions are near the centre: explore the box as a policy would.
+        action = np.clip(action + rng.uniform(-1.0, 1.0, ACTION_SIZE), -1.0, 1.0)
+        start = time.perf_counter()
+        proposal = stack.propose(q, v, a, action)
+        proposal_seconds = time.perf_counter() - start
+        if step == 0:
+            continue
+        totals.append(policy_seconds + proposal_seconds)
+        stages["policy"].append(policy_seconds)
+        for name, seconds in proposal.seconds.items():
+            stages[name].append(seconds)
+        if proposal.target is not None and len(problems) < qp_comparisons:
+            problems.append((q, v, a, proposal.target))
+        if proposal.safe:
+            plan = proposal.plan.from_sample(stack.control.segment_samples)
+        else:
+            refused += 1
+            plan = plan.from_sample(min(stack.control.segment_samples, plan.samples))
+        if step % 200 == 0:
+            say(f"bench control: {step}/{steps} steps")
+    say(f"bench control: the spline QP alone on {len(problems)} problems, DAQP and Clarabel")
+    daqp_seconds, clarabel_seconds, differences = [], [], []
+    for q, v, a, target in problems:
+        start = time.perf_counter()
+        reference = stack.qp.solve(q, v, a, *target)
+        daqp_seconds.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        other = clarabel.qp.solve(q, v, a, *target)
+        clarabel_seconds.append(time.perf_counter() - start)
+        if reference.success and other.success:
+            differences.append(float(np.max(np.abs(reference.trajectory.q - other.trajectory.q))))
+    daqp_figures, clarabel_figures = _percentiles(daqp_seconds), _percentiles(clarabel_seconds)
+    return {
+        "steps": steps,
+        "threads": 1,
+        "actor_layers": list(ACTOR_LAYERS),
+        "step": _percentiles(totals),
+        "stages": {name: _percentiles(values) for name, values in stages.items() if values},
+        "refused_steps": refused,
+        "qp": {
+            "problems": len(problems),
+            "daqp": daqp_figures,
+            "mathematical_program_clarabel": clarabel_figures,
+            "median_ratio_clarabel_to_daqp": clarabel_figures["median_ms"] / daqp_figures["median_ms"],
+            "max_position_difference": max(differences) if differences else None,
+        },
+        "budget_ms": {"paper_total": 5.0, "p99_target": 2.0},
+    }
+
+
+# ---------------------------------------------------------------------------------- safety
+
+
+@dataclasses.dataclass
+class SafetyCounts:
+    """Violations found by ``bench_safety`` (sums over cases)."""
+
+    cases: int = 0
+    steps: int = 0
+    accepted: int = 0
+    refused: int = 0
+    start_redraws: int = 0
+    refused_infeasible_start: int = 0  # the start is on a reset, outside the invariant set
+    refused_qp: int = 0
+    refused_reset: int = 0
+    refused_collision: int = 0
+    command_position: int = 0
+    command_velocity: int = 0
+    command_acceleration: int = 0
+    joint_position: int = 0
+    joint_velocity: int = 0
+    joint_acceleration: int = 0
+    collisions: int = 0
+    non_stationary_ends: int = 0
+
+    def add(self, other: "SafetyCounts") -> None:
+        for field in dataclasses.fields(self):
+            setattr(self, field.name, getattr(self, field.name) + getattr(other, field.name))
+
+
+REFUSALS = {
+    "infeasible start": "refused_infeasible_start",
+    "segment QP failed": "refused_qp",
+    "reset planning failed": "refused_reset",
+    "collision predicted": "refused_collision",
+}
+
+
+def hardware_limits(scenario: RobotScenario) -> CommandLimits:
+    """The robot's own limits (no control margins)."""
+    return CommandLimits.from_config(scenario.limits, ControlParams(position_margin=0.0, velocity_fraction=1.0, acceleration_fraction=1.0))
+
+
+def random_start(stack: ControlStack, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A random joint state (q, v, a) in the control-invariant set: positions uniform within the
+    command limits, velocities uniform up to the limit or to a fifth of it, accelerations uniform
+    within the bounds a segment can end with (``CommandLimits.acceleration_bounds``)."""
+    limits = stack.limits
+    while True:
+        q = rng.uniform(limits.lower, limits.upper)
+        v = rng.uniform(-1.0, 1.0, 8) * limits.velocity * rng.choice([0.2, 1.0])
+        a = rng.uniform(*limits.acceleration_bounds(v))
+        if np.all(in_invariant_set(q, v, limits, stack.control, stack.period)):
+            return q, v, a
+
+
+def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: CommandLimits, checker=None) -> SafetyCounts:
+    """One case: a random invariant start whose initial plan (its reset) is collision-free, then
+    1-8 actions of one random kind through the supervisor's logic (propose; execute if safe, else
+    keep the plan), then the plan to its end; the joints (eq. (9)) follow the command stream. The
+    command is checked against the command limits, the joints against the hardware limits and,
+    with ``checker`` (margin 0), against collisions; the end must be at rest."""
+    counts = SafetyCounts(cases=1)
+    while True:
+        q, v, a = random_start(stack, rng)
+        plan, free = stack.initial_plan(q, v, a)
+        if free:
+            break
+        counts.start_redraws += 1
+    kind = ACTION_KINDS[rng.integers(len(ACTION_KINDS))]
+    segment_samples = stack.control.segment_samples
+    executed = []
+    for step in range(int(rng.integers(1, 9))):
+        counts.steps += 1
+        start = plan_state(plan, 0)
+        proposal = stack.propose(*start, random_action(rng, kind, step))
+        if proposal.safe:
+            counts.accepted += 1
+            plan = proposal.plan
+        else:
+            counts.refused += 1
+            for prefix, name in REFUSALS.items():
+                if proposal.reason.startswith(prefix):
+                    setattr(counts, name, getattr(counts, name) + 1)
+        executed.append(plan.until(segment_samples))
+        plan = plan.from_sample(min(segment_samples, plan.samples))
+    executed.append(plan)
+    command = executed[0]
+    for piece in executed[1:]:
+        command = command.then(piece)
+    command_violations = stack.limits.violations(command, tolerance=1e-6)
+    counts.command_position += command_violations["position"]
+    counts.command_velocity += command_violations["velocity"]
+    counts.command_acceleration += command_violations["acceleration"]
+    if np.any(command.v[-1] != 0.0) or np.any(command.a[-1] != 0.0):
+        counts.non_stationary_ends += 1
+    joints = follow(command, stack.scenario)
+    joint_violations = hardware.violations(joints, tolerance=1e-9)
+    counts.joint_position += joint_violations["position"]
+    counts.joint_velocity += joint_violations["velocity"]
+    counts.joint_acceleration += joint_violations["acceleration"]
+    if np.max(np.abs(joints.v[-1])) > 1e-3:
+        counts.non_stationary_ends += 1
+    if checker is not None and not checker.check(joints).free:
+        counts.collisions += 1
+    return counts
+
+
+def follow(command: JointTrajectory, scenario: RobotScenario, settle: float = 0.05) -> JointTrajectory:
+    """The joints' eq. (9) response to a 1 kHz command stream, exactly sampled (as the
+    DelayedJointPlant computes it), continued ``settle`` s after the stream ends. The joints start
+    tracking the first command as they would have after following its quadratic extrapolation
+    into the past for 50 ms (the servo's transient long settled). The returned acceleration is the mean
+    over each period, (v[n+1] - v[n]) / T (the instantaneous one jumps at every command step of
+    the zero-order hold)."""
+    period = command.period
+    joints = scenario.dynamics.joints
+    extra = int(round(settle / period))
+    phi, gamma0, gamma1, delays = _discretized(tuple(joints), period)
+    # The lead-in: the command's past extrapolated with its initial velocity and acceleration
+    # over 50 time constants of the servo, the joints at rest where it starts.
+    q0, v0, a0 = command.state(0)
+    lead = int(round(0.05 / period))
+    past_times = -period * np.arange(lead, 0, -1)[:, None]
+    past = q0 + v0 * past_times + 0.5 * a0 * past_times**2
+    stream = np.concatenate([np.repeat(past[:1], int(delays.max()) + 1, axis=0), past, command.q, np.repeat(command.q[-1:], extra, axis=0)])
+    offset = int(delays.max()) + 1  # row n + offset of ``stream`` is the command of step n
+    zeta = np.stack([past[0], np.zeros(8)], axis=-1)  # (8, 2), at rest at the lead-in's start
+    columns = np.arange(8)
+    steps = stream.shape[0] - offset
+    states = np.empty((steps, 8, 2))
+    states[0] = zeta
+    for n in range(steps - 1):
+        newer = stream[n - delays + offset, columns]
+        older = stream[n - delays - 1 + offset, columns]
+        zeta = np.einsum("jab,jb->ja", phi, zeta) + gamma0 * newer[:, None] + gamma1 * older[:, None]
+        states[n + 1] = zeta
+    q, v = states[lead:, :, 0], states[lead:, :, 1]
+    a = np.vstack([np.diff(v, axis=0) / period, np.zeros((1, 8))])
+    return JointTrajectory(period, q, v, a)
+
+
+@functools.lru_cache(maxsize=4)
+def _discretized(joints, period: float):
+    """Phi (8, 2, 2), Gamma0, Gamma1 (8, 2) and whole-period delays k (8,) of eq. (9) sampled."""
+    discrete = [discretize(joint, period) for joint in joints]
+    return (
+        np.array([d[0] for d in discrete]),
+        np.array([d[1] for d in discrete]),
+        np.array([d[2] for d in discrete]),
+        np.array([d[3] for d in discrete]),
+    )
+
+
+def _safety_worker(arguments) -> dict:
+    cases, seed, check_collisions = arguments
+    from ace_drake.robot_collision import TrajectoryCollisionChecker
+
+    stack = make_stack()
+    checker = TrajectoryCollisionChecker(stack.scenario, margin=0.0) if check_collisions else None
+    hardware = hardware_limits(stack.scenario)
+    rng = np.random.default_rng(seed)
+    counts = SafetyCounts()
+    for _ in range(cases):
+        counts.add(execute_case(stack, rng, hardware, checker))
+    return dataclasses.asdict(counts)
+
+
+def bench_safety(cases: int = 1000, seed: int = 0, workers: int = 1, chunk: int = 500, check_collisions: bool = True, progress: Callable[[str], None] | None = None) -> dict:
+    """``cases`` random cases (``execute_case``) in chunks over ``workers`` processes; the
+    chunks' seeds derive from ``seed``, so the figures are the same for any worker count."""
+    say = progress or (lambda _: None)
+    sizes = [min(chunk, cases - start) for start in range(0, cases, chunk)]
+    seeds = np.random.SeedSequence(seed).generate_state(len(sizes))
+    jobs = [(size, int(chunk_seed), check_collisions) for size, chunk_seed in zip(sizes, seeds)]
+    total = SafetyCounts()
+    start = time.perf_counter()
+    if workers <= 1:
+        results = map(_safety_worker, jobs)
+    else:
+        pool = ProcessPoolExecutor(max_workers=workers)
+        results = pool.map(_safety_worker, jobs)
+    for done, result in enumerate(results, start=1):
+        total.add(SafetyCounts(**result))
+        say(f"bench safety: {total.cases}/{cases} cases, {time.perf_counter() - start:.0f} s")
+    if workers > 1:
+        pool.shutdown()
+    figures = dataclasses.asdict(total)
+    figures["violations"] = sum(
+        figures[name]
+        for name in (
+            "command_position", "command_velocity", "command_acceleration",
+            "joint_position", "joint_velocity", "joint_acceleration", "collisions", "non_stationary_ends",
+        )
+    )
+    figures["seed"] = seed
+    figures["wall_seconds"] = time.perf_counter() - start
+    return figures
