@@ -281,10 +281,16 @@ def _documented_swing_diagram() -> Diagram:
     return build_swing_diagram(PiecewisePolynomial(ready))
 
 
+def _documented_controlled_robot_diagram() -> Diagram:
+    """The controlled robot as documented: a policy that never acts, collision checking on."""
+    return build_controlled_robot_diagram(lambda observation: None)
+
+
 # name -> builder of the diagram whose graph ``ace-drake diagrams`` renders into diagrams/.
 DOCUMENTED_DIAGRAMS = {
     "ball_diagram": _documented_ball_diagram,
     "robot_swing_diagram": _documented_swing_diagram,
+    "controlled_robot_diagram": _documented_controlled_robot_diagram,
 }
 
 

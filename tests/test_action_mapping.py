@@ -111,3 +111,18 @@ def test_a_start_outside_the_invariant_set_raises():
     v[0] = LIMITS.velocity[0]
     with pytest.raises(InfeasibleStartError, match="gantry_x"):
         feasible_sets(q, v, np.zeros(8), LIMITS, CONTROL, PERIOD)
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), edge=st.booleans(), action=st.one_of(actions, extreme_actions), fraction=st.floats(-1.0, 1.0))
+def test_mapped_states_are_safe_starts_for_a_reset_or_stop(seed, edge, action, fraction):
+    """Whatever terminal acceleration the QP ends with (within CommandLimits.acceleration_bounds),
+    a jerk-limited reset or protective stop from the mapped state stays within the limits
+    (control.reset.is_reset_safe, proven there on its set's boundary)."""
+    from ace_drake.control.reset import is_reset_safe
+
+    sets = feasible_sets(*invariant_state(seed, edge), LIMITS, CONTROL, PERIOD)
+    q, v = map_action(action, sets)
+    low, high = LIMITS.acceleration_bounds(v)
+    a = np.where(fraction >= 0, fraction * high, -fraction * low)
+    assert np.all(is_reset_safe(q, v, a, LIMITS, CONTROL, tolerance=1e-9))

@@ -9,7 +9,8 @@ terminal states (q_T, v_T) that
    state after the QP's first knot interval h, over which the acceleration ramps from a0 to zero:
    (q1, v1) = (q0 + v0 h + a0 h^2 / 3, v0 + a0 h / 2) over T' = T - h;
 2. lie in a control-invariant set: from (q_T, v_T), with any terminal acceleration |a_T| <= A
-   towards the limit ramped away over h, a stop at A_s = stop_fraction * A after a reaction time
+   towards the limit ramped away over max(h, jerk_time) (the resets ramp at the jerk limit
+   J = A / jerk_time; ``control.reset.stop_pad`` derives the pad), a stop at A_s = stop_fraction * A after a reaction time
    tau ends inside [lower, upper], and a state moving away from a limit is one the QP can have
    reached without crossing it (q_T <= upper - v_T^2 / (2 A_r) for v_T < 0, mirrored).
 
@@ -80,13 +81,20 @@ class FeasibleSets:
         return np.all(excess <= tolerance * scale, axis=-1)
 
 
-def invariant_bounds(v: np.ndarray, limits: CommandLimits, control: ControlParams, knot_period: float) -> tuple[np.ndarray, np.ndarray]:
+def ramp_time(control: ControlParams, period: float) -> float:
+    """How long (s) the worst-case terminal acceleration takes to ramp out: the QP's knot
+    interval, or the resets' jerk-limited ramp from the limit to zero if that is longer."""
+    return max(control.knot_samples * period, control.jerk_time)
+
+
+def invariant_bounds(v: np.ndarray, limits: CommandLimits, control: ControlParams, ramp: float) -> tuple[np.ndarray, np.ndarray]:
     """The control-invariant position bounds (lo, hi) (..., 8) at terminal velocities v (..., 8):
-    part 2 of the module docstring. Units: rad or m and per second."""
+    part 2 of the module docstring, with the terminal acceleration ramped out over ``ramp`` s
+    (``ramp_time``). Units: rad or m and per second."""
     A = limits.acceleration
     A_s = control.stop_fraction * A
     A_r = control.reach_fraction * A
-    h, tau = knot_period, control.reaction_time
+    h, tau = ramp, control.reaction_time
 
     def stopping_pad(speed: np.ndarray) -> np.ndarray:
         # Distance still covered towards the limit when moving towards it at ``speed``: the
@@ -134,7 +142,8 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     signed_q1, signed_v1 = _SIDES * q1, _SIDES * v1
     signed_limit = np.empty((2, 1, q0.size))  # upper, -lower
     signed_limit[0, 0], signed_limit[1, 0] = limits.upper, -limits.lower
-    corner = A * h * h / 3.0
+    ramp = ramp_time(control, period)
+    corner = A * ramp * ramp / 3.0
 
     def bounds(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) (K, 8) at velocities v (K, 8): both sides at once, the lower one mirrored
@@ -142,9 +151,9 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
         x = _SIDES * v  # (2, K, 8)
         reach = _reach_upper(signed_q1, signed_v1, x, A_r, V, rest)
         # Invariance (part 2): the stopping pad towards the limit, the path pad away from it.
-        ramped = np.maximum(x + 0.5 * A * h, 0.0)
+        ramped = np.maximum(x + 0.5 * A * ramp, 0.0)
         pad = np.maximum(
-            np.maximum(x, 0.0) * h + corner + ramped * tau + ramped**2 / (2.0 * A_s),
+            np.maximum(x, 0.0) * ramp + corner + ramped * tau + ramped**2 / (2.0 * A_s),
             np.minimum(x, 0.0) ** 2 / (2.0 * A_r),
         )
         side = _SIDES * np.minimum(reach, signed_limit - pad)
@@ -202,6 +211,6 @@ def in_invariant_set(q, v, limits: CommandLimits, control: ControlParams, period
     sets (part 2 of the module docstring), with any acceleration within the command limits:
     the states the mapping produces, and from which ``feasible_sets`` is never empty.
     ``tolerance``: how far outside (rad or m, and per s) still counts as inside."""
-    lo, hi = invariant_bounds(np.asarray(v, dtype=float), limits, control, control.knot_samples * period)
+    lo, hi = invariant_bounds(np.asarray(v, dtype=float), limits, control, ramp_time(control, period))
     q = np.asarray(q, dtype=float)
     return (lo - tolerance <= q) & (q <= hi + tolerance) & (np.abs(v) <= limits.velocity + tolerance)

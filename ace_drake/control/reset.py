@@ -19,33 +19,80 @@ constant-jerk pieces (two of the brake pre-trajectory that Ruckig prepends when 
 will exceed a limit, the seven phases of the profile, then a hold at constant acceleration), and
 ``sample_profiles`` evaluates them for all samples and joints at once with NumPy.
 
-Position limits. Ruckig (community version) does not enforce position limits. A reset or stop
-stays within [lower, upper] when it starts in the controller's control-invariant set: the
-property tests in ``tests/test_reset.py`` check it on the boundary of that set, and
-``stop_margin`` gives the exact worst-case travel of a protective stop for a state. With a finite
-jerk J a joint that ends a segment at velocity v with acceleration a towards a limit keeps
-accelerating for |a| / J, so the set must account for a: see ``jerk_limited_stop``.
+Position limits. Ruckig (community version) does not enforce position limits, so a reset or stop
+stays within [lower, upper] only if it starts where a jerk-limited stop can: ``is_reset_safe``.
+That set is the controller's control-invariant set (braking at stop_fraction of the acceleration
+limit after reaction_time) taken after the start's acceleration has been ramped out at the jerk
+limit (``stop_pad``): with a finite jerk J, a joint that ends a segment at velocity v with
+acceleration a towards a limit keeps accelerating for a / J, and one at the velocity limit with
+a > 0 overshoots it by a^2 / (2 J). The property tests in ``tests/test_reset.py`` check that
+resets and stops from that set's boundary stay within all limits, and show by example that the
+set without the ramp does not suffice. (``feasible_set.invariant_bounds`` pads for the worst
+terminal acceleration A ramped out over max(knot period, jerk_time), and the spline QP bounds the
+terminal acceleration by ``CommandLimits.acceleration_bounds``: every mapped state is a safe start,
+tests/test_action_mapping.py.)
+
+Ruckig 0.19 fails to find a profile for some nearly degenerate joints (within ~1e-8 of the target
+with a small velocity and acceleration); ``plan_reset`` then stops first and resets from rest
+(``plan_stop_then_reset``), which it solves reliably and which stays within the same set.
 
 Joint vectors are (8,) in JOINT_NAMES order; prismatic joints in m, revolute in rad.
 """
 
 from __future__ import annotations
 
+import array
+import atexit
+import functools
 import math
+import weakref
 
 import numpy as np
 import ruckig
 
-from ace_drake.config import JOINT_NAMES
+from ace_drake.config import JOINT_NAMES, ControlParams
 from ace_drake.control.trajectory import CommandLimits, JointTrajectory
 
 _DOFS = len(JOINT_NAMES)
-# Constant-jerk pieces per joint: 2 brake phases, 7 profile phases, 1 hold after the profile.
-_PIECES = 10
 _SUCCESS = (ruckig.Result.Working, ruckig.Result.Finished)
 
 
-def sample_profiles(profiles, times: np.ndarray, final: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+# Ruckig's numbers per joint as sample_profiles reads them: t (0-6), j (7-13), p (14-21),
+# v (22-29), a (30-37), then 0, the end position and inf (38-40).
+_ZERO, _END, _INF = 38, 39, 40
+_ROW = _INF + 1
+_PROFILE_END = 21  # p[7]
+# Each joint's ten constant-jerk pieces (two brake phases, seven profile phases, the hold after the
+# profile) as five fields: the duration of the piece before (summed into the piece's start), and
+# the position, velocity, acceleration and jerk the piece starts with. Without a brake, the brake
+# pieces have zero duration, so (a sample belongs to the last piece that starts at or before it)
+# they get no samples and their values never matter.
+_PIECES = 10
+_PIECE_MAP = np.array(
+    [
+        [_ZERO, _ZERO, _ZERO, *range(0, 7)],  # duration of the piece before
+        [14, 14, *range(14, 22)],  # position at the piece's start
+        [22, 22, *range(22, 30)],  # velocity
+        [30, 30, *range(30, 38)],  # acceleration
+        [_ZERO, _ZERO, *range(7, 14), _ZERO],  # jerk over the piece
+    ]
+)
+# At rest after the profile: the hold piece starts at the end position with v = a = 0.
+_PIECE_MAP_REST = _PIECE_MAP.copy()
+_PIECE_MAP_REST[1:4, -1] = (_END, _ZERO, _ZERO)
+_DURATION_MAP = np.array([_ZERO, _ZERO, _ZERO, *range(0, 7), _INF])  # cumulative sum: piece starts, inf
+
+
+@functools.lru_cache(maxsize=16)
+def _gather_indices(n: int, at_rest: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into the flat (n * _ROW) numbers: the pieces (5, n * 10) and durations (n, 11)."""
+    rows = _ROW * np.arange(n)
+    piece_map = _PIECE_MAP_REST if at_rest else _PIECE_MAP
+    pieces = (piece_map[:, None, :] + rows[None, :, None]).reshape(len(piece_map), n * _PIECES)
+    return pieces, _DURATION_MAP[None, :] + rows[:, None]
+
+
+def sample_profiles(profiles, times: np.ndarray, at_rest: bool = False, final: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions, velocities and accelerations (len(times), n) of Ruckig profiles at ``times``.
 
     ``profiles`` is one section of ``ruckig.Trajectory.profiles`` (a list of n ``ruckig.Profile``),
@@ -53,91 +100,123 @@ def sample_profiles(profiles, times: np.ndarray, final: np.ndarray | None = None
     ``Trajectory.at_time``: within the brake pre-trajectory (``Profile.brake``: two constant-jerk
     phases of durations ``brake.t`` and jerks ``brake.j`` from ``brake.p``, ``.v``, ``.a``, in all
     ``brake.duration`` s), then the seven phases of the profile (durations ``Profile.t``, jerks
-    ``.j``, starting from ``.p``, ``.v``, ``.a``), then constant acceleration from the profile's end
-    state (``.p[7]``, ``.v[7]``, ``.a[7]``). With ``final`` (n,), a joint whose profile has ended is
-    at rest at ``final`` instead (v = a = 0 exactly). The arrays are transposed views of (n, k)
-    arrays (Fortran order).
+    ``.j``, starting from ``.p``, ``.v``, ``.a``), then constant acceleration from the profile's
+    end state (``.p[7]``, ``.v[7]``, ``.a[7]``). With ``at_rest``, a joint whose profile has ended
+    is at rest instead (v = a = 0 exactly), where its profile ends or at ``final`` (n,) if given.
+    With ``final``, each joint's positions are also shifted by (final - p[7]) t / t_end (t_end:
+    when its profile ends; only where |final - p[7]| > 1e-12) so that they reach ``final``
+    continuously: Ruckig ends a profile within its precision (1e-8) of the target, e.g. 7e-9 rad
+    short after a 1.2 s slow cruise, which would otherwise put the samples just before the end
+    past a target on a position limit. The arrays returned are transposed views of (n, k) arrays.
     """
     n = len(profiles)
-    # One flat list of each joint's 38 numbers: t (7), j (7), p (8), v (8), a (8).
     numbers: list[float] = []
-    brake_joints = []
+    brakes = []
+    if final is not None and not at_rest:
+        raise ValueError("sample_profiles: final is only used with at_rest=True")
+    ends = None if final is None else np.asarray(final, dtype=float).tolist()
     for dof, profile in enumerate(profiles):
         numbers += profile.t
         numbers += profile.j
-        numbers += profile.p
+        positions = profile.p
+        numbers += positions
         numbers += profile.v
         numbers += profile.a
+        numbers += (0.0, positions[7] if ends is None else ends[dof], math.inf)
         brake = profile.brake
         if brake.duration > 0.0:
-            brake_joints.append((dof, brake))
-    table = np.array(numbers).reshape(n, 38)
-    durations, jerks = table[:, 0:7], table[:, 7:14]
-    positions, velocities, accelerations = table[:, 14:22], table[:, 22:30], table[:, 30:38]
+            brakes.append((dof, brake))
+    flat = np.frombuffer(array.array("d", numbers))
+    piece_indices, duration_indices = _gather_indices(n, at_rest)
+    pieces = flat.take(piece_indices)  # (5 fields, n * 10 pieces)
+    durations = flat.take(duration_indices)  # (n, 11)
+    for dof, brake in brakes:
+        durations[dof, 1:3] = brake.t
+        row = slice(dof * _PIECES, dof * _PIECES + 2)
+        pieces[1, row], pieces[2, row], pieces[3, row], pieces[4, row] = brake.p, brake.v, brake.a, brake.j
+    starts = np.cumsum(durations, axis=1)  # (n, 11): Ruckig's t_sum after the brake, then inf
+    pieces[0] = starts[:, :-1].ravel()
 
-    # Each joint's constant-jerk pieces (n, 10): brake phases 0-1, profile phases 2-8, hold 9.
-    start = np.zeros((n, _PIECES))
-    piece_p = np.empty((n, _PIECES))
-    piece_v = np.empty((n, _PIECES))
-    piece_a = np.empty((n, _PIECES))
-    piece_j = np.zeros((n, _PIECES))
-    ends = np.cumsum(durations, axis=1)  # Ruckig's t_sum
-    # Without a brake both brake pieces start at 0 like phase 0 and get no samples (a sample
-    # belongs to the last piece starting at or before it), so their values never matter.
-    piece_p[:, 2:] = positions
-    piece_v[:, 2:] = velocities
-    piece_a[:, 2:] = accelerations
-    piece_j[:, 2:9] = jerks
-    piece_p[:, :2] = positions[:, :1]
-    piece_v[:, :2] = velocities[:, :1]
-    piece_a[:, :2] = accelerations[:, :1]
-    for dof, brake in brake_joints:
-        start[dof, 1] = brake.t[0]
-        start[dof, 2:] = brake.duration
-        piece_p[dof, :2] = brake.p
-        piece_v[dof, :2] = brake.v
-        piece_a[dof, :2] = brake.a
-        piece_j[dof, :2] = brake.j
-    start[:, 3:] += ends
+    # Piece k of a joint covers the samples from the first at or after its start to the first at or
+    # after the next piece's start (times is sorted): repeat each piece's fields that many times.
+    first = np.searchsorted(times, starts)
+    counts = (first[:, 1:] - first[:, :-1]).ravel()
+    start, p0, v0, a0, j = np.repeat(pieces, counts, axis=1).reshape(len(_PIECE_MAP), n, -1)
+    dt = times - start
+    jerk_dt = dt * j
+    a = a0 + jerk_dt
+    v = v0 + dt * (a0 + 0.5 * jerk_dt)
+    q = p0 + dt * (v0 + dt * (0.5 * a0 + jerk_dt * (1.0 / 6.0)))
     if final is not None:
-        piece_p[:, 9] = final
-        piece_v[:, 9] = 0.0
-        piece_a[:, 9] = 0.0
-
-    # Samples per piece: times is sorted, so piece k of a joint gets the samples from the first
-    # at or after its start up to the first at or after the next piece's start.
-    times = np.asarray(times, dtype=float)
-    first = np.searchsorted(times, start, side="left")  # (n, 10)
-    counts = np.empty_like(first)
-    counts[:, :-1] = first[:, 1:] - first[:, :-1]
-    counts[:, -1] = times.size - first[:, -1]
-    counts = counts.ravel()
-    dt = np.tile(times, n) - np.repeat(start.ravel(), counts)
-    p0, v0, a0, j = (np.repeat(x.ravel(), counts) for x in (piece_p, piece_v, piece_a, piece_j))
-    j_half = 0.5 * j
-    a = a0 + dt * j
-    v = v0 + dt * (a0 + dt * j_half)
-    q = p0 + dt * (v0 + dt * (0.5 * a0 + dt * (j / 6.0)))
-    return q.reshape(n, -1).T, v.reshape(n, -1).T, a.reshape(n, -1).T
+        shortfall = flat[_END::_ROW] - flat[_PROFILE_END::_ROW]  # final - p[7]
+        drifting = np.flatnonzero(np.abs(shortfall) > 1e-12)  # round-off below that is left alone
+        if drifting.size:
+            end = starts[drifting, 9:10]
+            progress = np.minimum(times / np.where(end > 0.0, end, 1.0), 1.0)
+            q[drifting] += shortfall[drifting, None] * np.where(times < end, progress, 0.0)
+    return q.T, v.T, a.T
 
 
-def jerk_limited_stop(v: np.ndarray, a: np.ndarray, acceleration: np.ndarray, jerk: np.ndarray) -> np.ndarray:
-    """An upper bound on the distance (same sign convention as v, towards +) that a time-optimal
-    jerk-limited stop from velocity v and acceleration a travels in the + direction, (..., 8).
+def stop_pad(v, a, limits: CommandLimits, control: ControlParams) -> np.ndarray:
+    """The room (..., 8), rad or m, that a joint moving at v (per s) with acceleration a (per s^2)
+    must keep below its upper position limit for a protective stop or reset to stay within it.
 
-    The stop first ramps a to zero at jerk -J (for a > 0) over t1 = a / J, reaching
-    v_e = v + a^2 / (2 J) after v t1 + a t1^2 / 3, then brakes from v_e with an acceleration ramp
-    of the same jerk: at most v_e^2 / (2 A) + v_e A / (2 J) (the exact distance is
-    v_e^2 / (2 A) + v_e A / (2 J) once A is reached, v_e sqrt(v_e / J) before, and
-    x^1.5 <= (x^2 + x) / 2). For a <= 0 the stop is at most the a = 0 one. Units: per s, per s^2,
-    per s^3 in; rad or m out. The controller's invariant set keeps q + this <= upper."""
+    The controller's control-invariant set (``ControlParams``: stop_fraction, reaction_time)
+    keeps q + v tau + v^2 / (2 A_s) <= upper for v > 0: a stop that starts braking at once. With a
+    jerk limit J (``limits.jerk``) an acceleration a > 0 towards the limit is first ramped out
+    over t1 = a / J, during which the joint travels v t1 + a t1^2 / 3 and speeds up to
+    v_e = v + a^2 / (2 J); so the pad is that condition at the end of the ramp,
+
+        pad = max(v, 0) t1 + a t1^2 / 3 + max(v_e, 0) tau + max(v_e, 0)^2 / (2 A_s),  a = max(a, 0),
+
+    which is the original for a <= 0. It bounds the time-optimal jerk-limited stop: from
+    (v_e, 0) that travels v_e^2 / (2 A) + v_e A / (2 J) once A is reached and v_e sqrt(v_e / J)
+    before (<= the former), within v_e tau + v_e^2 / (2 A_s) since A_s <= A, as long as
+    A / (2 J) = jerk_time / 2 <= tau (true of the defaults, 1 ms and 6 ms; otherwise A / (2 J)
+    replaces tau). The lower limit needs stop_pad(-v, -a).
+    """
     v, a = np.asarray(v, dtype=float), np.asarray(a, dtype=float)
     push = np.maximum(a, 0.0)
-    t1 = push / jerk
-    v_end = v + push * t1 / 2.0
-    ramp = np.maximum(v * t1 + push * t1 * t1 / 3.0, 0.0)
-    brake_up = np.maximum(v_end, 0.0)
-    return ramp + brake_up**2 / (2.0 * acceleration) + brake_up * acceleration / (2.0 * jerk)
+    ramp = push / limits.jerk  # t1
+    moving = np.maximum(v + 0.5 * push * ramp, 0.0)  # max(v_e, 0)
+    braking = control.stop_fraction * limits.acceleration
+    reaction = np.maximum(control.reaction_time, 0.5 * limits.acceleration / limits.jerk)
+    return np.maximum(v, 0.0) * ramp + push * ramp * ramp / 3.0 + moving * reaction + moving**2 / (2.0 * braking)
+
+
+def is_reset_safe(q, v, a, limits: CommandLimits, control: ControlParams, tolerance: float = 1e-9) -> np.ndarray:
+    """Whether each joint's state (q, v, a) (..., 8) lies in the set from which ``plan_stop`` and
+    ``plan_reset`` (to any target within the limits) keep positions, velocities and accelerations
+    within ``limits`` (tests/test_reset.py checks it on the set's boundary): |a| <= A; the
+    velocity after ramping a out at the jerk limit, v + a |a| / (2 J), within [-V, V] (else the
+    jerk-limited motion overshoots V by up to A^2 / (2 J)); and q + stop_pad(v, a) <= upper,
+    q - stop_pad(-v, -a) >= lower (with |v| <= V, |a| <= A). A sufficient condition: like the
+    controller's set it assumes braking at stop_fraction A after reaction_time, where the stop
+    brakes at A at once. ``tolerance`` is absolute, in the units of each bound."""
+    q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
+    ramped_velocity = v + a * np.abs(a) / (2.0 * limits.jerk)
+    return (
+        (np.abs(a) <= limits.acceleration + tolerance)
+        & (np.abs(v) <= limits.velocity + tolerance)
+        & (np.abs(ramped_velocity) <= limits.velocity + tolerance)
+        & (q + stop_pad(v, a, limits, control) <= limits.upper + tolerance)
+        & (q - stop_pad(-v, -a, limits, control) >= limits.lower - tolerance)
+    )
+
+
+class RuckigFailure(RuntimeError):
+    """Ruckig rejected an input or found no trajectory; the message gives Ruckig's result or error."""
+
+
+# Drake never frees Python systems in built diagrams (Drake 1.51), so planners held by them live
+# until exit, where nanobind would report their Ruckig objects as leaked: release them first.
+_LIVE_PLANNERS: "weakref.WeakSet[ResetPlanner]" = weakref.WeakSet()
+
+
+@atexit.register
+def _release_ruckig_objects() -> None:
+    for planner in list(_LIVE_PLANNERS):
+        planner._otg = planner._trajectory = planner._reset_input = planner._stop_input = None
 
 
 class ResetPlanner:
@@ -147,8 +226,13 @@ class ResetPlanner:
 
     limits: the command limits (velocity, acceleration, jerk are used; position limits are not
     enforced by Ruckig, see the module docstring); period: the sample period, s (0.001 at 1 kHz).
-    After each plan, ``duration`` is Ruckig's (unrounded) duration of it, s.
+
+    After each plan, ``duration`` is its unrounded duration, s, and ``fell_back`` whether a reset
+    had to stop first (``plan_reset``). A plan longer than ``max_duration`` s (a start far outside
+    the limits) raises RuntimeError rather than filling memory with samples.
     """
+
+    max_duration = 60.0
 
     def __init__(self, limits: CommandLimits, period: float) -> None:
         if not (math.isfinite(period) and period > 0.0):
@@ -165,12 +249,15 @@ class ResetPlanner:
         self.limits = limits
         self.period = float(period)
         self.duration = 0.0
+        self.fell_back = False
+        self._times = np.arange(1001) * self.period  # sample times, grown on demand
         self._lower = np.asarray(limits.lower, dtype=float)
         self._upper = np.asarray(limits.upper, dtype=float)
         self._otg = ruckig.Ruckig(_DOFS)
         self._trajectory = ruckig.Trajectory(_DOFS)
         self._reset_input = self._input(ruckig.ControlInterface.Position, ruckig.Synchronization.Time)
         self._stop_input = self._input(ruckig.ControlInterface.Velocity, ruckig.Synchronization.No)
+        _LIVE_PLANNERS.add(self)
 
     def _input(self, interface, synchronization) -> ruckig.InputParameter:
         inp = ruckig.InputParameter(_DOFS)
@@ -190,20 +277,22 @@ class ResetPlanner:
         Ruckig's duration is rounded up to a whole number of periods and the remainder filled with
         the target at rest, so the last row is exactly (q_target, 0, 0). q_target must lie within
         the position limits; a start outside the velocity or acceleration limits is brought back
-        within them by Ruckig's brake pre-trajectory (jerk-limited, so not instantly)."""
-        q, v, a = self._state("plan_reset", q, v, a)
-        q_target = _joint_vector("plan_reset", "q_target", q_target)
-        outside = (q_target < self._lower) | (q_target > self._upper)
-        if np.any(outside):
-            names = ", ".join(f"{JOINT_NAMES[i]}={q_target[i]} not in [{self._lower[i]}, {self._upper[i]}]" for i in np.flatnonzero(outside))
-            raise ValueError(f"plan_reset: q_target outside the position limits: {names}")
+        within them by Ruckig's brake pre-trajectory (jerk-limited, so not instantly).
+
+        Ruckig 0.19 fails on some nearly degenerate joints (a joint within ~1e-8 of its target with
+        a small velocity and acceleration: about one in five such states). Then the reset is
+        ``plan_stop_then_reset`` instead, which Ruckig solves reliably (``fell_back`` is True)."""
+        state = self._validated("plan_reset", ("q", "v", "a", "q_target"), (q, v, a, q_target))
+        self._check_target("plan_reset", state[3])
         inp = self._reset_input
-        inp.current_position = q
-        inp.current_velocity = v
-        inp.current_acceleration = a
-        inp.target_position = q_target
-        self._calculate("plan_reset", inp)
-        return self._sample(q, v, a, q_target)
+        # (lists convert to Ruckig's vectors ten times faster than NumPy rows)
+        inp.current_position, inp.current_velocity, inp.current_acceleration, inp.target_position = state.tolist()
+        try:
+            self._calculate("plan_reset", inp)
+        except RuckigFailure:
+            return self._stop_then_reset(state)
+        self.fell_back = False
+        return self._sample(state, state[3])
 
     def plan_stop(self, q, v, a) -> JointTrajectory:
         """The protective stop from (q, v, a) (8,) each (rad or m, per s, per s^2): every joint
@@ -211,42 +300,84 @@ class ResetPlanner:
         its acceleration and jerk limits allow (Ruckig's velocity interface), sampled every
         ``period`` s from t = 0 (row 0 is the start state exactly); each joint is held at rest
         where it stopped, and the last row is at rest (v = a = 0 exactly). Positions are not
-        limited: see ``jerk_limited_stop`` for how far a joint travels."""
-        q, v, a = self._state("plan_stop", q, v, a)
-        inp = self._stop_input
-        inp.current_position = q
-        inp.current_velocity = v
-        inp.current_acceleration = a
-        self._calculate("plan_stop", inp)
-        return self._sample(q, v, a, None)
+        limited: from a state where ``is_reset_safe`` holds they stay within them."""
+        state = self._validated("plan_stop", ("q", "v", "a"), (q, v, a))
+        self.fell_back = False
+        return self._stop(state)
 
-    def _state(self, caller: str, q, v, a) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return _joint_vector(caller, "q", q), _joint_vector(caller, "v", v), _joint_vector(caller, "a", a)
+    def plan_stop_then_reset(self, q, v, a, q_target) -> JointTrajectory:
+        """``plan_stop`` from (q, v, a), then from where it stopped the time-synchronised reset
+        from rest to q_target (8,) at rest (``plan_reset``): after a protective stop, or the
+        fallback of ``plan_reset``. Slower than the direct reset when joints move towards their
+        targets; ``duration`` is the stop's, rounded to whole periods, plus the reset's."""
+        state = self._validated("plan_stop_then_reset", ("q", "v", "a", "q_target"), (q, v, a, q_target))
+        self._check_target("plan_stop_then_reset", state[3])
+        return self._stop_then_reset(state)
+
+    def _stop(self, state: np.ndarray) -> JointTrajectory:
+        inp = self._stop_input
+        inp.current_position, inp.current_velocity, inp.current_acceleration = state[:3].tolist()
+        self._calculate("plan_stop", inp)
+        return self._sample(state, None)
+
+    def _stop_then_reset(self, state: np.ndarray) -> JointTrajectory:
+        stop = self._stop(state)
+        at_rest = np.stack([stop.q[-1], np.zeros(_DOFS), np.zeros(_DOFS), state[3]])
+        inp = self._reset_input
+        inp.current_position, inp.current_velocity, inp.current_acceleration, inp.target_position = at_rest.tolist()
+        self._calculate("plan_reset (from rest, after a stop)", inp)
+        reset = self._sample(at_rest, state[3])
+        self.duration += stop.duration
+        self.fell_back = True
+        return stop.then(reset)
+
+    def _check_target(self, caller: str, q_target: np.ndarray) -> None:
+        if not ((self._lower <= q_target) & (q_target <= self._upper)).all():
+            outside = np.flatnonzero((q_target < self._lower) | (q_target > self._upper))
+            names = ", ".join(f"{JOINT_NAMES[i]}={q_target[i]} not in [{self._lower[i]}, {self._upper[i]}]" for i in outside)
+            raise ValueError(f"{caller}: q_target outside the position limits: {names}")
+
+    @staticmethod
+    def _validated(caller: str, names: tuple[str, ...], values: tuple) -> np.ndarray:
+        """The joint vectors stacked (len(names), 8); ValueError naming the first bad one."""
+        try:
+            state = np.array(values, dtype=float)
+        except (TypeError, ValueError):
+            state = None
+        if state is None or state.shape != (len(names), _DOFS) or not np.isfinite(state).all():
+            for name, value in zip(names, values):
+                _joint_vector(caller, name, value)
+        return state
 
     def _calculate(self, caller: str, inp: ruckig.InputParameter) -> None:
+        """Ruckig's trajectory for ``inp`` into self._trajectory and self.duration."""
         try:
             result = self._otg.calculate(inp, self._trajectory)
         except ruckig.RuckigError as error:
-            raise RuntimeError(f"{caller}: Ruckig rejected the input ({error}) for q={inp.current_position}, v={inp.current_velocity}, a={inp.current_acceleration}") from None
+            raise RuckigFailure(f"{caller}: Ruckig rejected the input ({str(error).strip()})") from None
         if result not in _SUCCESS:
-            raise RuntimeError(f"{caller}: Ruckig failed with {result} for q={inp.current_position}, v={inp.current_velocity}, a={inp.current_acceleration}")
+            raise RuckigFailure(f"{caller}: Ruckig failed with {result} for q={inp.current_position}, v={inp.current_velocity}, a={inp.current_acceleration}, target={inp.target_position}")
         self.duration = self._trajectory.duration
+        if not self.duration <= self.max_duration:
+            raise RuntimeError(f"{caller}: Ruckig's trajectory lasts {self.duration} s, more than max_duration = {self.max_duration} s, from q={inp.current_position}, v={inp.current_velocity}, a={inp.current_acceleration}")
 
-    def _sample(self, q, v, a, q_final) -> JointTrajectory:
-        """The last calculated trajectory sampled every period; joints past their own end are at
-        rest at q_final (the target; None: where their profile ends)."""
+    def _sample(self, state: np.ndarray, q_final: np.ndarray | None) -> JointTrajectory:
+        """The last calculated trajectory from state[:3] = (q, v, a), sampled every period; joints
+        past their own end are at rest at q_final (the target; None: where their profile ends)."""
         period = self.period
         samples = math.ceil(self.duration / period - 1e-9)
-        profiles = self._trajectory.profiles[0]
-        if q_final is None:
-            q_final = np.array([profile.p[7] for profile in profiles])
-        if samples == 0 and not np.array_equal(q, q_final):
+        if samples == 0 and q_final is not None and not np.array_equal(state[0], q_final):
             samples = 1
-        q_s, v_s, a_s = sample_profiles(profiles, np.arange(samples + 1) * period, q_final)
-        q_s[0], v_s[0], a_s[0] = q, v, a
+        if samples >= self._times.size:
+            self._times = np.arange(2 * samples + 2) * period
+        q, v, a = sample_profiles(self._trajectory.profiles[0], self._times[: samples + 1], True, q_final)
+        q[0], v[0], a[0] = state[0], state[1], state[2]
         if samples > 0:
-            q_s[-1], v_s[-1], a_s[-1] = q_final, 0.0, 0.0
-        return JointTrajectory(period, q_s, v_s, a_s)
+            if q_final is not None:
+                q[-1] = q_final
+            v[-1] = 0.0
+            a[-1] = 0.0
+        return JointTrajectory(period, q, v, a)
 
 
 def plan_reset(q, v, a, q_target, limits: CommandLimits, period: float) -> JointTrajectory:
@@ -263,9 +394,9 @@ def plan_stop(q, v, a, limits: CommandLimits, period: float) -> JointTrajectory:
 
 
 def _joint_vector(caller: str, name: str, value) -> np.ndarray:
-    array = np.asarray(value, dtype=float)
-    if array.shape != (_DOFS,):
-        raise ValueError(f"{caller}: {name} must have shape ({_DOFS},) ({', '.join(JOINT_NAMES)}), got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{caller}: {name} must be finite, got {array}")
-    return array
+    vector = np.asarray(value, dtype=float)
+    if vector.shape != (_DOFS,):
+        raise ValueError(f"{caller}: {name} must have shape ({_DOFS},) ({', '.join(JOINT_NAMES)}), got shape {vector.shape}")
+    if not np.all(np.isfinite(vector)):
+        raise ValueError(f"{caller}: {name} must be finite, got {vector}")
+    return vector
