@@ -308,7 +308,7 @@ def graphviz_dot(diagram: Diagram, max_depth: int = 1) -> str:
         number = numbering.setdefault(match.group(2), str(len(numbering)))
         return match.group(1) + number
 
-    dot = re.sub(r"\b(digraph _|cluster|s)(\d+)", renumber, dot)
+    dot = re.sub(r"\b(digraph _|clusters|cluster|s)(\d+)", renumber, dot)
     # SceneGraph names its per-source input ports after global source ids: renumber those too.
     sources: dict[str, str] = {}
     dot = re.sub(r"\bSource_(\d+)_", lambda m: f"Source_{sources.setdefault(m.group(1), str(len(sources)))}_", dot)
