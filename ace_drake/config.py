@@ -312,9 +312,12 @@ class ControlParams:
     # every point of the robot stays at least ``collision_margin`` (m) from the court and itself.
     collision_margin: float = 0.005
     collision_influence: float = 0.3  # distances beyond this (m) are not computed
+    # The check's deadline, in distance queries (~20-40 us each): a plan not proven clear within
+    # it is refused like a collision (fail safe), which bounds the control step's latency.
+    collision_query_budget: int = 40
 
     def __post_init__(self) -> None:
-        _require_positive(self, "segment_samples", "boundary_samples", "knot_samples", "jerk_time", "collision_influence")
+        _require_positive(self, "segment_samples", "boundary_samples", "knot_samples", "jerk_time", "collision_influence", "collision_query_budget")
         if self.segment_samples % self.knot_samples:
             raise ConfigError(f"segment_samples ({self.segment_samples}) must be a multiple of knot_samples ({self.knot_samples})")
         _require_non_negative(self, "observation_lead", "position_margin", "reaction_time", "collision_margin")

@@ -8,6 +8,7 @@ the integrator the way the BallPlant's contact timing needs.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 from pydrake.common.value import AbstractValue
@@ -194,14 +195,15 @@ class ControlSystems:
 
 
 def make_control_stack(scenario: RobotScenario, control: ControlParams, check_collisions: bool = True) -> ControlStack:
-    """The shared control stack with Drake collision checking of every plan (margin and
-    influence distance from ``control``), or none when ``check_collisions`` is False."""
-    checker = None
+    """The shared control stack with Drake collision checking of every plan (margin, influence
+    distance and query budget from ``control``), or none when ``check_collisions`` is False."""
+    check = None
     if check_collisions:
         from ace_drake.robot_collision import TrajectoryCollisionChecker
 
-        checker = TrajectoryCollisionChecker(scenario, margin=control.collision_margin, influence=control.collision_influence).check
-    return ControlStack(scenario, control, checker)
+        checker = TrajectoryCollisionChecker(scenario, margin=control.collision_margin, influence=control.collision_influence)
+        check = functools.partial(checker.check, max_queries=control.collision_query_budget)
+    return ControlStack(scenario, control, check)
 
 
 def add_control_stack(builder: DiagramBuilder, robot: RobotSystems, stack: ControlStack, policy, observation_size: int) -> ControlSystems:

@@ -52,3 +52,27 @@ def test_tutorial_02_robot_writes_png_and_html(tmp_path):
         assert path.is_file() and path.stat().st_size > EMPTY_MESHCAT_HTML, path
         assert "animation" in path.read_text()
         assert str(path) in run.stdout
+
+
+def test_tutorial_03_control_stack_writes_png_and_html(tmp_path):
+    import re
+
+    run = run_tutorial("03_control_stack.py", tmp_path)
+    png = tmp_path / "control_stack.png"
+    assert png.is_file() and png.stat().st_size > 50_000
+    assert str(png) in run.stdout
+    # Part 1: the mapping is inverted; part 2: the plan is within the command limits.
+    assert "all mapped into the feasible sets: True" in run.stdout
+    assert "limits.violations(segment + reset): {'position': 0, 'velocity': 0, 'acceleration': 0}" in run.stdout
+    # Part 3: segments were both accepted and refused, and the robot stayed clear of the court.
+    accepted, refused = map(int, re.search(r"(\d+) segments accepted, (\d+) refused", run.stdout).groups())
+    assert accepted > 0 and refused > 0
+    clearance = float(re.search(r"logged joint configurations to the court: ([-\d.]+) mm", run.stdout).group(1))
+    assert clearance > 0.0
+    # Part 4: the protective stop held the robot and no segment was accepted while the curtain was broken.
+    assert "'protective stop'" in run.stdout and "no new segments while broken" in run.stdout
+    assert "held exactly still (v = 0, q unchanged) from then until the curtain cleared: True" in run.stdout
+    html = tmp_path / "fallback.html"
+    assert html.is_file() and html.stat().st_size > EMPTY_MESHCAT_HTML
+    assert "animation" in html.read_text()
+    assert str(html) in run.stdout

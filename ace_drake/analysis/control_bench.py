@@ -167,6 +167,7 @@ class SafetyCounts:
     refused_qp: int = 0
     refused_reset: int = 0
     refused_collision: int = 0
+    refused_check_budget: int = 0  # not proven clear within ControlParams.collision_query_budget
     command_position: int = 0
     command_velocity: int = 0
     command_acceleration: int = 0
@@ -186,6 +187,7 @@ REFUSALS = {
     "segment QP failed": "refused_qp",
     "reset planning failed": "refused_reset",
     "collision predicted": "refused_collision",
+    "collision check over its budget": "refused_check_budget",
 }
 
 

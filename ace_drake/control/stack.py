@@ -114,7 +114,11 @@ class ControlStack:
         if self.collision_check is None:
             return Stage(True)
         report = self.collision_check(plan)
-        return Stage(bool(report.free), report, "" if report.free else f"collision predicted: {report}")
+        if report.free:
+            return Stage(True, report)
+        if not getattr(report, "pairs", True):
+            return Stage(False, report, f"collision check over its budget: proven clear for {report.time:.3f} s of {plan.duration:.3f} s")
+        return Stage(False, report, f"collision predicted: {report}")
 
     def propose(self, q, v, a, action) -> Proposal:
         """The proposal for ``action`` (16,) in [-1, 1] from the segment's start state (q, v, a):

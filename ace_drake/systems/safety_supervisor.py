@@ -132,7 +132,7 @@ class SafetySupervisor(LeafSystem):
         checked = self.stack.check(plan)
         if not checked.ok:
             return dataclasses.replace(current, rejected=current.rejected + 1, last_reason=checked.reason)
-        return dataclasses.replace(current, plan=plan, plan_start=sample, accepted=current.accepted + 1, last_reason="")
+        return dataclasses.replace(current, plan=plan, plan_start=sample, accepted=current.accepted + 1)
 
     # ------------------------------------------------------------------------------ outputs
     def CalcQCommand(self, context, output):
