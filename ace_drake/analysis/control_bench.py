@@ -210,7 +210,8 @@ def random_start(stack: ControlStack, rng: np.random.Generator) -> tuple[np.ndar
 
 
 def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: CommandLimits, checker=None) -> SafetyCounts:
-    """One case: a random invariant start whose initial plan (its reset) is collision-free, then
+    """One case: a random invariant start whose initial plan (its reset) and recent past
+    (``lead_in``) are collision-free, then
     1-8 actions of one random kind through the supervisor's logic (propose; execute if safe, else
     keep the plan), then the plan to its end; the joints (eq. (9)) follow the command stream. The
     command is checked against the command limits, the joints against the hardware limits and,
@@ -219,7 +220,9 @@ def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: Comman
     while True:
         q, v, a = random_start(stack, rng)
         plan, free = stack.initial_plan(q, v, a)
-        if free:
+        # The joints lag the command by a few ms: they start on the way the command came, which
+        # (extrapolated, ``follow``) must be clear too, or the start is not one the robot can be in.
+        if free and stack.check(lead_in(q, v, a, stack.period)).ok:
             break
         counts.start_redraws += 1
     kind = ACTION_KINDS[rng.integers(len(ACTION_KINDS))]
@@ -259,6 +262,13 @@ def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: Comman
     if checker is not None and not checker.check(joints).free:
         counts.collisions += 1
     return counts
+
+
+def lead_in(q, v, a, period: float, duration: float = 0.01) -> JointTrajectory:
+    """The last ``duration`` s before the state (q, v, a) (8,) each, extrapolated with constant
+    acceleration (as ``follow`` starts the joints): where the lagging joints are at the start."""
+    times = period * np.arange(-int(round(duration / period)), 1)[:, None]
+    return JointTrajectory(period, q + v * times + 0.5 * a * times**2, v + a * times, np.repeat(a[None], times.shape[0], axis=0))
 
 
 def follow(command: JointTrajectory, scenario: RobotScenario, settle: float = 0.05) -> JointTrajectory:
