@@ -269,7 +269,7 @@ def start_controlled_robot(diagram: Diagram, context, q=None, light_curtain: flo
     q = np.asarray(supervisor.stack.reset_pose if q is None else q, dtype=float)
     supervisor.Initialize(supervisor.GetMyMutableContextFromRoot(context), q)
     joint_plant.SetJointState(joint_plant.GetMyMutableContextFromRoot(context), q)
-    diagram.get_input_port(0).FixValue(context, [light_curtain])
+    diagram.GetInputPort("light_curtain").FixValue(context, [light_curtain])
 
 
 def _documented_ball_diagram() -> Diagram:

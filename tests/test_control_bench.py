@@ -3,11 +3,11 @@ a small safety run that must find no violation (the README's 100,000-case run is
 
 import numpy as np
 
-from ace_drake.analysis.control_bench import ACTION_KINDS, bench_safety, follow, hardware_limits, make_stack, random_action, random_start
+from ace_drake.analysis.control_bench import ACTION_KINDS, bench_safety, follow, make_stack, random_action, random_start
 from ace_drake.config import RobotScenario
 from ace_drake.control.feasible_set import in_invariant_set
 from ace_drake.control.joint_model import ramp_tracking_lag, simulate_joint
-from ace_drake.control.trajectory import JointTrajectory
+from ace_drake.control.trajectory import CommandLimits, JointTrajectory
 
 
 def test_follow_matches_the_joint_model_and_lags_a_ramp_by_its_tracking_lag():
@@ -45,4 +45,4 @@ def test_a_small_safety_run_is_clean_and_reproducible():
     assert first["violations"] == 0 and first["cases"] == 12
     second = bench_safety(cases=12, seed=5, chunk=6)
     assert {k: v for k, v in first.items() if k != "wall_seconds"} == {k: v for k, v in second.items() if k != "wall_seconds"}
-    assert hardware_limits(RobotScenario()).velocity[0] == 5.0
+    assert CommandLimits.hardware(RobotScenario().limits).velocity[0] == 5.0

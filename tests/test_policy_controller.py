@@ -41,7 +41,7 @@ def test_the_policy_runs_5_ms_before_each_32_ms_segment():
     simulator.AdvanceTo(0.0591)
     assert dut.counts(context)[0] == 2
     np.testing.assert_array_equal(seen[0], [1.0, 2.0, 3.0])
-    # Finite actions beyond the box are clipped into it (2 * 0.25 * ... = 0.5, then 0.75, 1.0, 1.25).
+    # Finite actions beyond the box are clipped into it (the fourth call returns 1.25).
     simulator.AdvanceTo(0.0271 + 3 * 0.032)
     np.testing.assert_array_equal(dut.action_port.Eval(context), 1.0)
 

@@ -22,7 +22,7 @@ def run(policy, duration, curtain_schedule=()):
     start_controlled_robot(diagram, context)
     for time, value in curtain_schedule:
         simulator.AdvanceTo(time)
-        diagram.get_input_port(0).FixValue(context, [value])
+        diagram.GetInputPort("light_curtain").FixValue(context, [value])
     simulator.AdvanceTo(duration)
     supervisor = diagram.GetSubsystemByName("safety_supervisor")
     commands = diagram.GetSubsystemByName("command_logger").FindLog(context)
@@ -46,7 +46,7 @@ def test_a_random_policy_moves_within_the_limits(checker):
     limits = supervisor.stack.limits
     q, v, a = np.split(commands.data().T, 3, axis=1)
     assert limits.violations(JointTrajectory(0.001, q, v, a), tolerance=1e-6) == {"position": 0, "velocity": 0, "acceleration": 0}
-    hardware = CommandLimits.from_config(RobotScenario().limits, supervisor.stack.control.__class__(position_margin=0.0, velocity_fraction=1.0, acceleration_fraction=1.0))
+    hardware = CommandLimits.hardware(RobotScenario().limits)
     q_joint, v_joint = np.split(joints.data().T, 2, axis=1)
     assert np.all(q_joint >= hardware.lower) and np.all(q_joint <= hardware.upper)
     assert np.all(np.abs(v_joint) <= hardware.velocity)

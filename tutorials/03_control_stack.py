@@ -454,12 +454,12 @@ def main() -> None:
     start_controlled_robot(diagram, context, light_curtain=0.0)
     simulator.AdvanceTo(CURTAIN_BREAK)
     at_break = supervisor_counts(supervisor, context)
-    diagram.get_input_port(0).FixValue(context, [1.0])
+    diagram.GetInputPort("light_curtain").FixValue(context, [1.0])
     simulator.AdvanceTo(CURTAIN_CLEAR)
     state = supervisor.supervisor_state(supervisor.GetMyContextFromRoot(context))
     at_clear = state.accepted, state.rejected
     stop_start = state.plan_start * period
-    diagram.get_input_port(0).FixValue(context, [0.0])
+    diagram.GetInputPort("light_curtain").FixValue(context, [0.0])
     simulator.AdvanceTo(CURTAIN_END)
     at_end = supervisor_counts(supervisor, context)
     commands = diagram.GetSubsystemByName("command_logger").FindLog(context)

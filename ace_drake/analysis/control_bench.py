@@ -20,6 +20,7 @@ from ace_drake.config import ControlParams, RobotScenario
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.feasible_set import in_invariant_set
 from ace_drake.control.joint_model import discretize
+from ace_drake.control.spline_qp import SegmentQp
 from ace_drake.control.stack import ControlStack, plan_state
 from ace_drake.control.trajectory import CommandLimits, JointTrajectory
 
@@ -87,7 +88,7 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, p
     rng = np.random.default_rng(seed)
     stack = make_stack()
     actor = actor_network(seed)
-    clarabel = ControlStack(stack.scenario, dataclasses.replace(stack.control, qp_solver="clarabel"))
+    clarabel = SegmentQp(stack.limits, stack.control.segment_samples, stack.period, stack.control.knot_samples, solver="clarabel")
     totals, stages, problems = [], {"policy": [], "map": [], "segment": [], "reset": [], "check": []}, []
     refused = 0
     observation = torch.zeros(1, ACTOR_LAYERS[0])
@@ -128,7 +129,7 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, p
         reference = stack.qp.solve(q, v, a, *target)
         daqp_seconds.append(time.perf_counter() - start)
         start = time.perf_counter()
-        other = clarabel.qp.solve(q, v, a, *target)
+        other = clarabel.solve(q, v, a, *target)
         clarabel_seconds.append(time.perf_counter() - start)
         if reference.success and other.success:
             differences.append(float(np.max(np.abs(reference.trajectory.q - other.trajectory.q))))
@@ -189,11 +190,6 @@ REFUSALS = {
     "collision predicted": "refused_collision",
     "collision check over its budget": "refused_check_budget",
 }
-
-
-def hardware_limits(scenario: RobotScenario) -> CommandLimits:
-    """The robot's own limits (no control margins)."""
-    return CommandLimits.from_config(scenario.limits, ControlParams(position_margin=0.0, velocity_fraction=1.0, acceleration_fraction=1.0))
 
 
 def random_start(stack: ControlStack, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -323,7 +319,7 @@ def _safety_worker(arguments) -> dict:
 
     stack = make_stack()
     checker = TrajectoryCollisionChecker(stack.scenario, margin=0.0) if check_collisions else None
-    hardware = hardware_limits(stack.scenario)
+    hardware = CommandLimits.hardware(stack.scenario.limits)
     rng = np.random.default_rng(seed)
     counts = SafetyCounts()
     for _ in range(cases):

@@ -10,8 +10,8 @@ terminal states (q_T, v_T) that
    (q1, v1) = (q0 + v0 h + a0 h^2 / 3, v0 + a0 h / 2) over T' = T - h;
 2. lie in a control-invariant set: from (q_T, v_T), with any terminal acceleration |a_T| <= A
    towards the limit ramped away over max(h, jerk_time) (the resets ramp at the jerk limit
-   J = A / jerk_time; ``control.reset.stop_pad`` derives the pad), a stop at A_s = stop_fraction * A after a reaction time
-   tau ends inside [lower, upper], and a state moving away from a limit is one the QP can have
+   J = A / jerk_time; ``control.reset.stop_pad`` derives the pad), a stop at
+   A_s = stop_fraction * A after a reaction time tau ends inside [lower, upper], and a state moving away from a limit is one the QP can have
    reached without crossing it (q_T <= upper - v_T^2 / (2 A_r) for v_T < 0, mirrored).
 
 Both sets are convex, so F_i is convex: each is {(q, v): v in [v_a, v_b], lo(v) <= q <= hi(v)}
@@ -87,30 +87,24 @@ def ramp_time(control: ControlParams, period: float) -> float:
     return max(control.knot_samples * period, control.jerk_time)
 
 
-def invariant_bounds(v: np.ndarray, limits: CommandLimits, control: ControlParams, ramp: float) -> tuple[np.ndarray, np.ndarray]:
-    """The control-invariant position bounds (lo, hi) (..., 8) at terminal velocities v (..., 8):
-    part 2 of the module docstring, with the terminal acceleration ramped out over ``ramp`` s
-    (``ramp_time``). Units: rad or m and per second."""
+def invariance_pad(towards: np.ndarray, limits: CommandLimits, control: ControlParams, ramp: float) -> np.ndarray:
+    """How far (..., 8) inside a position limit a terminal state must stay, given its velocity
+    ``towards`` that limit (..., 8; negative: away from it): part 2 of the module docstring.
+
+    Moving towards it: the worst-case terminal acceleration A ramped out over ``ramp`` s
+    (``ramp_time``), the reaction time, then braking at A_s. Moving away: the QP came from a turn
+    no closer than the limit. Units: rad or m and per second."""
     A = limits.acceleration
-    A_s = control.stop_fraction * A
-    A_r = control.reach_fraction * A
-    h, tau = ramp, control.reaction_time
+    ramped = np.maximum(towards + 0.5 * A * ramp, 0.0)
+    stopping = np.maximum(towards, 0.0) * ramp + A * ramp * ramp / 3.0 + ramped * control.reaction_time + ramped**2 / (2.0 * control.stop_fraction * A)
+    turning = np.minimum(towards, 0.0) ** 2 / (2.0 * control.reach_fraction * A)
+    return np.maximum(stopping, turning)
 
-    def stopping_pad(speed: np.ndarray) -> np.ndarray:
-        # Distance still covered towards the limit when moving towards it at ``speed``: the
-        # worst-case terminal acceleration A ramped out over h, the reaction time, then braking.
-        moving = np.maximum(speed, 0.0)
-        ramped = np.maximum(speed + 0.5 * A * h, 0.0)
-        return moving * h + A * h * h / 3.0 + ramped * tau + ramped**2 / (2.0 * A_s)
 
-    def path_pad(speed: np.ndarray) -> np.ndarray:
-        # Moving away from the limit: the QP came from a turn no closer than the limit.
-        away = np.minimum(speed, 0.0)
-        return away**2 / (2.0 * A_r)
-
-    hi = limits.upper - np.maximum(stopping_pad(v), path_pad(v))
-    lo = limits.lower + np.maximum(stopping_pad(-v), path_pad(-v))
-    return lo, hi
+def invariant_bounds(v: np.ndarray, limits: CommandLimits, control: ControlParams, ramp: float) -> tuple[np.ndarray, np.ndarray]:
+    """The control-invariant position bounds (lo, hi) (..., 8) at terminal velocities v (..., 8)
+    (``invariance_pad`` towards each limit). Units: rad or m and per second."""
+    return limits.lower + invariance_pad(-v, limits, control, ramp), limits.upper - invariance_pad(v, limits, control, ramp)
 
 
 def _reach_upper(q1, v1, v, A_r, V, duration):
@@ -133,8 +127,8 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     start outside the control-invariant set, e.g. moving fast at a position limit)."""
     q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q0, v0, a0))
     A, V = limits.acceleration, limits.velocity
-    A_r, A_s = control.reach_fraction * A, control.stop_fraction * A
-    h, tau = control.knot_samples * period, control.reaction_time
+    A_r = control.reach_fraction * A
+    h = control.knot_samples * period
     rest = control.segment_samples * period - h
     # The start after the first knot interval's ramp of a0 to zero (module docstring, part 1).
     q1 = q0 + v0 * h + a0 * h * h / 3.0
@@ -143,20 +137,13 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     signed_limit = np.empty((2, 1, q0.size))  # upper, -lower
     signed_limit[0, 0], signed_limit[1, 0] = limits.upper, -limits.lower
     ramp = ramp_time(control, period)
-    corner = A * ramp * ramp / 3.0
 
     def bounds(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) (K, 8) at velocities v (K, 8): both sides at once, the lower one mirrored
         (s = -1: q -> -q, v -> -v), each the tighter of reachability and invariance."""
         x = _SIDES * v  # (2, K, 8)
         reach = _reach_upper(signed_q1, signed_v1, x, A_r, V, rest)
-        # Invariance (part 2): the stopping pad towards the limit, the path pad away from it.
-        ramped = np.maximum(x + 0.5 * A * ramp, 0.0)
-        pad = np.maximum(
-            np.maximum(x, 0.0) * ramp + corner + ramped * tau + ramped**2 / (2.0 * A_s),
-            np.minimum(x, 0.0) ** 2 / (2.0 * A_r),
-        )
-        side = _SIDES * np.minimum(reach, signed_limit - pad)
+        side = _SIDES * np.minimum(reach, signed_limit - invariance_pad(x, limits, control, ramp))
         return side[1], side[0]
 
     # The velocity range of F: where the (concave) width hi - lo is >= 0, within the reachable

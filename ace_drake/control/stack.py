@@ -58,8 +58,8 @@ class Proposal:
 class ControlStack:
     """The mapping, segment QP, reset planner and collision check, built once.
 
-    ``collision_check`` is any callable taking a JointTrajectory and returning an object with a
-    boolean ``free`` (``robot_collision.TrajectoryCollisionChecker.check``); None checks nothing
+    ``collision_check`` is any callable taking a JointTrajectory and returning a
+    ``robot_collision.CollisionReport`` (``TrajectoryCollisionChecker.check``); None checks nothing
     (for studies of the maths alone). Joint vectors are in JOINT_NAMES order.
     """
 
@@ -116,7 +116,7 @@ class ControlStack:
         report = self.collision_check(plan)
         if report.free:
             return Stage(True, report)
-        if not getattr(report, "pairs", True):
+        if not report.pairs:  # nothing found closing: the budget ran out before a proof
             return Stage(False, report, f"collision check over its budget: proven clear for {report.time:.3f} s of {plan.duration:.3f} s")
         return Stage(False, report, f"collision predicted: {report}")
 
@@ -167,8 +167,7 @@ class ControlStack:
         """The fastest stop within the command limits from (q, v, a), and whether it is
         collision-free (if not, the caller keeps its checked plan instead)."""
         stop = self.resets.plan_stop(q, v, a)
-        free = self.collision_check is None or bool(self.collision_check(stop).free)
-        return stop, free
+        return stop, self.check(stop).ok
 
     def initial_plan(self, q, v=None, a=None) -> tuple[JointTrajectory, bool]:
         """A plan to start from at (q, v, a) (v, a default zero): at rest, standing still; moving,
@@ -180,8 +179,7 @@ class ControlStack:
             plan = JointTrajectory.stationary(q, self.period)
         else:
             plan = self.resets.plan_reset(q, v, a, self.reset_pose)
-        free = self.collision_check is None or bool(self.collision_check(plan).free)
-        return plan, free
+        return plan, self.check(plan).ok
 
 
 def plan_state(plan: JointTrajectory, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

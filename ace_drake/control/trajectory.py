@@ -38,6 +38,11 @@ class CommandLimits:
             jerk=acceleration / control.jerk_time,
         )
 
+    @staticmethod
+    def hardware(limits: RobotLimits, jerk_time: float = ControlParams.jerk_time) -> "CommandLimits":
+        """The robot's own limits, with no control margins (what the joints must respect)."""
+        return CommandLimits.from_config(limits, ControlParams(position_margin=0.0, velocity_fraction=1.0, acceleration_fraction=1.0, jerk_time=jerk_time))
+
     def acceleration_bounds(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The accelerations (lower, upper) (..., 8) allowed at velocity v (..., 8): within the
         acceleration limit, and small enough that ramping them to zero at the jerk limit keeps
