@@ -46,8 +46,9 @@ def test_at_rest_the_centre_is_standing_still():
     np.testing.assert_allclose(q, READY, atol=1e-12)
     np.testing.assert_allclose(v, 0.0, atol=1e-12)
     # Far from the limits the velocity range is what A_r reaches over the segment after the
-    # first knot interval: 0.8 * 0.85 * 40 m/s^2 * 31 ms for the gantry.
-    assert sets.scale[0, 1] == pytest.approx(0.8 * 0.85 * 40.0 * 0.031)
+    # first knot interval, 0.8 * 0.85 * 40 m/s^2 * 31 ms for the gantry, less the fastest corners
+    # that the ramp pad of the final acceleration change trims (3%).
+    assert 0.95 * 0.8 * 0.85 * 40.0 * 0.031 < sets.scale[0, 1] <= 0.8 * 0.85 * 40.0 * 0.031
 
 
 @settings(max_examples=300, deadline=None)

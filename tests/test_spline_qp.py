@@ -92,3 +92,30 @@ def test_recursive_feasibility(seed, edge, actions):
         # The target is inside; the QP lands on it to its tolerance.
         assert np.all(in_invariant_set(q_terminal, v_terminal, LIMITS, CONTROL, PERIOD, tolerance=1e-9))
         assert np.all(in_invariant_set(q, v, LIMITS, CONTROL, PERIOD, tolerance=1e-6))
+
+
+def cruising_state(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A state with every joint at its velocity limit, not accelerating, inside the invariant set:
+    where a policy steering at full speed spends its time (the rally bench found the polygon's
+    corners unreachable here before the feasible set accounted for the spline's ramps)."""
+    rng = np.random.default_rng(seed)
+    v = rng.choice([-1.0, 1.0], 8) * LIMITS.velocity
+    while True:
+        q = rng.uniform(LIMITS.lower, LIMITS.upper)
+        inside = in_invariant_set(q, v, LIMITS, CONTROL, PERIOD)
+        if np.all(inside):
+            return q, v, np.zeros(8)
+        v = np.where(inside, v, -v)  # turn the joints that are too close to the limit ahead
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), kind=st.sampled_from(["random", "edge", "cruising"]))
+def test_every_corner_of_the_feasible_set_is_reachable(seed, kind):
+    """The QP reaches every vertex of every joint's feasible polygon; both sets are convex, so it
+    reaches every point of the polygon (the mapping's image)."""
+    q, v, a = cruising_state(seed) if kind == "cruising" else invariant_state(seed, edge=kind == "edge")
+    sets = feasible_sets(q, v, a, LIMITS, CONTROL, PERIOD)
+    for vertex in range(sets.vertices.shape[1]):
+        target = sets.vertices[:, vertex]
+        solution = QP.solve(q, v, a, target[:, 0], target[:, 1])
+        assert solution.success, f"vertex {vertex}: {solution.status}"
