@@ -241,11 +241,11 @@ def _bench_control(args) -> int:
 
     if args.steps < 1:
         raise ConfigError(f"bench control: --steps must be >= 1, got {args.steps}")
-    figures = bench_control(steps=args.steps, seed=args.seed, progress=log)
+    figures = bench_control(steps=args.steps, seed=args.seed, states=args.states, progress=log)
     if args.json:
         emit_json(figures)
         return 0
-    print(f"one control step on 1 thread over {figures['steps']} steps: median {figures['step']['median_ms']:.3f} ms, p99 {figures['step']['p99_ms']:.3f} ms")
+    print(f"one control step on 1 thread over {figures['steps']} steps ({figures['states']} states): median {figures['step']['median_ms']:.3f} ms, p99 {figures['step']['p99_ms']:.3f} ms")
     for name, row in figures["stages"].items():
         print(f"  {name:<10} median {row['median_ms']:.3f} ms   p99 {row['p99_ms']:.3f} ms")
     qp = figures["qp"]
@@ -372,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--scenario", help="reach: robot scenario YAML (default models/scenario.yaml)")
     bench.add_argument("--seed", type=int, default=0, help="reach: seed of the swing-speed search; control, safety: of the states and actions")
     bench.add_argument("--steps", type=int, default=1000, help="control: timed control steps")
+    bench.add_argument("--states", choices=("rally", "random"), default="rally", help="control: rally strokes (default) or a uniformly random policy (stress)")
     bench.add_argument("--cases", type=int, default=1000, help="safety: random cases (start state + action sequence)")
     bench.add_argument("--workers", type=int, default=1, help="safety: processes (the figures do not depend on it)")
     bench.add_argument("--json", action="store_true")

@@ -53,6 +53,14 @@ quadratic with Bernstein coefficients v_k, 3 (q_{k+1} - q_k) / h - v_k - v_{k+1}
 acceleration between the sampled a_k, a_{k+1} (max(|v_k|, |v_{k+1}|) + max(|a_k|, |a_{k+1}|) h / 4).
 Integrating c_p . bound over the intervals gives each pair's cumulative swept bound S_p.
 
+Height certificates. For a pair of a moving robot geometry A and a static geometry B (the court,
+the robot's base), every point of B lies at or below B's top z_B, so the distance is at least the
+height of A's lowest point above z_B; that height falls at most at c^z . |qdot|, where c^z is the
+pair rate's coefficients with each joint whose axis is fixed in the world scaled by the fraction
+of its motion that can be vertical (zero for the gantry's carriages and the shoulder's yaw:
+``_Heights``). A swing over the table moves the racket mostly sideways, so at each query the
+advancement takes, per such pair, whichever certificate proves the longer step.
+
 Conservative advancement (``check``). From a configuration where the reported pairs have
 distances d_p, every instant up to the furthest sample at which S_p has grown by at most
 d_p - margin - slack_p for every pair (and the bound for all pairs, influence - margin for the
@@ -185,6 +193,7 @@ class TrajectoryCollisionChecker:
         self._slacks = [pair.slack for pair in self._pairs]
         self._rate_matrix = np.array([pair.rate for pair in self._pairs]).reshape(-1, len(JOINT_NAMES))
         self._full = self.checker.MakeStandaloneModelContext()
+        self._heights = self._build_heights()
         # Pairs whose distance depends on at most GATE_MAX_JOINTS joints: where in those joints'
         # box they may come within margin (nowhere: certified clear).
         self.box_lower = self.plant.GetPositionLowerLimits() - GATE_PAD
@@ -240,8 +249,11 @@ class TrajectoryCollisionChecker:
         cumulative *= period
         swept = self._rate_matrix @ cumulative
         swept_all = global_rate @ cumulative
+        heights = self._heights
+        swept_height = heights.rate_matrix @ cumulative  # (H, n + 1): the height certificates'
         margin, influence, period_ = self.margin, self.influence, period
         index_get, slacks = self._pair_index.get, self._slacks
+        height_of, height_pairs = heights.certificate, heights.pair_certificate
         update, query = self.checker.UpdateContextPositions, context.GetQueryObject
         queries, min_distance = 0, influence
 
@@ -254,7 +266,9 @@ class TrajectoryCollisionChecker:
             queries += 1
             budgets = [(swept_all, influence - margin - DISTANCE_ERROR)]
             closest = influence
-            for result in query().ComputeSignedDistancePairwiseClosestPoints(max_distance=influence):
+            query_object = query()
+            lowest = {}  # per robot geometry: its lowest point's height at this configuration, m
+            for result in query_object.ComputeSignedDistancePairwiseClosestPoints(max_distance=influence):
                 p = index_get((result.id_A.get_value(), result.id_B.get_value()))
                 if p is None:
                     continue
@@ -262,9 +276,22 @@ class TrajectoryCollisionChecker:
                 if d < closest:
                     closest = d
                 budget = d - margin - slacks[p]
+                S = swept[p]
+                h = height_pairs[p]
+                if h >= 0:
+                    # The pair's height certificate, if it proves more: the robot geometry's
+                    # lowest point is above the top of the static one, and falls at most at
+                    # the (smaller) vertical rate bound.
+                    geometry, top, height_slack = height_of[h]
+                    if geometry not in lowest:
+                        lowest[geometry] = heights.lowest(query_object, geometry)
+                    height_budget = lowest[geometry] - top - margin - height_slack
+                    S_height = swept_height[h]
+                    if height_budget * (S[k + 1] - S[k]) > budget * (S_height[k + 1] - S_height[k]) if k < n else height_budget > budget:
+                        budget, S = height_budget, S_height
                 if budget < PROOF_TOLERANCE:
                     return None
-                budgets.append((swept[p], budget))
+                budgets.append((S, budget))
             if closest < min_distance:
                 min_distance = closest
             return budgets
@@ -372,6 +399,29 @@ class TrajectoryCollisionChecker:
             self._contexts[key] = (context, np.max(rates_left, axis=0) if rates_left else np.zeros(len(JOINT_NAMES)))
         return self._contexts[key]
 
+    def _build_heights(self) -> "_Heights":
+        """The height certificates of the pairs of a moving robot geometry and a static one (see
+        ``_Heights``)."""
+        kin, plant, inspector = self._kinematics, self.plant, self.inspector
+        self.checker.UpdateContextPositions(self._full, np.asarray(self.scenario.ready_pose, dtype=float))
+        query_object = self._full.GetQueryObject()
+        sines = kin.vertical_sines(self._full.plant_context())
+        geometries, tops, rates, slacks, pair_certificate = [], [], [], [], np.full(len(self._pairs), -1, dtype=int)
+        for p, pair in enumerate(self._pairs):
+            body_B = plant.GetBodyFromFrameId(inspector.GetFrameId(pair.id_B))
+            if kin.upstream[int(body_B.index())]:
+                continue  # both move: no fixed plane between them
+            points, radius = kin._points(pair.id_B)
+            X_WB = query_object.GetPoseInWorld(pair.id_B).GetAsMatrix4() @ np.linalg.inv(inspector.GetPoseInFrame(pair.id_B).GetAsMatrix4())
+            top = float(np.max(points @ X_WB[:3, :3].T[:, 2] + X_WB[2, 3])) + radius
+            rate, slack = kin.height_rate(pair.id_A, sines)
+            pair_certificate[p] = len(geometries)
+            geometries.append(pair.id_A)
+            tops.append(top)
+            rates.append(rate)
+            slacks.append(slack)
+        return _Heights(inspector, geometries, tops, np.array(rates).reshape(-1, len(JOINT_NAMES)), slacks, pair_certificate)
+
     def _build_pairs(self) -> tuple[list[_Pair], dict[tuple[int, int], int]]:
         """The geometry pairs the checker tests (SceneGraph candidates not in the checker's filter
         matrix, at least one on the robot), with their distance-rate coefficients."""
@@ -433,6 +483,56 @@ class TrajectoryCollisionChecker:
             left_upper[split] = right_lower[split] = centre[split]
             cells += [(lower, left_upper), (right_lower, upper)]
         return None
+
+
+class _Heights:
+    """Height certificates for the pairs of a moving robot geometry A and a static geometry B
+    (the court, the robot's base): every point of B lies at or below B's top z_B, so the pair's
+    distance is at least A's lowest point's height z_A minus z_B. z_A falls at most at
+    sum_j |qdot_j| c_j sin(theta_j): a joint whose axis is fixed in the world (all joints above it
+    prismatic) moves points vertically at sin(theta_j) of its full rate, theta_j its axis's angle
+    from vertical (revolute; 0 for the shoulder's yaw) or from horizontal (prismatic; 0 for the
+    gantry's carriages); ``_Kinematics.height_rate``. Over a table the robot mostly sweeps
+    sideways, and this certificate proves much longer steps than the distance's.
+
+    certificate[h] = (A's geometry id, z_B (m), slack (m)); rate_matrix (H, 8); pair_certificate
+    (P,) the certificate of each pair, or -1."""
+
+    def __init__(self, inspector, geometries, tops, rate_matrix, slacks, pair_certificate):
+        self.certificate = [(g, top, slack) for g, top, slack in zip(geometries, tops, slacks)]
+        self.rate_matrix = rate_matrix
+        self.pair_certificate = pair_certificate.tolist()
+        self._shapes = {}  # geometry id -> (kind, radius, half length, half extents or semi-axes)
+        for g in set(geometries):
+            shape = inspector.GetShape(g)
+            if isinstance(shape, Sphere):
+                self._shapes[g] = ("sphere", shape.radius(), 0.0, None)
+            elif isinstance(shape, Capsule):
+                self._shapes[g] = ("capsule", shape.radius(), 0.5 * shape.length(), None)
+            elif isinstance(shape, Cylinder):
+                self._shapes[g] = ("cylinder", shape.radius(), 0.5 * shape.length(), None)
+            elif isinstance(shape, Box):
+                self._shapes[g] = ("box", 0.0, 0.0, 0.5 * np.array([shape.width(), shape.depth(), shape.height()]))
+            elif isinstance(shape, Ellipsoid):
+                self._shapes[g] = ("ellipsoid", 0.0, 0.0, np.array([shape.a(), shape.b(), shape.c()]))
+            else:
+                raise ValueError(f"robot collision: unsupported collision shape {type(shape).__name__} ({inspector.GetName(g)})")
+
+    def lowest(self, query_object, geometry) -> float:
+        """z (m) of the geometry's lowest point in the query's configuration."""
+        X_WG = query_object.GetPoseInWorld(geometry)
+        z = X_WG.translation()[2]
+        row = X_WG.rotation().row(2)  # the world z axis in the geometry's frame
+        kind, radius, half_length, extents = self._shapes[geometry]
+        if kind == "sphere":
+            return z - radius
+        if kind == "capsule":
+            return z - abs(row[2]) * half_length - radius
+        if kind == "cylinder":
+            return z - abs(row[2]) * half_length - radius * math.sqrt(max(0.0, 1.0 - row[2] * row[2]))
+        if kind == "box":
+            return z - float(np.abs(row) @ extents)
+        return z - float(np.linalg.norm(row * extents))  # ellipsoid: its support along -z
 
 
 @dataclasses.dataclass(frozen=True)
@@ -688,6 +788,44 @@ class _Kinematics:
                 i = self.velocity_index[int(joint.index())]
                 r[i] = max(r[i], self.axis_radius(joint, g))
         return r
+
+    def vertical_sines(self, plant_context) -> np.ndarray:
+        """(8,) per joint: 1, or for a joint whose axis is fixed in the world (every moving joint
+        above it prismatic) the fraction of its motion that can be vertical, sin of the axis's
+        angle from vertical (revolute) or |axis_z| (prismatic)."""
+        sines = np.ones(len(JOINT_NAMES))
+        world = self.plant.world_frame()
+        for joint_index in self.plant.GetJointIndices():
+            joint = self.plant.get_joint(joint_index)
+            if joint.type_name() not in ("revolute", "prismatic"):
+                continue
+            above = self.upstream[int(joint.parent_body().index())]
+            if any(j.type_name() != "prismatic" for j in above):
+                continue
+            R_WF = self.plant.CalcRelativeTransform(plant_context, world, joint.frame_on_parent()).rotation().matrix()
+            axis = R_WF @ self._axis(joint)
+            vertical = abs(float(axis[2]))
+            sine = math.sqrt(max(0.0, 1.0 - vertical * vertical)) if joint.type_name() == "revolute" else vertical
+            sines[self.velocity_index[int(joint.index())]] = min(1.0, sine + 1e-12)
+        return sines
+
+    def height_rate(self, geometry_id, sines: np.ndarray) -> tuple[np.ndarray, float]:
+        """The rate coefficients c (8,) of the height of the geometry's lowest point (it changes at
+        most at c . |qdot| m/s) and its symmetry slack (m): each joint above the geometry at its
+        axis radius times its vertical sine, except a revolute joint about whose axis the
+        geometry, on its child body, is symmetric (turning it maps the shape onto itself)."""
+        body = int(self.plant.GetBodyFromFrameId(self.inspector.GetFrameId(geometry_id)).index())
+        rate = np.zeros(len(JOINT_NAMES))
+        eps = 0.0
+        for joint in self.upstream[body]:
+            i = self.velocity_index[int(joint.index())]
+            if joint.type_name() == "revolute" and body == int(joint.child_body().index()):
+                error = self.symmetry_error(geometry_id, *self._axis_line_in_child(joint))
+                if error <= SYMMETRY_TOLERANCE:
+                    eps += error
+                    continue
+            rate[i] = self.axis_radius(joint, geometry_id) * sines[i]
+        return np.where(rate > 0, rate + eps, 0.0), 2.0 * eps
 
     def pair_rate(self, id_A, id_B) -> tuple[np.ndarray, float]:
         """The distance-rate coefficients c (8,) of a geometry pair and its symmetry slack (m)."""

@@ -121,7 +121,8 @@ def test_bench_reach_reports_coverage_and_swing_speed(capsys, tmp_path):
 
 def test_bench_control_reports_step_latency_and_the_qp_side_by_side(capsys):
     figures = run_json(capsys, "bench", "control", "--steps", "20", "--json")
-    assert figures["steps"] == 20 and figures["threads"] == 1
+    assert figures["steps"] == 20 and figures["threads"] == 1 and figures["states"] == "rally"
+    assert sum(figures["refusals"].values()) == figures["refused_steps"]
     assert set(figures["stages"]) == {"policy", "map", "segment", "reset", "check"}
     assert 0 < figures["step"]["median_ms"] <= figures["step"]["p99_ms"] <= figures["step"]["max_ms"]
     qp = figures["qp"]

@@ -224,6 +224,34 @@ def test_no_pair_distance_changes_faster_than_its_rate_bound(dut):
     assert handle[JOINT_NAMES.index("wrist_2")] == pytest.approx(0.16, abs=1e-4)
 
 
+def test_no_lowest_point_falls_faster_than_its_height_rate_bound(dut):
+    # The height certificates: a robot geometry's lowest point moves vertically at most at its
+    # height rate; the gantry's carriages and the shoulder's yaw (axes fixed in the world,
+    # horizontal travel and vertical rotation) cannot move anything vertically.
+    heights = dut._heights
+    for joint in ("gantry_x", "gantry_y", "shoulder_yaw"):
+        assert np.all(heights.rate_matrix[:, JOINT_NAMES.index(joint)] < 1e-9)
+    plant = dut.plant
+    rng = np.random.default_rng(5)
+    lower, upper = plant.GetPositionLowerLimits(), plant.GetPositionUpperLimits()
+    velocity = plant.GetVelocityUpperLimits()
+    context = dut._full
+    h = 1e-4
+    worst = 0.0
+    for _ in range(200):
+        q, v = rng.uniform(lower, upper), rng.uniform(-velocity, velocity)
+        lowest = []
+        for sign in (1, -1):
+            dut.checker.UpdateContextPositions(context, q + sign * h * v)
+            query = context.GetQueryObject()
+            lowest.append(np.array([heights.lowest(query, geometry) for geometry, _, _ in heights.certificate]))
+        rate = np.abs(lowest[0] - lowest[1]) / (2 * h)
+        bound = heights.rate_matrix @ np.abs(v)
+        assert np.all(rate <= bound * (1 + 1e-6) + 1e-9)
+        worst = max(worst, float(np.max(rate / np.maximum(bound, 1e-12))))
+    assert worst > 0.3  # and not absurdly loose
+
+
 def test_joint_speed_bounds_hold_between_samples():
     rng = np.random.default_rng(3)
     for _ in range(200):

@@ -18,7 +18,7 @@ import numpy as np
 
 from ace_drake.config import ControlParams, RobotScenario
 from ace_drake.control.action_mapping import ACTION_SIZE
-from ace_drake.control.feasible_set import in_invariant_set
+from ace_drake.control.feasible_set import InfeasibleStartError, in_invariant_set
 from ace_drake.control.joint_model import discretize
 from ace_drake.control.spline_qp import SegmentQp
 from ace_drake.control.stack import ControlStack, plan_state
@@ -76,13 +76,85 @@ def _percentiles(samples) -> dict[str, float]:
     return {"median_ms": float(np.median(samples)), "p99_ms": float(np.percentile(samples, 99)), "max_ms": float(np.max(samples))}
 
 
-def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, progress: Callable[[str], None] | None = None) -> dict:
+# Where the robot hits in the published match data (../shared/paper/notes.md): x from -2.55 to
+# -0.94 m, y from -0.87 to 0.92 m, 0.15 to 0.34 m above the table.
+CONTACT_BOX = ((-2.55, -0.87, 0.15), (-0.94, 0.92, 0.34))
+STROKE_STEPS = (8, 8, 9)  # policy steps of backswing, swing and recovery: the 0.8 s stroke cycle
+STROKE_NOISE = 0.3  # uniform noise added to each action component of a rally stroke
+
+
+def hitting_states(stack: ControlStack, rng: np.random.Generator, count: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``count`` strokes as (q_start, q_hit, q_follow) (8,) each: a racket meeting a ball at a
+    contact point drawn uniformly from CONTACT_BOX (inverse kinematics, blade facing the
+    opponent, clear of the court), the fastest +x swing through it (``reach.swing_through``), its
+    run-up start and where it would carry on to in 0.15 s, both pulled back towards q_hit until
+    the robot is 2 cm clear of the court and itself there; clipped to the command limits."""
+    from ace_drake.analysis.reach import swing_through
+    from ace_drake.robot_model import RobotModel
+
+    model = RobotModel(stack.scenario)
+    limits = stack.limits
+
+    def clear_towards(q_hit: np.ndarray, q_far: np.ndarray) -> np.ndarray:
+        for fraction in (1.0, 0.75, 0.5, 0.25, 0.0):
+            q = np.clip(q_hit + fraction * (q_far - q_hit), limits.lower, limits.upper)
+            if not model.colliding_pairs(q, margin=0.02):
+                return q
+        return q
+
+    strokes = []
+    while len(strokes) < count:
+        point = rng.uniform(*CONTACT_BOX)
+        result = model.solve_racket_ik(point)
+        if not result.success:
+            continue
+        swing = swing_through(model, result.q)
+        q_hit = np.clip(swing.q_hit, limits.lower, limits.upper)
+        strokes.append((clear_towards(q_hit, swing.q_start), q_hit, clear_towards(q_hit, swing.q_hit + 0.15 * swing.v_hit)))
+    return strokes
+
+
+class RallyStrokes:
+    """The actions of rally-like strokes for ``bench_control``: stroke after stroke, the robot
+    steers (``ControlStack.action_towards``) to the backswing, through the hitting configuration,
+    and back to the reset pose (STROKE_STEPS), with STROKE_NOISE on every action: the motions of
+    a rally, fast and close to the table."""
+
+    def __init__(self, stack: ControlStack, rng: np.random.Generator, strokes: int = 40):
+        self.stack, self.rng = stack, rng
+        self.strokes = hitting_states(stack, rng, strokes)
+        self.step = 0
+
+    def action(self, q, v, a) -> np.ndarray:
+        """The next action (16,) from the segment's start state (q, v, a)."""
+        cycle = sum(STROKE_STEPS)
+        q_start, _, q_follow = self.strokes[(self.step // cycle) % len(self.strokes)]
+        phase = self.step % cycle
+        goal = q_start if phase < STROKE_STEPS[0] else q_follow if phase < STROKE_STEPS[0] + STROKE_STEPS[1] else self.stack.reset_pose
+        self.step += 1
+        try:
+            action = self.stack.action_towards(q, v, a, goal)
+        except InfeasibleStartError:  # on a reset outside the invariant set: the stack refuses any action
+            action = np.zeros(ACTION_SIZE)
+        return np.clip(action + self.rng.uniform(-STROKE_NOISE, STROKE_NOISE, ACTION_SIZE), -1.0, 1.0)
+
+
+STATE_SOURCES = ("rally", "random")
+
+
+def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, states: str = "rally", progress: Callable[[str], None] | None = None) -> dict:
     """Latency of full control steps (actor MLP, mapping, spline QP, reset, collision check) on
-    one thread, from the states a random policy visits starting at the ready pose (episodes of
-    20 steps); and the spline QP alone through DAQP and through MathematicalProgram (Clarabel) on
-    the same problems. Times in ms: median, p99, max."""
+    one thread, and the spline QP alone through DAQP and through MathematicalProgram (Clarabel) on
+    the same problems. Times in ms: median, p99, max.
+
+    states: "rally", the states of rally strokes (``rally_actions``: swings through hitting
+    configurations at the data's contact points, with noise); or "random", the states a uniformly
+    random policy visits from the ready pose in episodes of 20 steps (a stress test: it flails the
+    racket into the floor and the robot's own carriage, where collision checks take longest)."""
     import torch
 
+    if states not in STATE_SOURCES:
+        raise ValueError(f"bench_control: states must be one of {STATE_SOURCES}, got {states!r}")
     say = progress or (lambda _: None)
     torch.set_num_threads(1)
     rng = np.random.default_rng(seed)
@@ -90,36 +162,44 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, p
     actor = actor_network(seed)
     clarabel = SegmentQp(stack.limits, stack.control.segment_samples, stack.period, stack.control.knot_samples, solver="clarabel")
     totals, stages, problems = [], {"policy": [], "map": [], "segment": [], "reset": [], "check": []}, []
-    refused = 0
+    refusals: dict[str, int] = {}
     observation = torch.zeros(1, ACTOR_LAYERS[0])
+    if states == "rally":
+        say("bench control: inverse kinematics for 40 rally strokes")
+        strokes = RallyStrokes(stack, rng)
     plan, _ = stack.initial_plan(stack.reset_pose)
     for step in range(steps + 1):  # the first step warms up
-        if step % 20 == 0:
-            plan, _ = stack.initial_plan(stack.reset_pose)
         q, v, a = plan_state(plan, 0)
         observation[0, :24] = torch.as_tensor(np.concatenate([q, v, a]), dtype=torch.float32)
         start = time.perf_counter()
         with torch.no_grad():
             action = actor(observation)[0].numpy().astype(float)
         policy_seconds = time.perf_counter() - start
-        # The untrained actor's actions are near the centre: explore the box as a policy would.
-        action = np.clip(action + rng.uniform(-1.0, 1.0, ACTION_SIZE), -1.0, 1.0)
+        # The untrained actor's actions are near the centre: the state source decides the action.
+        if states == "rally":
+            action = strokes.action(q, v, a)
+        else:
+            action = np.clip(action + rng.uniform(-1.0, 1.0, ACTION_SIZE), -1.0, 1.0)
         start = time.perf_counter()
         proposal = stack.propose(q, v, a, action)
         proposal_seconds = time.perf_counter() - start
+        if proposal.target is not None and len(problems) < qp_comparisons:
+            problems.append((q, v, a, proposal.target))
+        if proposal.safe:
+            plan = proposal.plan.from_sample(stack.control.segment_samples)
+        else:
+            plan = plan.from_sample(min(stack.control.segment_samples, plan.samples))
+        if states == "random" and (step + 1) % 20 == 0:
+            plan, _ = stack.initial_plan(stack.reset_pose)
         if step == 0:
             continue
         totals.append(policy_seconds + proposal_seconds)
         stages["policy"].append(policy_seconds)
         for name, seconds in proposal.seconds.items():
             stages[name].append(seconds)
-        if proposal.target is not None and len(problems) < qp_comparisons:
-            problems.append((q, v, a, proposal.target))
-        if proposal.safe:
-            plan = proposal.plan.from_sample(stack.control.segment_samples)
-        else:
-            refused += 1
-            plan = plan.from_sample(min(stack.control.segment_samples, plan.samples))
+        if not proposal.safe:
+            cause = next((key for key in REFUSALS if proposal.reason.startswith(key)), "other")
+            refusals[cause] = refusals.get(cause, 0) + 1
         if step % 200 == 0:
             say(f"bench control: {step}/{steps} steps")
     say(f"bench control: the spline QP alone on {len(problems)} problems, DAQP and Clarabel")
@@ -136,11 +216,13 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, p
     daqp_figures, clarabel_figures = _percentiles(daqp_seconds), _percentiles(clarabel_seconds)
     return {
         "steps": steps,
+        "states": states,
         "threads": 1,
         "actor_layers": list(ACTOR_LAYERS),
         "step": _percentiles(totals),
         "stages": {name: _percentiles(values) for name, values in stages.items() if values},
-        "refused_steps": refused,
+        "refused_steps": sum(refusals.values()),
+        "refusals": refusals,
         "qp": {
             "problems": len(problems),
             "daqp": daqp_figures,
