@@ -520,9 +520,8 @@ class _Heights:
 
     def lowest(self, query_object, geometry) -> float:
         """z (m) of the geometry's lowest point in the query's configuration."""
-        X_WG = query_object.GetPoseInWorld(geometry)
-        z = X_WG.translation()[2]
-        row = X_WG.rotation().row(2)  # the world z axis in the geometry's frame
+        X_WG = query_object.GetPoseInWorld(geometry).GetAsMatrix34()
+        z, row = X_WG[2, 3], X_WG[2, :3]  # height of the origin; the world z axis in the geometry's frame
         kind, radius, half_length, extents = self._shapes[geometry]
         if kind == "sphere":
             return z - radius

@@ -130,9 +130,8 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     (rad or m, per s, per s^2), sampled every ``period`` s (the command period), with the QP's
     knots every ``control.knot_samples`` samples.
 
-    Where a position limit cuts the reachable velocity range, the velocity range [v_a, v_b] is
-    found on a grid of ``VELOCITY_GRID`` velocities across it (to 1/(VELOCITY_GRID - 1) of the
-    range, from the inside). Raises InfeasibleStartError naming the joints whose set is empty (a
+    The velocity range [v_a, v_b] is found on a grid of ``VELOCITY_GRID`` velocities across the
+    reachable range (to 1/(VELOCITY_GRID - 1) of it, from the inside). Raises InfeasibleStartError naming the joints whose set is empty (a
     start outside the control-invariant set, e.g. moving fast at a position limit)."""
     q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q0, v0, a0))
     A, V = limits.acceleration, limits.velocity
@@ -155,28 +154,23 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
         side = _SIDES * np.minimum(reach, signed_limit - invariance_pad(x, limits, control, ramp))
         return side[1], side[0]
 
-    # The velocity range of F: where the (concave) width hi - lo is >= 0, within the reachable
-    # range. Away from the position limits that is the whole reachable range (its ends, where the
-    # reachable set narrows to a point, are open up to round-off); otherwise search a grid.
+    # The velocity range [v_a, v_b] of F: where the (concave) width hi - lo is >= 0, within the
+    # reachable range, found on a grid (the ramp pad closes the reachable range's two ends, and a
+    # position limit may cut it further).
     v_low, v_high = np.maximum(-V, v1 - A_r * rest), np.minimum(V, v1 + A_r * rest)
+    grid = v_low + _GRID * (v_high - v_low)  # (VELOCITY_GRID, 8)
+    lo, hi = bounds(grid)
+    open_ = hi >= lo
+    feasible = np.any(open_, axis=0)
+    if not np.all(feasible):
+        empty = [name for name, ok in zip(JOINT_NAMES, feasible) if not ok]
+        raise InfeasibleStartError(f"no feasible terminal state for joint(s) {empty} from q={q0}, v={v0}, a={a0}")
+    joints = np.arange(q0.size)
+    v_low = grid[np.argmax(open_, axis=0), joints]
+    v_high = grid[open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0), joints]
     # Polygon vertices at K velocities from v_a to v_b, and the centre's velocity as one more row.
-    fractions = _polygon_fractions(control.boundary_samples)
-    v = v_low + fractions * (v_high - v_low)
+    v = v_low + _polygon_fractions(control.boundary_samples) * (v_high - v_low)
     lo, hi = bounds(v)
-    ends = [0, control.boundary_samples - 1]
-    if np.any(hi[ends] < lo[ends] - 1e-9 * (1.0 + np.abs(q0))):
-        grid = v_low + _GRID * (v_high - v_low)  # (VELOCITY_GRID, 8)
-        lo, hi = bounds(grid)
-        open_ = hi >= lo
-        feasible = np.any(open_, axis=0)
-        if not np.all(feasible):
-            empty = [name for name, ok in zip(JOINT_NAMES, feasible) if not ok]
-            raise InfeasibleStartError(f"no feasible terminal state for joint(s) {empty} from q={q0}, v={v0}, a={a0}")
-        joints = np.arange(q0.size)
-        v_low = grid[np.argmax(open_, axis=0), joints]
-        v_high = grid[open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0), joints]
-        v = v_low + fractions * (v_high - v_low)
-        lo, hi = bounds(v)
     hi = np.maximum(hi, lo)  # round-off at the ends
     centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)
     lo, hi, v = lo[:-1], hi[:-1], v[:-1]
