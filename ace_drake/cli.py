@@ -299,6 +299,32 @@ def _bench_reach(args) -> int:
     return 0
 
 
+def cmd_cameras(args) -> int:
+    """Camera placement by CMA-ES (``perception.placement``): writes the calibration, its
+    sidecar and the coverage plot."""
+    from ace_drake.perception.placement import optimize_and_write
+
+    if args.action != "optimize":
+        raise ConfigError(f"cameras: unknown action {args.action!r}; expected optimize")
+    if args.iterations < 1 or not args.spacing > 0.0:
+        raise ConfigError(f"cameras optimize: need --iterations >= 1 and --spacing > 0 m, got {args.iterations} and {args.spacing}")
+    output = Path(args.output)
+    plot = Path(args.plot) if args.plot else output.with_name(output.stem + "_coverage.png")
+
+    def progress(iteration: int, cost: float, figures) -> None:
+        if iteration % 10 == 0 or iteration == args.iterations:
+            log(f"cameras optimize: iteration {iteration}/{args.iterations}, coverage {100 * figures.coverage:.1f} %")
+
+    sidecar = optimize_and_write(output, seed=args.seed, iterations=args.iterations, spacing=args.spacing, plot_path=plot,
+                                 command=_provenance()["command"], progress=progress)
+    log(f"wrote {output}, {output.with_suffix('.json')} and {plot}")
+    if args.json:
+        emit_json(sidecar)
+    else:
+        print(f"coverage by >= 3 views at >= 5 px: {100 * sidecar['figures']['coverage']:.1f} % of the play volume")
+    return 0
+
+
 def cmd_diagrams(args) -> int:
     """Render every documented diagram's graph (DOT, and SVG when Graphviz is installed)."""
     import shutil
@@ -378,13 +404,28 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--json", action="store_true")
     bench.set_defaults(run=cmd_bench)
 
+    cameras = commands.add_parser("cameras", help="camera placement: `cameras optimize` (CMA-ES)")
+    cameras.add_argument("action", help="optimize")
+    cameras.add_argument("--seed", type=int, default=0)
+    cameras.add_argument("--iterations", type=int, default=300, help="CMA-ES generations")
+    cameras.add_argument("--spacing", type=float, default=0.2, help="grid spacing of the play volume, m")
+    cameras.add_argument("--output", default=str(REPO_ROOT / "models" / "cameras.yaml"), help="calibration file to write")
+    cameras.add_argument("--plot", default="", help="coverage plot (default: <output>_coverage.png)")
+    cameras.add_argument("--json", action="store_true")
+    cameras.set_defaults(run=cmd_cameras)
+
     graphs = commands.add_parser("diagrams", help="render every diagram's graph into diagrams/")
     graphs.add_argument("--out", default=str(REPO_ROOT / "diagrams"))
     graphs.set_defaults(run=cmd_diagrams)
     return parser
 
 
+_ARGV: list[str] = []  # the command line main() runs, for provenance
+
+
 def main(argv: list[str] | None = None) -> int:
+    global _ARGV
+    _ARGV = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
@@ -396,7 +437,7 @@ def main(argv: list[str] | None = None) -> int:
 def _provenance() -> dict:
     """The command line and date that every artefact's sidecar records."""
     return {
-        "command": "ace-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "command": "ace-drake " + " ".join(shlex.quote(a) for a in _ARGV),
         "date": datetime.date.today().isoformat(),
     }
 

@@ -254,7 +254,9 @@ class TrajectoryCollisionChecker:
         margin, influence, period_ = self.margin, self.influence, period
         index_get, slacks = self._pair_index.get, self._slacks
         height_of, height_pairs = heights.certificate, heights.pair_certificate
-        update, query = self.checker.UpdateContextPositions, context.GetQueryObject
+        # The query object is a live view of the context: it sees every position update.
+        update, query_object = self.checker.UpdateContextPositions, context.GetQueryObject()
+        distances = query_object.ComputeSignedDistancePairwiseClosestPoints
         queries, min_distance = 0, influence
 
         def probe(k: int, offset: float):
@@ -266,9 +268,8 @@ class TrajectoryCollisionChecker:
             queries += 1
             budgets = [(swept_all, influence - margin - DISTANCE_ERROR)]
             closest = influence
-            query_object = query()
             lowest = {}  # per robot geometry: its lowest point's height at this configuration, m
-            for result in query_object.ComputeSignedDistancePairwiseClosestPoints(max_distance=influence):
+            for result in distances(max_distance=influence):
                 p = index_get((result.id_A.get_value(), result.id_B.get_value()))
                 if p is None:
                     continue

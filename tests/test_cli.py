@@ -138,3 +138,15 @@ def test_bench_safety_reports_zero_violations(capsys):
     assert figures["accepted"] + figures["refused"] == figures["steps"]
     assert figures["violations"] == 0
     assert main(["bench", "safety", "--cases", "0"]) == 2
+
+
+def test_cameras_optimize_writes_a_loadable_calibration_with_its_sidecar_and_plot(capsys, tmp_path):
+    from ace_drake.perception.cameras import load_cameras
+
+    output = tmp_path / "cameras.yaml"
+    sidecar = run_json(capsys, "cameras", "optimize", "--iterations", "2", "--spacing", "0.8", "--output", str(output), "--json")
+    assert 0.0 <= sidecar["figures"]["coverage"] <= 1.0 and sidecar["seed"] == 0
+    assert sidecar["command"].startswith("ace-drake cameras optimize")
+    assert len(load_cameras(output)) == 9
+    assert output.with_suffix(".json").exists() and (tmp_path / "cameras_coverage.png").stat().st_size > 1000
+    assert main(["cameras", "optimize", "--iterations", "0"]) == 2
