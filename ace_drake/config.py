@@ -482,6 +482,10 @@ class EstimatorParams:
     bounce_spin_std: float = 5.0  # rad/s per component at a bounce (PerturbationParams)
     max_measurement_gap: float = 0.2  # s: a longer gap between captures restarts the track (authors')
     max_position_jump: float = 0.4  # m from the prediction restarts the track (authors')
+    # A position whose normalised innovation squared (3 dof) exceeds this restarts the track too:
+    # the prediction missed something discrete (a net-cord contact on the wrong side of the cord).
+    # chi-square(3) passes 100 with probability 2e-21.
+    max_position_innovation: float = 100.0
     history_duration: float = 0.05  # s of capture time kept for re-filtering late measurements
     # Spins are processed this long after their capture time, so that one arriving after a position
     # captured up to this much later (spin latency 8-14 ms against 8.2-12.2 ms) needs no re-filtering.
@@ -492,7 +496,7 @@ class EstimatorParams:
     def __post_init__(self) -> None:
         _require_positive(
             self, "update_period", "initial_position_variance", "initial_velocity_variance",
-            "initial_spin_variance", "max_measurement_gap", "max_position_jump", "history_duration",
+            "initial_spin_variance", "max_measurement_gap", "max_position_jump", "max_position_innovation", "history_duration",
             "max_integration_step", "finite_difference_step",
         )
         _require_non_negative(

@@ -1,0 +1,150 @@
+"""BallEstimator: the ball state EKF (perception/ball_ekf.py) as a system."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem, ValueProducer
+
+from ace_drake.config import BallPhysicsParams, EstimatorParams
+from ace_drake.perception.ball_ekf import BallEkf, BallEstimate, EkfState
+from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.physics.propagate import ContactKind
+
+STATUS_SIZE = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorState:
+    """The estimator's per-episode state: the filter, and how far it has read its inputs (the
+    last position and spin sequence numbers, the number of contact events)."""
+
+    filter: EkfState = dataclasses.field(default_factory=EkfState)
+    last_position_sequence: int = 0
+    last_spin_sequence: int = 0
+    contacts_seen: int = 0
+
+    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
+        return self
+
+
+class BallEstimator(LeafSystem):
+    """The ball state estimator: an EKF over position, velocity and spin whose process model is the
+    project's ball physics (``perception.ball_ekf.BallEkf``; notes.md, *Perception*), fed by any
+    position and spin sensors that emit MeasurementHistory.
+
+    Input ports:
+        position_measurements (abstract MeasurementHistory): positions p_WB (m) with covariance
+            (m^2), from the Triangulator or the StatisticalPositionSensor.
+        spin_measurements (abstract MeasurementHistory): spins w_WB (rad/s) with covariance
+            ((rad/s)^2), from the GazeSpinSensor or an event-camera spin estimator.
+        contact_events (abstract tuple[ContactEvent]): BallPlant's contacts; a racket contact
+            restarts the track from the measurements captured after it (the robot knows when it
+            hit). Unconnected: tracks restart only on the gap and jump rules.
+    Output ports:
+        ball_state_estimate (9,): [p_WB (m), v_WB (m/s), w_WB (rad/s)] predicted from the latest
+            posterior to the context's time; zeros while there is no track.
+        ball_covariance (81,): its 9 x 9 covariance, row-major, SI units squared; zeros while
+            there is no track.
+        estimate_status (3,): [valid (1 with a track, else 0), spin valid (1 once a spin
+            measurement is in the track), age of the newest measurement used (s; -1 without a
+            track)].
+    State:
+        abstract EstimatorState: the filter (posterior, re-filtering history) and the sequence
+        numbers read so far.
+    Events:
+        initialization: clears the state (a new episode).
+        periodic unrestricted update every update_period (1 ms, offset 0): fuses the measurements
+        numbered above the last ones read (``MeasurementHistory.since``) and new racket contacts.
+
+    1 kHz bounds the wait between a measurement's release and its use by 1 ms, against 8-14 ms
+    of sensor latency; an update with nothing new costs two port reads. The outputs are computed
+    on demand (one prediction, cached per context time).
+    """
+
+    def __init__(self, params: EstimatorParams | None = None, physics: BallPhysicsParams | None = None):
+        """Args: params, the filter's settings; physics, the ball model the filter predicts with."""
+        super().__init__()
+        self.params = params or EstimatorParams()
+        self.ekf = BallEkf(self.params, physics)
+        self._state_index = self.DeclareAbstractState(AbstractValue.Make(EstimatorState()))
+        self.position_measurements_port = self.DeclareAbstractInputPort(
+            "position_measurements", AbstractValue.Make(MeasurementHistory())
+        )
+        self.spin_measurements_port = self.DeclareAbstractInputPort("spin_measurements", AbstractValue.Make(MeasurementHistory()))
+        self.contact_events_port = self.DeclareAbstractInputPort("contact_events", AbstractValue.Make(()))
+        prerequisites = {self.time_ticket(), self.abstract_state_ticket(self._state_index)}
+        self._estimate_cache = self.DeclareCacheEntry(
+            "estimate at the context's time",
+            ValueProducer(allocate=lambda: AbstractValue.Make((None,)), calc=self._CalcEstimate),
+            prerequisites,
+        )
+        estimate_ticket = {self._estimate_cache.ticket()}
+        self.ball_state_estimate_port = self.DeclareVectorOutputPort(
+            "ball_state_estimate", 9, self.CalcBallStateEstimate, prerequisites_of_calc=estimate_ticket
+        )
+        self.ball_covariance_port = self.DeclareVectorOutputPort(
+            "ball_covariance", 81, self.CalcBallCovariance, prerequisites_of_calc=estimate_ticket
+        )
+        self.estimate_status_port = self.DeclareVectorOutputPort(
+            "estimate_status", STATUS_SIZE, self.CalcEstimateStatus, prerequisites_of_calc=estimate_ticket
+        )
+        self.DeclareInitializationUnrestrictedUpdateEvent(self.Clear)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.params.update_period, 0.0, self.Update)
+
+    # ------------------------------------------------------------------------------ access
+    def estimator_state(self, context) -> EstimatorState:
+        """The EstimatorState in ``context`` (the filter's history, resets, discarded count)."""
+        return context.get_abstract_state(self._state_index).get_value()
+
+    def estimate(self, context) -> BallEstimate | None:
+        """The estimate at the context's time, or None without a track."""
+        return self._estimate_cache.Eval(context)[0]
+
+    # ------------------------------------------------------------------------------ events
+    def Clear(self, context, state):
+        state.get_mutable_abstract_state(self._state_index).set_value(EstimatorState())
+
+    def Update(self, context, state):
+        """Fuses what the sensors released since the last update."""
+        current = self.estimator_state(context)
+        positions_history = self.position_measurements_port.Eval(context)
+        spins_history = self.spin_measurements_port.Eval(context)
+        events = self.contact_events_port.Eval(context) if self.contact_events_port.HasValue(context) else ()
+        # A sensor or plant that started a new episode numbers from the start again.
+        last_position = current.last_position_sequence if positions_history.last_sequence >= current.last_position_sequence else 0
+        last_spin = current.last_spin_sequence if spins_history.last_sequence >= current.last_spin_sequence else 0
+        contacts_seen = current.contacts_seen if len(events) >= current.contacts_seen else 0
+        positions = positions_history.since(last_position)
+        spins = spins_history.since(last_spin)
+        racket_times = [event.time for event in events[contacts_seen:] if event.kind == ContactKind.RACKET]
+        if not (positions or spins or racket_times) and len(events) == contacts_seen:
+            return
+        updated = EstimatorState(
+            self.ekf.update(current.filter, positions, spins, racket_times),
+            positions_history.last_sequence,
+            spins_history.last_sequence,
+            len(events),
+        )
+        state.get_mutable_abstract_state(self._state_index).set_value(updated)
+
+    # ------------------------------------------------------------------------------ outputs
+    def _CalcEstimate(self, context, value):
+        value.set_value((self.ekf.estimate(self.estimator_state(context).filter, context.get_time()),))
+
+    def CalcBallStateEstimate(self, context, output):
+        estimate = self.estimate(context)
+        output.SetFromVector(np.zeros(9) if estimate is None else estimate.mean)
+
+    def CalcBallCovariance(self, context, output):
+        estimate = self.estimate(context)
+        output.SetFromVector(np.zeros(81) if estimate is None else estimate.covariance.ravel())
+
+    def CalcEstimateStatus(self, context, output):
+        estimate = self.estimate(context)
+        if estimate is None:
+            output.SetFromVector([0.0, 0.0, -1.0])
+        else:
+            output.SetFromVector([1.0, float(estimate.spin_valid), estimate.time - estimate.last_capture_time])

@@ -1,0 +1,102 @@
+"""StatisticalPositionSensor: the training path's ball positions, in place of cameras + triangulator."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ace_drake.config import PositionSensorParams
+from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.sensor_models import PendingMeasurement, insert_pending, release_due, sample_position_measurements
+
+POSITION_STREAM = 1  # random stream of this sensor under its seed (the spin sensor has its own)
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorQueue:
+    """A sensor's per-episode state: what it has released and what it has sampled but not yet."""
+
+    history: MeasurementHistory
+    pending: tuple[PendingMeasurement, ...] = ()
+
+    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
+        return self
+
+
+class StatisticalPositionSensor(LeafSystem):
+    """Triangulated ball positions as the paper's statistical sensor model (paper, Methods *Sensor
+    modelling*): at each 200 Hz camera trigger the true ball centre, with zero-mean Gaussian noise,
+    dropped with a fixed probability, released after a latency uniform on [latency_min,
+    latency_max] (``perception.sensor_models.sample_position_measurements``; numbers in
+    ``PositionSensorParams``). Same output port, name and type as the Triangulator's, so that the
+    cameras + triangulator path and this one are interchangeable in one wiring.
+
+    Input ports:
+        ball_state (9,): [p_WB (m), v_WB (m/s), w_WB (rad/s)] in world (BallPlant).
+    Output ports:
+        position_measurements (abstract MeasurementHistory): positions p_WB (m) with covariance
+            noise_std^2 I (m^2), capture time = the trigger (s) and release time = capture +
+            latency (s); the port shows every measurement released at or before the context's
+            time (exactly, not at the next trigger), the last ``history_capacity`` of them.
+    State:
+        abstract SensorQueue: the released history and the sampled, not yet released measurements.
+    Parameters:
+        numeric (1,): the seed; the draws at trigger k come from the generator seeded with
+        [seed, POSITION_STREAM, k], so a seed gives the same measurements bit for bit.
+    Events:
+        initialization: clears the queue (a new episode).
+        periodic unrestricted update every trigger_period (5 ms, 200 Hz, offset 0): samples the
+        ball and releases what is due.
+    """
+
+    def __init__(self, params: PositionSensorParams | None = None, seed: int = 0):
+        """Args: params, the sensor model; seed, the default seed parameter."""
+        super().__init__()
+        self.params = params or PositionSensorParams()
+        self._empty = SensorQueue(MeasurementHistory(capacity=self.params.history_capacity))
+        self._queue_index = self.DeclareAbstractState(AbstractValue.Make(self._empty))
+        self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
+        self.ball_state_port = self.DeclareVectorInputPort("ball_state", 9)
+        self.position_measurements_port = self.DeclareAbstractOutputPort(
+            "position_measurements",
+            lambda: AbstractValue.Make(MeasurementHistory()),
+            self.CalcPositionMeasurements,
+            prerequisites_of_calc={self.time_ticket(), self.abstract_state_ticket(self._queue_index)},
+        )
+        self.DeclareInitializationUnrestrictedUpdateEvent(self.ClearQueue)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.params.trigger_period, 0.0, self.Trigger)
+
+    # ------------------------------------------------------------------------------ set-up
+    def SetSeed(self, context, seed: int) -> None:
+        """Sets this context's seed."""
+        context.get_mutable_numeric_parameter(self._seed_index).SetAtIndex(0, float(seed))
+
+    # ------------------------------------------------------------------------------ events
+    def ClearQueue(self, context, state):
+        state.get_mutable_abstract_state(self._queue_index).set_value(self._empty)
+
+    def Trigger(self, context, state):
+        """Samples the ball now (a camera trigger) and releases the measurements that are due."""
+        now = context.get_time()
+        queue = self._queue(context)
+        trigger = round(now / self.params.trigger_period)
+        rng = np.random.default_rng([self._seed(context), POSITION_STREAM, trigger])
+        p_WB = self.ball_state_port.Eval(context)[:3]
+        sampled = sample_position_measurements(p_WB[None, :], np.array([now]), self.params, rng)
+        history, pending = release_due(queue.history, insert_pending(queue.pending, sampled), now)
+        state.get_mutable_abstract_state(self._queue_index).set_value(SensorQueue(history, pending))
+
+    # ------------------------------------------------------------------------------ outputs
+    def CalcPositionMeasurements(self, context, output):
+        queue = self._queue(context)
+        output.set_value(release_due(queue.history, queue.pending, context.get_time())[0])
+
+    # ------------------------------------------------------------------------------ helpers
+    def _queue(self, context) -> SensorQueue:
+        return context.get_abstract_state(self._queue_index).get_value()
+
+    def _seed(self, context) -> int:
+        return int(context.get_numeric_parameter(self._seed_index).GetAtIndex(0))

@@ -1,0 +1,158 @@
+"""BallEstimator in the smallest diagram: BallPlant -> statistical position sensor + gaze spin
+sensor -> estimator. Accuracy, the outputs before a track, seeding, a racket contact, and that the
+system is the BallEkf fed with the sensors' measurements."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.math import SpatialVelocity
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantValueSource
+
+from ace_drake.config import BallPhysicsParams, PositionSensorParams, SpinSensorParams
+from ace_drake.diagrams import add_ball, make_simulator
+from ace_drake.perception.ball_ekf import BallEkf
+from ace_drake.physics.flight import make_state
+from ace_drake.physics.propagate import ContactKind
+from ace_drake.systems.ball_estimator import BallEstimator
+from ace_drake.systems.gaze_spin_sensor import GazeSpinSensor
+from ace_drake.systems.statistical_position_sensor import StatisticalPositionSensor
+
+PHYSICS = BallPhysicsParams()
+SHOT = make_state([1.2, 0.1, 0.3], [-7.0, -0.2, 1.0], [30.0, -200.0, 15.0])  # lands at about 0.31 s
+POSITION = dataclasses.replace(PositionSensorParams(), history_capacity=500)
+SPIN = dataclasses.replace(SpinSensorParams(), history_capacity=1000)
+
+
+class Rig:
+    """The diagram and a simulator, with a racket standing at ``racket_pose`` if given."""
+
+    def __init__(self, racket_pose=None, connect_events=True):
+        builder = DiagramBuilder()
+        self.ball = add_ball(builder, PHYSICS)
+        self.positions = builder.AddNamedSystem("position_sensor", StatisticalPositionSensor(POSITION))
+        self.spins = builder.AddNamedSystem("spin_sensor", GazeSpinSensor(SPIN))
+        self.dut = builder.AddNamedSystem("ball_estimator", BallEstimator())
+        builder.Connect(self.ball.ball_state_port, self.positions.ball_state_port)
+        builder.Connect(self.ball.ball_state_port, self.spins.ball_state_port)
+        builder.Connect(self.ball.contact_events_port, self.spins.contact_events_port)
+        builder.Connect(self.positions.position_measurements_port, self.dut.position_measurements_port)
+        builder.Connect(self.spins.spin_measurements_port, self.dut.spin_measurements_port)
+        if connect_events:
+            builder.Connect(self.ball.contact_events_port, self.dut.contact_events_port)
+        if racket_pose is not None:
+            pose = builder.AddNamedSystem("racket_pose_source", ConstantValueSource(AbstractValue.Make(racket_pose)))
+            velocity = builder.AddNamedSystem("racket_velocity_source", ConstantValueSource(AbstractValue.Make(SpatialVelocity(np.zeros(6)))))
+            builder.Connect(pose.get_output_port(), self.ball.racket_pose_port)
+            builder.Connect(velocity.get_output_port(), self.ball.racket_velocity_port)
+        self.diagram = builder.Build()
+        self.simulator = make_simulator(self.diagram)
+        self.context = self.simulator.get_mutable_context()
+
+    def start(self, state=SHOT, seed=0):
+        """A new episode at time 0 from ``state``, both sensors seeded with ``seed``."""
+        self.context.SetTime(0.0)
+        self.ball.SetBallState(self.ball.GetMyMutableContextFromRoot(self.context), state)
+        self.positions.SetSeed(self.positions.GetMyMutableContextFromRoot(self.context), seed)
+        self.spins.SetSeed(self.spins.GetMyMutableContextFromRoot(self.context), seed)
+        self.simulator.Initialize()
+
+    def outputs(self):
+        context = self.dut.GetMyContextFromRoot(self.context)
+        return (
+            self.dut.ball_state_estimate_port.Eval(context),
+            self.dut.ball_covariance_port.Eval(context).reshape(9, 9),
+            self.dut.estimate_status_port.Eval(context),
+        )
+
+    def truth(self):
+        return self.ball.ball_state_port.Eval(self.ball.GetMyContextFromRoot(self.context))
+
+    def at(self, time):
+        self.simulator.AdvanceTo(time)
+        return self.outputs()
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return Rig()
+
+
+def test_no_estimate_before_three_positions_have_arrived(rig):
+    rig.start()
+    estimate, covariance, status = rig.at(0.015)  # the first positions arrive after about 10 ms
+    np.testing.assert_array_equal(estimate, 0.0)
+    np.testing.assert_array_equal(covariance, 0.0)
+    np.testing.assert_array_equal(status, [0.0, 0.0, -1.0])
+
+
+def test_estimate_tracks_the_ball_in_flight_and_after_the_bounce(rig):
+    rig.start()
+    estimate, covariance, status = rig.at(0.15)
+    error = estimate - rig.truth()
+    assert np.linalg.norm(error[:3]) < 0.01
+    assert np.linalg.norm(error[3:6]) < 0.15
+    assert np.linalg.norm(error[6:]) < 60.0  # the spin sensor's bias: ~18 rad/s typical
+    assert status[0] == 1.0 and status[1] == 1.0
+    assert POSITION.latency_min <= status[2] <= POSITION.latency_max + 0.001
+    np.testing.assert_allclose(covariance, covariance.T)
+    assert np.all(np.linalg.eigvalsh(covariance) > 0)
+    estimate, _, _ = rig.at(0.37)  # 60 ms after the bounce
+    error = estimate - rig.truth()
+    assert np.linalg.norm(error[3:6]) < 0.3
+    assert rig.dut.estimator_state(rig.dut.GetMyContextFromRoot(rig.context)).filter.latest.resets == 0
+
+
+def test_a_seed_gives_the_same_estimate_bit_for_bit(rig):
+    results = []
+    for seed in (3, 3, 4):
+        rig.start(seed=seed)
+        results.append(rig.at(0.1)[0].copy())
+    np.testing.assert_array_equal(results[0], results[1])
+    assert not np.array_equal(results[0], results[2])
+
+
+def test_the_system_is_the_filter_fed_with_the_sensors_measurements(rig):
+    rig.start(seed=5)
+    rig.simulator.AdvanceTo(0.2005)  # the last update was at 0.200 s
+    positions = rig.positions.position_measurements_port.Eval(rig.positions.GetMyContextFromRoot(rig.context))
+    spins = rig.spins.spin_measurements_port.Eval(rig.spins.GetMyContextFromRoot(rig.context))
+    released = lambda history: [m for m in history.measurements if m.release_time <= 0.2]
+    ekf = BallEkf()
+    expected = ekf.update(ekf.initial_state(), released(positions), released(spins)).latest
+    actual = rig.dut.estimator_state(rig.dut.GetMyContextFromRoot(rig.context)).filter.latest
+    np.testing.assert_array_equal(actual.mean, expected.mean)
+    np.testing.assert_array_equal(actual.covariance, expected.covariance)
+
+
+def test_a_racket_contact_restarts_the_track_on_the_returned_ball():
+    # A blade at x = -1.2 m facing +x, in the path of a ball coming down the centre line.
+    X_WR = RigidTransform(RotationMatrix.MakeYRotation(np.pi / 2), [-1.2, 0.0, 0.2])
+    rig = Rig(racket_pose=X_WR)
+    rig.start(make_state([-0.2, 0.0, 0.2], [-6.0, 0.0, 0.8], [0.0, -100.0, 0.0]))  # hit at 0.175 s
+    _, _, status = rig.at(0.17)
+    assert status[0] == 1.0
+    events = rig.ball.contact_events_port.Eval(rig.ball.GetMyContextFromRoot(rig.context))
+    assert not events
+    rig.simulator.AdvanceTo(0.18)
+    events = rig.ball.contact_events_port.Eval(rig.ball.GetMyContextFromRoot(rig.context))
+    hit = next(e for e in events if e.kind == ContactKind.RACKET)
+    _, _, status = rig.at(0.181)
+    assert status[0] == 0.0  # dropped at once: what it knew was the incoming ball
+    estimate, _, status = rig.at(round(hit.time + 0.06, 3))
+    state = rig.dut.estimator_state(rig.dut.GetMyContextFromRoot(rig.context))
+    assert state.filter.latest.resets == 1
+    assert status[0] == 1.0
+    assert estimate[3] > 0  # going back towards the opponent
+    assert np.linalg.norm(estimate[3:6] - rig.truth()[3:6]) < 0.5
+
+
+def test_without_contact_events_the_estimator_still_runs():
+    rig = Rig(connect_events=False)
+    rig.start()
+    estimate, _, status = rig.at(0.1)
+    assert status[0] == 1.0
+    assert np.linalg.norm(estimate[:3] - rig.truth()[:3]) < 0.01
