@@ -216,7 +216,7 @@ def cmd_sysid(args) -> int:
 
 def cmd_bench(args) -> int:
     """Benchmarks by name; medians and ratios measured side by side."""
-    runners = {"ball": _bench_ball, "reach": _bench_reach, "control": _bench_control, "safety": _bench_safety}
+    runners = {"ball": _bench_ball, "reach": _bench_reach, "control": _bench_control, "safety": _bench_safety, "perception": _bench_perception}
     if args.name not in runners:
         raise ConfigError(f"bench: unknown benchmark {args.name!r}; available: {', '.join(runners)}")
     return runners[args.name](args)
@@ -248,6 +248,9 @@ def _bench_control(args) -> int:
     print(f"one control step on 1 thread over {figures['steps']} steps ({figures['states']} states): median {figures['step']['median_ms']:.3f} ms, p99 {figures['step']['p99_ms']:.3f} ms")
     for name, row in figures["stages"].items():
         print(f"  {name:<10} median {row['median_ms']:.3f} ms   p99 {row['p99_ms']:.3f} ms")
+    row = figures["step_without_check"]
+    print(f"  all but the collision check: median {row['median_ms']:.3f} ms   p99 {row['p99_ms']:.3f} ms")
+    print(f"refused steps: {figures['refused_steps']} ({', '.join(f'{k}: {n}' for k, n in figures['refusals'].items()) or 'none'})")
     qp = figures["qp"]
     print(
         f"spline QP alone ({qp['problems']} problems): DAQP median {qp['daqp']['median_ms']:.3f} ms, "
@@ -269,6 +272,31 @@ def _bench_safety(args) -> int:
     for name, value in figures.items():
         print(f"{name:<28}{value}")
     return 0 if figures["violations"] == 0 else 1
+
+
+def _bench_perception(args) -> int:
+    from ace_drake.analysis.perception_bench import bench_perception
+
+    if not args.data:
+        raise ConfigError("bench perception: --data FILE (a match-data CSV with shot_p2 events) is required")
+    if args.shots < 1:
+        raise ConfigError(f"bench perception: --shots must be >= 1, got {args.shots}")
+    figures = bench_perception(args.data, shots=args.shots, seed=args.seed, progress=log)
+    figures["data_sha256"] = _sha256(args.data)
+    if args.json:
+        emit_json(figures)
+        return 0
+    tri = figures["triangulation"]
+    print(
+        f"triangulation over {figures['shots']} recorded shots ({tri['triggers']} triggers, {figures['pixel_noise_sigma_px']} px noise): "
+        f"error mean {1e3 * tri['error_mean_m']:.2f} mm, p95 {1e3 * tri['error_p95_m']:.2f} mm; valid {100 * tri['valid_fraction']:.1f} %; "
+        f"latency {1e3 * tri['latency_s']:.1f} ms; CPU {tri['cpu_median_ms']:.2f} ms median per 9-camera triangulation"
+    )
+    for path in ("ekf_cameras", "ekf_statistical_sensor"):
+        for t, row in figures[path]["report_times"].items():
+            print(f"{path} after {1e3 * float(t):.0f} ms: velocity error {row['velocity_error_mean_m_s']:.3f} m/s, spin error {row['spin_error_mean_rad_s']:.1f} rad/s")
+    print(f"coverage by >= 3 cameras at >= 5 px: {100 * figures['coverage_3_views_5_px']:.1f} % of the play volume")
+    return 0
 
 
 def _bench_reach(args) -> int:
@@ -392,9 +420,10 @@ def build_parser() -> argparse.ArgumentParser:
     sysid.set_defaults(run=cmd_sysid)
 
     bench = commands.add_parser("bench", help="benchmarks (medians, p99, ratios)")
-    bench.add_argument("name", help="which benchmark: ball, reach, control, safety")
+    bench.add_argument("name", help="which benchmark: ball, reach, control, safety, perception")
     bench.add_argument("--repeats", type=int, default=5, help="ball: timed runs per case")
-    bench.add_argument("--data", help="reach: match-data CSV whose shot_p1 events are the contact points")
+    bench.add_argument("--data", help="reach: match-data CSV whose shot_p1 events are the contact points; perception: whose shot_p2 events are the incoming shots")
+    bench.add_argument("--shots", type=int, default=50, help="perception: incoming shots")
     bench.add_argument("--scenario", help="reach: robot scenario YAML (default models/scenario.yaml)")
     bench.add_argument("--seed", type=int, default=0, help="reach: seed of the swing-speed search; control, safety: of the states and actions")
     bench.add_argument("--steps", type=int, default=1000, help="control: timed control steps")

@@ -150,3 +150,16 @@ def test_cameras_optimize_writes_a_loadable_calibration_with_its_sidecar_and_plo
     assert len(load_cameras(output)) == 9
     assert output.with_suffix(".json").exists() and (tmp_path / "cameras_coverage.png").stat().st_size > 1000
     assert main(["cameras", "optimize", "--iterations", "0"]) == 2
+
+
+@needs_data
+def test_bench_perception_reports_triangulation_and_ekf_errors(capsys):
+    figures = run_json(capsys, "bench", "perception", "--data", str(DATA), "--shots", "2", "--json")
+    tri = figures["triangulation"]
+    assert figures["shots"] == 2 and tri["triggers"] > 100 and 0.5 < tri["valid_fraction"] <= 1.0
+    assert 0 < tri["error_mean_m"] < 0.01 and tri["error_mean_m"] <= tri["error_p95_m"] <= tri["error_max_m"]
+    for path in ("ekf_cameras", "ekf_statistical_sensor"):
+        late = figures[path]["report_times"]["0.15"]
+        assert late["valid_fraction"] == 1.0 and late["velocity_error_mean_m_s"] < 0.5
+    assert 0.9 < figures["coverage_3_views_5_px"] <= 1.0
+    assert main(["bench", "perception"]) == 2

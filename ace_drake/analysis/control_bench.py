@@ -161,7 +161,7 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, s
     stack = make_stack()
     actor = actor_network(seed)
     clarabel = SegmentQp(stack.limits, stack.control.segment_samples, stack.period, stack.control.knot_samples, solver="clarabel")
-    totals, stages, problems = [], {"policy": [], "map": [], "segment": [], "reset": [], "check": []}, []
+    totals, unchecked, stages, problems = [], [], {"policy": [], "map": [], "segment": [], "reset": [], "check": []}, []
     refusals: dict[str, int] = {}
     observation = torch.zeros(1, ACTOR_LAYERS[0])
     if states == "rally":
@@ -194,6 +194,7 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, s
         if step == 0:
             continue
         totals.append(policy_seconds + proposal_seconds)
+        unchecked.append(policy_seconds + proposal_seconds - proposal.seconds.get("check", 0.0))
         stages["policy"].append(policy_seconds)
         for name, seconds in proposal.seconds.items():
             stages[name].append(seconds)
@@ -220,6 +221,7 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, s
         "threads": 1,
         "actor_layers": list(ACTOR_LAYERS),
         "step": _percentiles(totals),
+        "step_without_check": _percentiles(unchecked),
         "stages": {name: _percentiles(values) for name, values in stages.items() if values},
         "refused_steps": sum(refusals.values()),
         "refusals": refusals,
