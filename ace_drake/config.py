@@ -512,6 +512,29 @@ class EstimatorParams:
                 raise ConfigError(f"{name} must be > 0 or null, got {value}")
 
 
+@dataclasses.dataclass(frozen=True)
+class PerceptionParams:
+    """What the robot perceives the ball through (DESIGN.md: sensor fidelity is a config choice in
+    one wiring, ``diagrams.add_perception``).
+
+    positions: "cameras", the nine frame cameras and the triangulator (``camera``: analytic or
+    rendered), or "statistical", the training path's position model (``position``); spins always
+    come from the gaze-control system's statistical model (``spin``) until the event-camera
+    pipeline exists; ``estimator``: the EKF. ``seed``: the sensors' default seed parameter.
+    """
+
+    positions: str = "cameras"
+    camera: CameraParams = dataclasses.field(default_factory=CameraParams)
+    position: PositionSensorParams = dataclasses.field(default_factory=PositionSensorParams)
+    spin: SpinSensorParams = dataclasses.field(default_factory=SpinSensorParams)
+    estimator: EstimatorParams = dataclasses.field(default_factory=EstimatorParams)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.positions not in ("cameras", "statistical"):
+            raise ConfigError(f"positions must be cameras or statistical, got {self.positions!r}")
+
+
 def _require_latency_interval(config: Any) -> None:
     if not config.latency_min <= config.latency_max:
         raise ConfigError(f"latency_min ({config.latency_min} s) must be <= latency_max ({config.latency_max} s)")

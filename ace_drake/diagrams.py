@@ -22,19 +22,24 @@ from pydrake.systems.primitives import ConstantValueSource, TrajectorySource, Ve
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 from pydrake.trajectories import PiecewisePolynomial, Trajectory
 
-from ace_drake.config import BallPhysicsParams, ControlParams, RobotScenario
+from ace_drake.config import BallPhysicsParams, ControlParams, PerceptionParams, RobotScenario
 from ace_drake.control.stack import ControlStack
 from ace_drake.physics.contact import ResidualModel
 from ace_drake.robot_model import add_robot_to_plant, check_joint_order, load_scenario
 from ace_drake.systems.action_mapper import ActionMapper
+from ace_drake.systems.aps_camera_array import ApsCameraArray
+from ace_drake.systems.ball_estimator import BallEstimator
 from ace_drake.systems.ball_plant import BallPlant
 from ace_drake.systems.ball_visualizer import BallVisualizer, set_court_view
 from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
+from ace_drake.systems.gaze_spin_sensor import GazeSpinSensor
 from ace_drake.systems.policy_controller import PolicyController
 from ace_drake.systems.reset_mpc import ResetMpc
 from ace_drake.systems.robot_kinematics import RobotKinematics
 from ace_drake.systems.safety_supervisor import SafetySupervisor
 from ace_drake.systems.spline_qp import SplineQp
+from ace_drake.systems.statistical_position_sensor import StatisticalPositionSensor
+from ace_drake.systems.triangulator import Triangulator
 
 SIMULATION_ACCURACY = 1e-6  # integrator target accuracy; places witness events within ~1e-8 s
 MAX_STEP = 1e-3  # s; keeps the racket from being tunnelled through at relative speeds up to 50 m/s
@@ -105,6 +110,105 @@ def build_ball_diagram(
     builder.Connect(ball.ball_state_port, logger.get_input_port())
     diagram = builder.Build()
     diagram.set_name("ball_diagram")
+    return diagram
+
+
+@dataclasses.dataclass(frozen=True)
+class PerceptionSystems:
+    """The perception systems in a builder (``add_perception``): the position path's last system
+    (``triangulator`` or ``position_sensor``), the spin sensor and the estimator; ``cameras`` is
+    the ApsCameraArray, or None on the statistical path."""
+
+    positions: object
+    spin_sensor: GazeSpinSensor
+    estimator: BallEstimator
+    cameras: ApsCameraArray | None
+
+
+def add_perception(builder: DiagramBuilder, ball: BallPlant, params: PerceptionParams, physics: BallPhysicsParams, scene_graph: SceneGraph | None = None) -> PerceptionSystems:
+    """Adds what the robot perceives the ball through (DESIGN.md's wiring): the true ball state
+    and contact events of ``ball`` feed either the nine frame cameras (``aps_cameras``, analytic
+    or rendered) and the ``triangulator``, or the statistical ``position_sensor``; and the
+    ``spin_sensor`` (the gaze-control system's statistical model); both measurement streams feed
+    the ``ball_estimator`` (EKF on ``physics``). The rendered mode draws the ball
+    (``ball_geometry``) into ``scene_graph`` (one with the court is made if None), gives it a VTK
+    renderer and adds one RgbdSensor per camera (``camera_<name>``)."""
+    spin = builder.AddNamedSystem("spin_sensor", GazeSpinSensor(params.spin, seed=params.seed))
+    builder.Connect(ball.ball_state_port, spin.ball_state_port)
+    builder.Connect(ball.contact_events_port, spin.contact_events_port)
+    cameras = None
+    if params.positions == "cameras":
+        from ace_drake.perception.cameras import load_cameras
+        from ace_drake.robot_model import MODELS_DIR
+
+        calibration = load_cameras(MODELS_DIR / params.camera.calibration)
+        cameras = builder.AddNamedSystem("aps_cameras", ApsCameraArray(calibration, params.camera, seed=params.seed))
+        builder.Connect(ball.ball_state_port, cameras.ball_state_port)
+        if params.camera.mode == "rendered":
+            _add_camera_renders(builder, ball, cameras, calibration, params, scene_graph)
+        positions = builder.AddNamedSystem("triangulator", Triangulator(calibration, params.camera))
+        builder.Connect(cameras.detections_port, positions.detections_port)
+    else:
+        positions = builder.AddNamedSystem("position_sensor", StatisticalPositionSensor(params.position, seed=params.seed))
+        builder.Connect(ball.ball_state_port, positions.ball_state_port)
+    estimator = builder.AddNamedSystem("ball_estimator", BallEstimator(params.estimator, physics))
+    builder.Connect(positions.position_measurements_port, estimator.position_measurements_port)
+    builder.Connect(spin.spin_measurements_port, estimator.spin_measurements_port)
+    builder.Connect(ball.contact_events_port, estimator.contact_events_port)
+    return PerceptionSystems(positions, spin, estimator, cameras)
+
+
+def _add_camera_renders(builder, ball, cameras, calibration, params: PerceptionParams, scene_graph) -> None:
+    """The rendered mode's scene: the ball's geometry, a renderer and one RgbdSensor per camera."""
+    from pydrake.geometry import MakeRenderEngineVtk, RenderEngineVtkParams
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
+
+    from ace_drake.robot_model import MODELS_DIR
+    from ace_drake.systems.aps_camera_array import make_rgbd_sensor
+    from ace_drake.systems.ball_geometry import BallGeometry
+
+    if scene_graph is None:
+        court, scene_graph = AddMultibodyPlantSceneGraph(builder, 0.0)
+        court.set_name("court")
+        Parser(court).AddModels(str(MODELS_DIR / "table.sdf"))
+        court.Finalize()
+    renderer = "camera_renderer"
+    if not scene_graph.HasRenderer(renderer):
+        scene_graph.AddRenderer(renderer, MakeRenderEngineVtk(RenderEngineVtkParams()))
+    geometry = builder.AddNamedSystem("ball_geometry", BallGeometry(scene_graph))
+    builder.Connect(ball.ball_state_port, geometry.ball_state_port)
+    builder.Connect(geometry.geometry_pose_port, scene_graph.get_source_pose_port(geometry.source_id))
+    for camera in calibration:
+        sensor = builder.AddNamedSystem(f"camera_{camera.name}", make_rgbd_sensor(camera, params.camera.render_scale, renderer, scene_graph.world_frame_id()))
+        builder.Connect(scene_graph.get_query_output_port(), sensor.query_object_input_port())
+        builder.Connect(sensor.color_image_output_port(), cameras.image_ports[camera.name])
+
+
+def build_perception_diagram(
+    params: PerceptionParams | None = None,
+    physics: BallPhysicsParams | None = None,
+    perturb: bool = True,
+    meshcat: Meshcat | None = None,
+) -> Diagram:
+    """The ball seen by the robot's sensors: BallPlant (``ball``, post-bounce perturbations with
+    ``perturb``) into ``add_perception``, with loggers of the truth (``ball_logger``, every 1 ms)
+    and of the estimate (``estimate_logger``, 9, every 1 ms) and an optional Meshcat view of the
+    true ball (``ball_visualizer``)."""
+    params = params or PerceptionParams()
+    physics = physics or BallPhysicsParams()
+    builder = DiagramBuilder()
+    ball = add_ball(builder, physics, perturb=perturb, seed=params.seed)
+    perception = add_perception(builder, ball, params, physics)
+    if meshcat is not None:
+        visualizer = builder.AddNamedSystem("ball_visualizer", BallVisualizer(meshcat, physics))
+        builder.Connect(ball.ball_state_port, visualizer.ball_state_port)
+    truth = builder.AddNamedSystem("ball_logger", VectorLogSink(9, 1e-3))
+    builder.Connect(ball.ball_state_port, truth.get_input_port())
+    estimate = builder.AddNamedSystem("estimate_logger", VectorLogSink(9, 1e-3))
+    builder.Connect(perception.estimator.ball_state_estimate_port, estimate.get_input_port())
+    diagram = builder.Build()
+    diagram.set_name("perception_diagram")
     return diagram
 
 
@@ -291,6 +395,7 @@ def _documented_controlled_robot_diagram() -> Diagram:
 # name -> builder of the diagram whose graph ``ace-drake diagrams`` renders into diagrams/.
 DOCUMENTED_DIAGRAMS = {
     "ball_diagram": _documented_ball_diagram,
+    "perception_diagram": build_perception_diagram,
     "robot_swing_diagram": _documented_swing_diagram,
     "controlled_robot_diagram": _documented_controlled_robot_diagram,
 }

@@ -29,3 +29,40 @@ def test_systems_have_stable_names():
     diagram = DOCUMENTED_DIAGRAMS["ball_diagram"]()
     names = {system.get_name() for system in diagram.GetSystems()}
     assert {"ball", "racket_pose_source", "racket_velocity_source", "ball_logger"} <= names
+
+
+@pytest.mark.parametrize("positions", ["cameras", "statistical"])
+def test_the_perception_diagram_tracks_a_ball_through_either_position_path(positions):
+    import numpy as np
+
+    from ace_drake.config import PerceptionParams
+    from ace_drake.diagrams import build_perception_diagram, make_simulator
+    from ace_drake.physics.flight import make_state
+
+    diagram = build_perception_diagram(PerceptionParams(positions=positions))
+    names = {system.get_name() for system in diagram.GetSystems()}
+    assert {"ball", "spin_sensor", "ball_estimator"} <= names
+    assert ({"aps_cameras", "triangulator"} <= names) == (positions == "cameras")
+    assert ("position_sensor" in names) == (positions == "statistical")
+    simulator = make_simulator(diagram)
+    context = simulator.get_mutable_context()
+    ball = diagram.GetSubsystemByName("ball")
+    ball.GetMyMutableContextFromRoot(context).SetContinuousState(make_state((1.6, 0.2, 0.25), (-7.0, -0.3, 1.5), (0.0, -150.0, 0.0)))
+    simulator.Initialize()
+    simulator.AdvanceTo(0.3)  # through the bounce on the robot's half
+    truth = diagram.GetSubsystemByName("ball_logger").FindLog(context).data()[:, -1]
+    estimate = diagram.GetSubsystemByName("estimate_logger").FindLog(context).data()[:, -1]
+    assert np.linalg.norm(estimate[:3] - truth[:3]) < 0.01
+    assert np.linalg.norm(estimate[3:6] - truth[3:6]) < 0.3
+    assert np.linalg.norm(estimate[6:] - truth[6:]) < 60.0
+
+
+def test_the_rendered_cameras_are_wired_to_drake_images():
+    from ace_drake.config import CameraParams, PerceptionParams
+    from ace_drake.diagrams import build_perception_diagram
+
+    diagram = build_perception_diagram(PerceptionParams(camera=CameraParams(mode="rendered", render_scale=0.1)))
+    cameras = diagram.GetSubsystemByName("aps_cameras")
+    for name in cameras.camera_names:
+        assert diagram.GetSubsystemByName(f"camera_{name}") is not None
+        assert cameras.image_ports[name].get_name() == f"color_image_{name}"
