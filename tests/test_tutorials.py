@@ -76,3 +76,24 @@ def test_tutorial_03_control_stack_writes_png_and_html(tmp_path):
     assert html.is_file() and html.stat().st_size > EMPTY_MESHCAT_HTML
     assert "animation" in html.read_text()
     assert str(html) in run.stdout
+
+
+def test_tutorial_04_perception_writes_png_and_html(tmp_path):
+    import re
+
+    run = run_tutorial("04_perception.py", tmp_path)
+    png = tmp_path / "perception.png"
+    assert png.is_file() and png.stat().st_size > 50_000
+    # Part 1: the shipped placement covers the play volume; part 2: millimetre triangulations,
+    # released after the paper's latency, and an EKF that tracks the shot.
+    assert float(re.search(r">= 5 px in radius: ([\d.]+) %", run.stdout).group(1)) > 95.0
+    mean_mm = float(re.search(r"error mean ([\d.]+) mm", run.stdout).group(1))
+    assert 0.5 < mean_mm < 6.0 and "released 10.2 ms after capture" in run.stdout
+    late = re.search(r"EKF at 0.45 s: position \(mm\) error ([\d.]+), velocity \(cm/s\) error ([\d.]+)", run.stdout)
+    assert float(late.group(1)) < 10.0 and float(late.group(2)) < 30.0
+    # Part 3: losing 60% of the positions costs accuracy early on.
+    rows = dict(re.findall(r"   (as configured|dropout 60%) +after 50 ms ([\d.]+) m/s", run.stdout))
+    assert float(rows["dropout 60%"]) > float(rows["as configured"])
+    html = tmp_path / "cameras.html"
+    assert html.is_file() and html.stat().st_size > EMPTY_MESHCAT_HTML and "animation" in html.read_text()
+    assert str(html) in run.stdout
