@@ -535,6 +535,29 @@ class PerceptionParams:
             raise ConfigError(f"positions must be cameras or statistical, got {self.positions!r}")
 
 
+@dataclasses.dataclass(frozen=True)
+class RallyParams:
+    """One rally episode's diagram (``diagrams.add_rally``): the ball (``physics``, with the
+    paper's post-table perturbations when ``perturb``), the robot (``scenario``: a scenario YAML in
+    models/), its perception (``perception``) and control stack (``control``), and the policy's
+    observation histories (paper, *States*: the last N positions and spins; the paper does not
+    give N, 10 is 50 ms of positions at 200 Hz). ``time_limit``: s after the opponent's hit at
+    which an unresolved episode ends. ``seed``: the default of every seed parameter."""
+
+    physics: BallPhysicsParams = dataclasses.field(default_factory=BallPhysicsParams)
+    perturb: bool = True
+    scenario: str = "scenario.yaml"
+    control: ControlParams = dataclasses.field(default_factory=ControlParams)
+    perception: PerceptionParams = dataclasses.field(default_factory=PerceptionParams)
+    position_history: int = 10
+    spin_history: int = 10
+    time_limit: float = 2.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _require_positive(self, "position_history", "spin_history", "time_limit")
+
+
 def _require_latency_interval(config: Any) -> None:
     if not config.latency_min <= config.latency_max:
         raise ConfigError(f"latency_min ({config.latency_min} s) must be <= latency_max ({config.latency_max} s)")

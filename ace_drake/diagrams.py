@@ -18,14 +18,15 @@ from pydrake.multibody.math import SpatialVelocity
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import ConstantValueSource, TrajectorySource, VectorLogSink
+from pydrake.systems.primitives import ConstantValueSource, MatrixGain, TrajectorySource, VectorLogSink
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 from pydrake.trajectories import PiecewisePolynomial, Trajectory
 
-from ace_drake.config import BallPhysicsParams, ControlParams, PerceptionParams, RobotScenario
+from ace_drake.config import BallPhysicsParams, ControlParams, PerceptionParams, RallyParams, RobotScenario
 from ace_drake.control.stack import ControlStack
+from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import ResidualModel
-from ace_drake.robot_model import add_robot_to_plant, check_joint_order, load_scenario
+from ace_drake.robot_model import MODELS_DIR, add_robot_to_plant, check_joint_order, load_scenario
 from ace_drake.systems.action_mapper import ActionMapper
 from ace_drake.systems.aps_camera_array import ApsCameraArray
 from ace_drake.systems.ball_estimator import BallEstimator
@@ -33,6 +34,7 @@ from ace_drake.systems.ball_plant import BallPlant
 from ace_drake.systems.ball_visualizer import BallVisualizer, set_court_view
 from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
 from ace_drake.systems.gaze_spin_sensor import GazeSpinSensor
+from ace_drake.systems.observation_builder import ObservationBuilder
 from ace_drake.systems.policy_controller import PolicyController
 from ace_drake.systems.reset_mpc import ResetMpc
 from ace_drake.systems.robot_kinematics import RobotKinematics
@@ -376,6 +378,91 @@ def start_controlled_robot(diagram: Diagram, context, q=None, light_curtain: flo
     diagram.GetInputPort("light_curtain").FixValue(context, [light_curtain])
 
 
+@dataclasses.dataclass(frozen=True)
+class RallySystems:
+    """The rally's systems in a builder (``add_rally``)."""
+
+    ball: BallPlant
+    robot: RobotSystems
+    perception: PerceptionSystems
+    control: ControlSystems
+    observation: ObservationBuilder
+
+
+def add_rally(builder: DiagramBuilder, params: RallyParams, policy, meshcat: Meshcat | None = None) -> RallySystems:
+    """The one wiring of a rally episode (DESIGN.md's diagram), shared by the rally, training and
+    analysis builders: the ``ball`` (BallPlant) whose racket is the robot's (``add_robot``); the
+    robot's perception of it (``add_perception``: positions, spins, ``ball_estimator``); the
+    ``observation_builder`` (paper, *States*) reading the sensors' histories, the estimate, and the
+    robot where its next segment starts (the supervisor's segment_start_state, and its racket state
+    from ``planned_kinematics``); the control stack (``add_control_stack``) calling ``policy`` on
+    that observation every 32 ms. The light curtain is the diagram's input ``light_curtain``;
+    ``meshcat`` draws the robot, the court and the ball."""
+    scenario = load_scenario(MODELS_DIR / params.scenario)
+    ball = add_ball(builder, params.physics, perturb=params.perturb, seed=params.seed)
+    robot = add_robot(builder, scenario, meshcat)
+    builder.Connect(robot.kinematics.racket_pose_port, ball.racket_pose_port)
+    builder.Connect(robot.kinematics.racket_velocity_port, ball.racket_velocity_port)
+    perception = add_perception(builder, ball, params.perception, params.physics, scene_graph=robot.scene_graph)
+    layout = ObservationLayout(params.position_history, params.spin_history)
+    control = add_control_stack(builder, robot, make_control_stack(scenario, params.control), policy, layout.size)
+    observation = builder.AddNamedSystem("observation_builder", ObservationBuilder(layout))
+    joints = robot.joint_plant.q_port.size()
+    # [q, v] of the planned [q, v, a] (a selection matrix: Drake's C++ MatrixGain).
+    select = builder.AddNamedSystem("planned_joint_state", MatrixGain(np.eye(2 * joints, 3 * joints)))
+    planned = builder.AddNamedSystem("planned_kinematics", RobotKinematics(robot.plant))
+    builder.Connect(control.supervisor.segment_start_state_port, select.get_input_port())
+    builder.Connect(select.get_output_port(), planned.joint_state_port)
+    builder.Connect(perception.positions.position_measurements_port, observation.position_measurements_port)
+    builder.Connect(perception.spin_sensor.spin_measurements_port, observation.spin_measurements_port)
+    builder.Connect(control.supervisor.segment_start_state_port, observation.robot_state_port)
+    builder.Connect(planned.end_effector_state_port, observation.end_effector_state_port)
+    builder.Connect(perception.estimator.ball_state_estimate_port, observation.ball_state_estimate_port)
+    builder.Connect(perception.estimator.estimate_status_port, observation.estimate_status_port)
+    builder.Connect(observation.observation_port, control.policy_controller.observation_port)
+    builder.ExportInput(control.supervisor.light_curtain_port, "light_curtain")
+    if meshcat is not None:
+        visualizer = builder.AddNamedSystem("ball_visualizer", BallVisualizer(meshcat, params.physics, draw_scene=False))
+        builder.Connect(ball.ball_state_port, visualizer.ball_state_port)
+    return RallySystems(ball, robot, perception, control, observation)
+
+
+def build_rally_diagram(params: RallyParams | None = None, policy=None, meshcat: Meshcat | None = None, log_period: float = 0.002) -> Diagram:
+    """The rally episode of ``add_rally`` with loggers of the true ball (``ball_logger``, 9) and
+    the joints (``joint_logger``, [q, v] 16) every ``log_period`` s, for evaluation and replays.
+    ``policy``: a callable observation -> action | None or a torch module (None: a policy that
+    never acts, for graphs). Start each episode with ``start_rally``."""
+    params = params or RallyParams()
+    builder = DiagramBuilder()
+    systems = add_rally(builder, params, policy if policy is not None else (lambda observation: None), meshcat)
+    ball_logger = builder.AddNamedSystem("ball_logger", VectorLogSink(9, log_period))
+    builder.Connect(systems.ball.ball_state_port, ball_logger.get_input_port())
+    joint_logger = builder.AddNamedSystem("joint_logger", VectorLogSink(16, log_period))
+    builder.Connect(systems.robot.joint_plant.joint_state_port, joint_logger.get_input_port())
+    diagram = builder.Build()
+    diagram.set_name("rally_diagram")
+    return diagram
+
+
+def start_rally(diagram: Diagram, context, shot, seed: int = 0, skill=None, q=None, light_curtain: float = 0.0) -> None:
+    """Starts an episode in ``context`` at its current time: the ball in the state ``shot``
+    ([p (m), v (m/s), w (rad/s)], just after the opponent's hit), every seed parameter (ball
+    perturbations, sensors) set from ``seed``, the skill [y_desired, w_p, w_s] (default: the
+    ObservationBuilder's), and the robot at rest at q (default: the reset pose; see
+    ``start_controlled_robot``). Reuse one context per Simulator: reset it to the diagram's
+    default first (``context.SetTimeStateAndParametersFrom(diagram.CreateDefaultContext())``)."""
+    ball = diagram.GetSubsystemByName("ball")
+    ball.SetBallState(ball.GetMyMutableContextFromRoot(context), np.asarray(shot, dtype=float))
+    for index, name in enumerate(("ball", "aps_cameras", "position_sensor", "spin_sensor")):
+        if diagram.HasSubsystemNamed(name):
+            system = diagram.GetSubsystemByName(name)
+            system.SetSeed(system.GetMyMutableContextFromRoot(context), int(seed) * 4 + index)
+    if skill is not None:
+        observation = diagram.GetSubsystemByName("observation_builder")
+        observation.SetSkill(observation.GetMyMutableContextFromRoot(context), skill)
+    start_controlled_robot(diagram, context, q, light_curtain)
+
+
 def _documented_ball_diagram() -> Diagram:
     """The ball diagram as documented: with a (static) racket connected, no Meshcat."""
     return build_ball_diagram(racket=StaticRacket(RigidTransform()))
@@ -398,6 +485,7 @@ DOCUMENTED_DIAGRAMS = {
     "perception_diagram": build_perception_diagram,
     "robot_swing_diagram": _documented_swing_diagram,
     "controlled_robot_diagram": _documented_controlled_robot_diagram,
+    "rally_diagram": build_rally_diagram,
 }
 
 

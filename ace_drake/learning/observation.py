@@ -1,0 +1,90 @@
+"""The observation a rally controller reads every 32 ms, and where each part lies in its vector.
+
+Paper, Methods *States*: s_t = [s_ball, s_robot, s_skill]: the last N noisy ball positions and
+spins with their time stamps, the robot's joint state (q, v, a) and end-effector state (pose and
+twist) at the end of the segment being executed (where the next segment starts, 5 ms after the
+observation), and the skill state (y_desired, w_reward = [w_p, w_s]). The vector also carries the
+ball estimator's output (state and status), which the paper's actor does not read but classical
+controllers (the model-based returner) do; a learner picks its features by ``ObservationLayout``
+slices, so every controller shares one observation port.
+
+Layout (all SI units; ages in s, -1 where the history has fewer entries):
+
+    positions   (N_p, 4)  [p_WB (m), age], newest first
+    spins       (N_s, 4)  [w_WB (rad/s), age], newest first
+    robot_state (24,)     [q, v, a] at the next segment's start (m, rad; /s; /s^2)
+    end_effector (13,)    [p_WR (m), quaternion wxyz, v_WR (m/s), w_WR (rad/s)] there
+    skill       (3,)      [y_desired (m), w_p, w_s]
+    estimate    (9,)      the EKF's [p, v, w] at the observation time (zeros without a track)
+    estimate_status (3,)  [valid, spin valid, age of newest measurement used (s)]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+ROBOT_STATE_SIZE = 24
+END_EFFECTOR_SIZE = 13
+SKILL_SIZE = 3
+ESTIMATE_SIZE = 9
+ESTIMATE_STATUS_SIZE = 3
+HISTORY_COLUMNS = 4  # value (3) + age (1)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationLayout:
+    """Slices of the observation vector (module docstring) for history lengths N_p and N_s."""
+
+    position_history: int = 10
+    spin_history: int = 10
+
+    def __post_init__(self) -> None:
+        if self.position_history < 1 or self.spin_history < 1:
+            raise ValueError(f"ObservationLayout: history lengths must be >= 1, got {self.position_history}, {self.spin_history}")
+
+    @property
+    def _sizes(self) -> dict[str, int]:
+        return {
+            "positions": self.position_history * HISTORY_COLUMNS,
+            "spins": self.spin_history * HISTORY_COLUMNS,
+            "robot_state": ROBOT_STATE_SIZE,
+            "end_effector": END_EFFECTOR_SIZE,
+            "skill": SKILL_SIZE,
+            "estimate": ESTIMATE_SIZE,
+            "estimate_status": ESTIMATE_STATUS_SIZE,
+        }
+
+    @property
+    def size(self) -> int:
+        """Length of the observation vector."""
+        return sum(self._sizes.values())
+
+    def slice(self, part: str) -> slice:
+        """Where ``part`` (a name of the module docstring's layout) lies in the vector."""
+        start = 0
+        for name, size in self._sizes.items():
+            if name == part:
+                return slice(start, start + size)
+            start += size
+        raise KeyError(f"ObservationLayout: no part {part!r}; parts are {list(self._sizes)}")
+
+    def part(self, observation: np.ndarray, name: str) -> np.ndarray:
+        """The part ``name`` of ``observation``, histories as (N, 4) arrays."""
+        values = np.asarray(observation)[self.slice(name)]
+        return values.reshape(-1, HISTORY_COLUMNS) if name in ("positions", "spins") else values
+
+    def assemble(self, positions, spins, robot_state, end_effector, skill, estimate, estimate_status) -> np.ndarray:
+        """The observation vector from its parts (shapes as in the module docstring)."""
+        parts = dict(
+            positions=positions, spins=spins, robot_state=robot_state, end_effector=end_effector,
+            skill=skill, estimate=estimate, estimate_status=estimate_status,
+        )
+        vectors = []
+        for name, size in self._sizes.items():
+            vector = np.asarray(parts[name], dtype=float).ravel()
+            if vector.size != size:
+                raise ValueError(f"ObservationLayout.assemble: {name} has {vector.size} values, expected {size}")
+            vectors.append(vector)
+        return np.concatenate(vectors)

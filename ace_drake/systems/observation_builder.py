@@ -1,0 +1,77 @@
+"""ObservationBuilder: the rally controller's observation vector from sensors, estimator and plan."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ace_drake.learning.observation import (
+    END_EFFECTOR_SIZE,
+    ESTIMATE_SIZE,
+    ESTIMATE_STATUS_SIZE,
+    ROBOT_STATE_SIZE,
+    SKILL_SIZE,
+    ObservationLayout,
+)
+from ace_drake.perception.measurements import MeasurementHistory
+
+DEFAULT_SKILL = (0.0, 1.0, 0.0)  # y_desired 0 m (the centre line), w_p = 1, w_s = 0
+
+
+class ObservationBuilder(LeafSystem):
+    """Builds s_t (paper, Methods *States*; layout in ``learning.observation``) on demand, at
+    whatever time the PolicyController evaluates it (5 ms before its segment starts).
+
+    Input ports:
+        position_measurements (abstract MeasurementHistory): ball positions (m), any position sensor.
+        spin_measurements (abstract MeasurementHistory): ball spins (rad/s).
+        robot_state (24,): [q, v, a] where the next segment starts (SafetySupervisor's
+            segment_start_state).
+        end_effector_state (13,): the racket frame's state there (RobotKinematics of that state).
+        ball_state_estimate (9,), estimate_status (3,): the BallEstimator's outputs.
+    Output ports:
+        observation (layout.size,): the vector of ``ObservationLayout``; history ages are
+            measured from the context's time.
+    Parameters:
+        numeric skill (3,): [y_desired (m), w_p, w_s], fixed for an episode (paper eq. (11)).
+    State: none.
+    """
+
+    def __init__(self, layout: ObservationLayout | None = None, skill=DEFAULT_SKILL):
+        """Args: layout, the history lengths; skill, the default skill parameter."""
+        super().__init__()
+        self.layout = layout or ObservationLayout()
+        self.position_measurements_port = self.DeclareAbstractInputPort("position_measurements", AbstractValue.Make(MeasurementHistory()))
+        self.spin_measurements_port = self.DeclareAbstractInputPort("spin_measurements", AbstractValue.Make(MeasurementHistory()))
+        self.robot_state_port = self.DeclareVectorInputPort("robot_state", ROBOT_STATE_SIZE)
+        self.end_effector_state_port = self.DeclareVectorInputPort("end_effector_state", END_EFFECTOR_SIZE)
+        self.ball_state_estimate_port = self.DeclareVectorInputPort("ball_state_estimate", ESTIMATE_SIZE)
+        self.estimate_status_port = self.DeclareVectorInputPort("estimate_status", ESTIMATE_STATUS_SIZE)
+        if len(skill) != SKILL_SIZE:
+            raise ValueError(f"ObservationBuilder: skill must have {SKILL_SIZE} values, got {len(skill)}")
+        self._skill_index = self.DeclareNumericParameter(BasicVector(np.asarray(skill, dtype=float)))
+        self.observation_port = self.DeclareVectorOutputPort("observation", self.layout.size, self.CalcObservation)
+
+    def SetSkill(self, context, skill) -> None:
+        """Sets the episode's skill [y_desired (m), w_p in [0, 1], w_s in [-1, 1]] in ``context``."""
+        skill = np.asarray(skill, dtype=float)
+        if skill.shape != (SKILL_SIZE,) or not np.all(np.isfinite(skill)):
+            raise ValueError(f"ObservationBuilder.SetSkill: expected {SKILL_SIZE} finite values, got {skill}")
+        if not (0.0 <= skill[1] <= 1.0 and -1.0 <= skill[2] <= 1.0):
+            raise ValueError(f"ObservationBuilder.SetSkill: w_p must be in [0, 1] and w_s in [-1, 1], got {skill[1:]}")
+        context.get_mutable_numeric_parameter(self._skill_index).SetFromVector(skill)
+
+    def CalcObservation(self, context, output: BasicVector) -> None:
+        now = context.get_time()
+        output.SetFromVector(
+            self.layout.assemble(
+                positions=self.position_measurements_port.Eval(context).as_array(self.layout.position_history, now),
+                spins=self.spin_measurements_port.Eval(context).as_array(self.layout.spin_history, now),
+                robot_state=self.robot_state_port.Eval(context),
+                end_effector=self.end_effector_state_port.Eval(context),
+                skill=context.get_numeric_parameter(self._skill_index).get_value(),
+                estimate=self.ball_state_estimate_port.Eval(context),
+                estimate_status=self.estimate_status_port.Eval(context),
+            )
+        )

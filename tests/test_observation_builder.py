@@ -1,0 +1,61 @@
+"""The observation layout and the ObservationBuilder system."""
+
+import numpy as np
+import pytest
+from pydrake.common.value import AbstractValue
+
+from ace_drake.learning.observation import ObservationLayout
+from ace_drake.perception.measurements import Measurement, MeasurementHistory
+from ace_drake.systems.observation_builder import ObservationBuilder
+
+
+def test_layout_parts_tile_the_vector():
+    layout = ObservationLayout(position_history=3, spin_history=2)
+    names = ["positions", "spins", "robot_state", "end_effector", "skill", "estimate", "estimate_status"]
+    covered = np.zeros(layout.size, dtype=int)
+    for name in names:
+        covered[layout.slice(name)] += 1
+    assert np.all(covered == 1) and layout.size == 12 + 8 + 24 + 13 + 3 + 9 + 3
+    with pytest.raises(KeyError, match="parts are"):
+        layout.slice("velocity")
+    with pytest.raises(ValueError, match=">= 1"):
+        ObservationLayout(position_history=0)
+
+
+def test_assemble_and_part_round_trip_and_size_errors():
+    layout = ObservationLayout(2, 2)
+    parts = dict(
+        positions=np.arange(8.0).reshape(2, 4), spins=-np.arange(8.0).reshape(2, 4), robot_state=np.full(24, 2.0),
+        end_effector=np.full(13, 3.0), skill=[0.2, 1.0, -0.5], estimate=np.full(9, 4.0), estimate_status=[1.0, 0.0, 0.01],
+    )
+    observation = layout.assemble(**parts)
+    for name, value in parts.items():
+        np.testing.assert_array_equal(layout.part(observation, name), np.asarray(value, dtype=float))
+    with pytest.raises(ValueError, match="skill has 2 values, expected 3"):
+        layout.assemble(**{**parts, "skill": [0.0, 1.0]})
+
+
+def test_builder_reads_histories_with_ages_and_the_episode_skill():
+    builder = ObservationBuilder(ObservationLayout(3, 2))
+    context = builder.CreateDefaultContext()
+    context.SetTime(0.1)
+    positions = MeasurementHistory()
+    for sequence, capture in enumerate((0.07, 0.08, 0.09), start=1):
+        positions = positions.appended(Measurement(sequence, capture, capture + 0.01, [capture, 0.0, 0.1], np.eye(3) * 1e-6))
+    builder.position_measurements_port.FixValue(context, AbstractValue.Make(positions))
+    builder.spin_measurements_port.FixValue(context, AbstractValue.Make(MeasurementHistory()))
+    builder.robot_state_port.FixValue(context, np.arange(24.0))
+    builder.end_effector_state_port.FixValue(context, np.ones(13))
+    builder.ball_state_estimate_port.FixValue(context, np.full(9, 5.0))
+    builder.estimate_status_port.FixValue(context, [1.0, 0.0, 0.01])
+    builder.SetSkill(context, [0.3, 0.5, -1.0])
+    observation = builder.observation_port.Eval(context)
+    layout = builder.layout
+    history = layout.part(observation, "positions")
+    np.testing.assert_allclose(history[:, 0], [0.09, 0.08, 0.07])  # newest first
+    np.testing.assert_allclose(history[:, 3], [0.01, 0.02, 0.03])  # ages from the context's time
+    np.testing.assert_array_equal(layout.part(observation, "spins")[:, 3], [-1.0, -1.0])  # none yet
+    np.testing.assert_array_equal(layout.part(observation, "skill"), [0.3, 0.5, -1.0])
+    np.testing.assert_array_equal(layout.part(observation, "robot_state"), np.arange(24.0))
+    with pytest.raises(ValueError, match="w_p must be in"):
+        builder.SetSkill(context, [0.0, 1.5, 0.0])

@@ -1,0 +1,65 @@
+"""Rally episodes on the rally diagram (diagrams.add_rally, play/runner.py)."""
+
+import numpy as np
+import pytest
+
+from ace_drake.config import PerceptionParams, RallyParams
+from ace_drake.diagrams import build_rally_diagram
+from ace_drake.physics.flight import make_state
+from ace_drake.play.episode import Outcome
+from ace_drake.play.runner import RallyRunner
+
+# Bounces on the robot's half 0.64 m behind the net and flies on past the robot's end.
+SHOT = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (0.0, -80.0, 0.0))
+
+
+class Recorder:
+    """A policy that never acts and keeps what it observed."""
+
+    def __init__(self):
+        self.observations = []
+
+    def __call__(self, observation):
+        self.observations.append(np.array(observation))
+        return None
+
+
+@pytest.fixture(scope="module")
+def runner_and_policy():
+    params = RallyParams(perception=PerceptionParams(positions="statistical"))
+    policy = Recorder()
+    return RallyRunner(build_rally_diagram(params, policy), params), policy
+
+
+def test_a_robot_that_never_moves_misses_and_the_policy_sees_the_ball(runner_and_policy):
+    runner, policy = runner_and_policy
+    episode = runner.run(SHOT, seed=3)
+    assert episode.result.outcome is Outcome.MISSED and episode.result.bounce is not None
+    assert episode.segments == (0, 0)
+    layout = runner.diagram.GetSubsystemByName("observation_builder").layout
+    # Called every 32 ms, 5 ms before each segment: at 27, 59, ... ms.
+    assert len(policy.observations) == int((episode.duration + 0.005) / 0.032)
+    late = policy.observations[15]
+    assert layout.part(late, "estimate_status")[0] == 1.0
+    # The estimate extrapolated to the observation time is near the latest (~10 ms old) position.
+    np.testing.assert_allclose(layout.part(late, "estimate")[:3], layout.part(late, "positions")[0, :3], atol=0.2)
+    joints = runner.diagram.GetSubsystemByName("joint_plant")
+    q = joints.q_port.Eval(joints.GetMyContextFromRoot(runner.context))
+    np.testing.assert_allclose(q, runner.diagram.GetSubsystemByName("safety_supervisor").stack.reset_pose, atol=1e-9)
+
+
+def test_same_seed_same_episode_bit_for_bit(runner_and_policy):
+    runner, policy = runner_and_policy
+    logs = []
+    for seed in (5, 5, 6):
+        policy.observations.clear()
+        runner.run(SHOT, seed=seed)
+        logs.append(np.array(policy.observations))
+    np.testing.assert_array_equal(logs[0], logs[1])
+    assert not np.array_equal(logs[0], logs[2])  # the sensors' noise follows the seed
+
+
+def test_bad_shots_are_refused(runner_and_policy):
+    runner, _ = runner_and_policy
+    with pytest.raises(ValueError, match="9 finite values"):
+        runner.run(np.zeros(6))
