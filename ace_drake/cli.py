@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams, ConfigError, load_config, to_dict
+from ace_drake.config import BallPhysicsParams, ConfigError, PerceptionParams, RallyParams, load_config, to_dict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MODELS = REPO_ROOT / "models"
@@ -43,38 +43,96 @@ def load_ball_params(path: str | None) -> BallPhysicsParams:
 # ------------------------------------------------------------------------------ commands
 
 
+def _rally_params(args) -> RallyParams:
+    """The rally diagram's config from ``--params`` (ball model) and ``--sensors``."""
+    return RallyParams(physics=load_ball_params(args.params), perception=PerceptionParams(positions=args.sensors), seed=args.seed)
+
+
 def cmd_rally(args) -> int:
-    """The main job. Until the rally diagram exists: the ball demo (topspin, no spin, backspin)."""
+    """The main job: rallies of the best shipped controller against the launcher opponent."""
     from pydrake.geometry import Meshcat
 
-    from ace_drake.analysis.ball_demo import run_shots, spin_comparison_shots, summarize_shots
+    from ace_drake.config import ShotParams
+    from ace_drake.play.controllers import make_controller
+    from ace_drake.play.rallies import play_rallies, rally_rows
 
-    params = load_ball_params(args.params)
+    params = _rally_params(args)
+    controller = make_controller(args.controller, params)
     meshcat = Meshcat() if args.html else None
-    log("ball demo: the same launch with topspin, no spin and backspin through the BallPlant")
-    results = run_shots(spin_comparison_shots(args.spin), params, duration=args.duration, meshcat=meshcat, seed=args.seed)
-    rows = summarize_shots(results, params)
+    log(f"rally: {args.rallies} rallies of '{args.controller}' against the launcher ({args.sensors} sensors, seed {args.seed})")
+    played = play_rallies(controller, params, ShotParams(seed=args.seed), args.rallies, args.seed, meshcat, progress=log)
+    rows = rally_rows(played)
+    returned = sum(row["outcome"] == "returned" for row in rows)
+    playable = sum(row["outcome"] != "invalid" for row in rows)
     if args.html:
         path = Path(args.html)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(meshcat.StaticHtml())
         log(f"wrote Meshcat replay {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser")
     if args.json:
-        emit_json({"command": "rally", "mode": "ball_demo", "shots": rows, "html": args.html})
+        emit_json({"command": "rally", "controller": args.controller, "returned": returned, "played": playable, "rallies": rows, "html": args.html})
         return 0
-    print(f"{'shot':<10}{'net clearance':>15}{'bounce at (x, y) m':>22}{'t bounce':>10}{'speed after':>13}{'w_y after':>11}  contacts")
-    for row in rows:
-        clearance = "-" if row["net_clearance_m"] is None else f"{100 * row['net_clearance_m']:.1f} cm"
-        if "bounce_time_s" in row:
-            x, y = row["bounce_position_m"]
-            bounce = f"({x:+.2f}, {y:+.2f})"
-            timing = f"{row['bounce_time_s']:.3f} s"
-            speed = f"{row['speed_after_bounce_mps']:.2f} m/s"
-            spin = f"{row['spin_after_bounce_radps'][1]:.0f}"
-        else:
-            bounce = timing = speed = spin = "-"
-        print(f"{row['shot']:<10}{clearance:>15}{bounce:>22}{timing:>10}{speed:>13}{spin:>11}  {', '.join(row['contacts'])}")
+    print(f"{'#':>3} {'shot':<7}{'speed in':>9}{'spin in':>9}  {'outcome':<13}{'speed out':>10}{'lands at (x, y) m':>19}  reason")
+    for index, row in enumerate(rows, start=1):
+        out = "-" if row["outgoing_speed_m_s"] is None else f"{row['outgoing_speed_m_s']:.1f}"
+        landing = "-" if row["landing_m"] is None else "({:+.2f}, {:+.2f})".format(*row["landing_m"])
+        print(
+            f"{index:>3} {row['shot']:<7}{row['incoming_speed_m_s']:>9.1f}{row['incoming_spin_rad_s']:>9.0f}  "
+            f"{row['outcome']:<13}{out:>10}{landing:>19}  {row['reason']}"
+        )
+    print(f"returned {returned} of {playable} playable shots ({len(rows) - playable} invalid)")
     return 0
+
+
+def cmd_evaluate(args) -> int:
+    """Return-rate evaluation of a controller (``analysis.evaluation``)."""
+    from ace_drake.analysis.evaluation import evaluate
+    from ace_drake.config import ShotParams
+    from ace_drake.play.controllers import make_controller
+    from ace_drake.play.shots import human_shots, make_distribution
+
+    if args.episodes is not None and args.episodes < 1:
+        raise ConfigError(f"evaluate: --episodes must be >= 1, got {args.episodes}")
+    params = _rally_params(args)
+    if args.data:
+        shots, serve = human_shots(args.data)
+        shots, serve = shots[: args.episodes], serve[: args.episodes]
+        source = f"the {len(shots)} human shots (shot_p2) of {args.data}"
+    else:
+        sample = make_distribution(ShotParams(seed=args.seed), params.physics).draw(np.random.default_rng(args.seed), args.episodes or 200)
+        shots, serve = sample.states, sample.serve
+        source = f"{len(shots)} shots from the built-in synthetic distribution"
+    log(f"evaluate: '{args.controller}' on {source}, {args.sensors} sensors, seed {args.seed}")
+    figures = evaluate(make_controller(args.controller, params), params, shots, serve, args.seed, progress=log)
+    figures = {"controller": args.controller, "data": args.data, "sensors": args.sensors, "seed": args.seed, **figures}
+    if args.json:
+        emit_json({**figures, **_provenance(), **({"data_sha256": _sha256(args.data)} if args.data else {})})
+        return 0
+    _print_evaluation(figures)
+    return 0
+
+
+def _print_evaluation(figures: dict) -> None:
+    def rate(entry: dict) -> str:
+        if entry["rate"] is None:
+            return "-"
+        low, high = entry["ci95"]
+        return f"{entry['rate']:.1%} [{low:.1%}, {high:.1%}] of {entry['played']}"
+
+    print(f"controller {figures['controller']}: return rate {rate(figures['return_rate'])} (95% Wilson interval); {figures['invalid_shots']} unplayable shots left out")
+    for key, unit in (("by_incoming_speed", "m/s"), ("by_incoming_spin", "rad/s")):
+        print(f"  {key.replace('_', ' ')}:")
+        for row in figures[key]:
+            high = "inf" if row["high"] is None else f"{row['high']:g}"
+            print(f"    [{row['low']:g}, {high}) {unit}: {rate(row)}")
+    for key in ("outgoing_speed_m_s", "outgoing_spin_rad_s", "bounce_to_hit_s"):
+        entry = figures[key]
+        if entry is not None:
+            print(f"  {key}: median {entry['median']:.3g} (p10 {entry['p10']:.3g}, p90 {entry['p90']:.3g}) over {entry['count']}")
+    print("  not returned:")
+    for reason, count in figures["not_returned_by_reason"].items():
+        print(f"    {count:5d}  {reason}")
+    print(f"  segments accepted {figures['segments_accepted']}, refused {figures['segments_refused']}; {figures['wall_time_s']:.0f} s")
 
 
 def cmd_physics_validate(args) -> int:
@@ -387,14 +445,26 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ace-drake", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
-    rally = commands.add_parser("rally", help="the main job (for now: the ball demo through the BallPlant)")
+    def add_rally_options(command, controller_default):
+        command.add_argument("--controller", default=controller_default, help="still, returner or policy:<name> (default: %(default)s)")
+        command.add_argument("--sensors", choices=("cameras", "statistical"), default="cameras", help="ball positions from the nine cameras + triangulator, or the training sensor model")
+        command.add_argument("--seed", type=int, default=0)
+        command.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
+        command.add_argument("--json", action="store_true")
+
+    from ace_drake.play.controllers import DEFAULT_CONTROLLER
+
+    rally = commands.add_parser("rally", help="the main job: rallies of the best shipped controller against the launcher; Meshcat replay")
+    add_rally_options(rally, DEFAULT_CONTROLLER)
+    rally.add_argument("--rallies", type=int, default=5, help="how many rallies (default: %(default)s)")
     rally.add_argument("--html", default="out/rally.html", help="Meshcat replay to write ('' for none)")
-    rally.add_argument("--duration", type=float, default=1.2, help="simulated seconds per shot")
-    rally.add_argument("--spin", type=float, default=250.0, help="spin rate of the top/backspin shots, rad/s")
-    rally.add_argument("--seed", type=int, default=0)
-    rally.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
-    rally.add_argument("--json", action="store_true")
     rally.set_defaults(run=cmd_rally)
+
+    evaluate = commands.add_parser("evaluate", help="return-rate evaluation of a controller (paper Fig. 3c-g)")
+    add_rally_options(evaluate, DEFAULT_CONTROLLER)
+    evaluate.add_argument("--data", help="match-data CSV: one episode per human shot (shot_p2); default: the synthetic distribution")
+    evaluate.add_argument("--episodes", type=int, help="at most this many episodes (default: all shots of --data, or 200)")
+    evaluate.set_defaults(run=cmd_evaluate)
 
     validate = commands.add_parser("physics-validate", help="replay recorded events through the ball model")
     validate.add_argument("--data", required=True, help="match-data CSV (format of ace_match_events_elite.csv)")

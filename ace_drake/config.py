@@ -678,3 +678,31 @@ def _require_non_negative(config: Any, *names: str) -> None:
         value = getattr(config, name)
         if not value >= 0:
             raise ConfigError(f"{name} must be >= 0, got {value}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Incoming shots
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ShotParams:
+    """The opponent's incoming-shot distribution (``play/shots.py``; paper, Methods *Initial state
+    training distribution*): Gaussian KDEs of post-hit ball states fitted to ``source``,
+    "synthetic" (the built-in synthetic set, drawn with ``seed``) or the path of a match-data CSV
+    (the human's shots); serves are drawn with probability ``serve_fraction`` (paper: 3:7 serves to
+    returns); ``bandwidth``: the KDE bandwidth factor (dimensionless), null for Scott's rule."""
+
+    source: str = "synthetic"
+    serve_fraction: float = 0.3
+    bandwidth: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.source.strip():
+            raise ConfigError("source must be 'synthetic' or the path of a match-data CSV, got an empty string")
+        _require_probability(self, "serve_fraction", allow_one=True)
+        if self.bandwidth is not None and not (math.isfinite(self.bandwidth) and self.bandwidth > 0):
+            raise ConfigError(f"bandwidth must be > 0 or null (Scott's rule), got {self.bandwidth}")
+        if self.seed < 0:
+            raise ConfigError(f"seed must be >= 0, got {self.seed}")

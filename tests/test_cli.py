@@ -1,4 +1,4 @@
-"""The command line on the shared data: rally (ball demo), physics-validate, physics-fit, bench."""
+"""The command line: rally, evaluate, physics-validate, physics-fit, bench."""
 
 import json
 import subprocess
@@ -21,25 +21,39 @@ def run_json(capsys, *argv):
     return json.loads(out)  # --json prints exactly one JSON object on stdout
 
 
-def test_rally_runs_the_ball_demo_and_writes_html(capsys, tmp_path):
+def test_rally_plays_rallies_and_writes_a_replay(capsys, tmp_path):
     html = tmp_path / "rally.html"
-    result = run_json(capsys, "rally", "--json", "--html", str(html))
-    shots = {row["shot"]: row for row in result["shots"]}
-    assert set(shots) == {"topspin", "no spin", "backspin"}
-    # Same launch: topspin dips and lands shortest, backspin floats and lands longest.
-    x = {name: row["bounce_position_m"][0] for name, row in shots.items()}
-    assert 0 < x["topspin"] < x["no spin"] < x["backspin"] < 1.37
-    assert shots["topspin"]["net_clearance_m"] < shots["backspin"]["net_clearance_m"]
+    result = run_json(capsys, "rally", "--controller", "still", "--rallies", "2", "--sensors", "statistical", "--json", "--html", str(html))
+    assert result["controller"] == "still" and len(result["rallies"]) == 2
+    # A robot that never moves returns nothing: every playable shot is missed.
+    assert result["returned"] == 0
+    assert all(row["outcome"] in ("missed", "invalid") for row in result["rallies"])
+    assert all(5.0 < row["incoming_speed_m_s"] < 25.0 for row in result["rallies"])
     assert html.stat().st_size > 100_000 and "meshcat" in html.read_text()[:200_000].lower()
+
+
+def test_evaluate_counts_every_episode_with_its_interval(capsys):
+    result = run_json(capsys, "evaluate", "--controller", "still", "--episodes", "3", "--sensors", "statistical", "--json")
+    rate = result["return_rate"]
+    assert result["episodes"] == 3 and rate["played"] + result["invalid_shots"] == 3
+    assert rate["returned"] == 0 and rate["rate"] == 0.0 and rate["ci95"][0] == 0.0 and 0.4 < rate["ci95"][1] < 0.8
+    assert sum(result["not_returned_by_reason"].values()) == rate["played"]
+    assert sum(row["played"] for row in result["by_incoming_speed"]) == rate["played"]
+
+
+@needs_data
+def test_evaluate_plays_the_human_shots_of_a_match_file(capsys):
+    result = run_json(capsys, "evaluate", "--controller", "still", "--data", str(DATA), "--episodes", "2", "--sensors", "statistical", "--json")
+    assert result["episodes"] == 2 and len(result["data_sha256"]) == 64 and result["command"].startswith("ace-drake evaluate")
 
 
 def test_console_script_is_installed():
     completed = subprocess.run(
-        [str(Path(sys.executable).with_name("ace-drake")), "rally", "--json", "--html", ""],
+        [str(Path(sys.executable).with_name("ace-drake")), "rally", "--controller", "still", "--rallies", "1", "--sensors", "statistical", "--json", "--html", ""],
         capture_output=True, text=True, timeout=300,
     )
     assert completed.returncode == 0, completed.stderr
-    assert json.loads(completed.stdout)["mode"] == "ball_demo"
+    assert json.loads(completed.stdout)["command"] == "rally"
 
 
 @needs_data
@@ -89,6 +103,8 @@ def test_errors_are_clear_and_exit_2(capsys, tmp_path):
     bad.write_text("aero:\n  drag_coeff: 0.5\n")
     assert main(["rally", "--params", str(bad), "--html", ""]) == 2
     assert "drag_coeff" in capsys.readouterr().err
+    assert main(["evaluate", "--controller", "nobody", "--episodes", "1"]) == 2
+    assert "unknown controller 'nobody'" in capsys.readouterr().err
     assert main(["bench", "nonsense"]) == 2
 
 

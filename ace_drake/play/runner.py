@@ -46,15 +46,20 @@ class RallyRunner:
         self._supervisor = diagram.GetSubsystemByName("safety_supervisor")
         self._period = self._supervisor.segment_samples * self._supervisor.period
 
-    def reset(self, shot, seed: int = 0, skill=None, q=None) -> None:
-        """Resets the Context to the diagram's default at time 0 and starts an episode from
-        ``shot`` (see ``diagrams.start_rally``)."""
+    def reset(self, shot, seed: int = 0, skill=None, q=None, start_time: float = 0.0) -> None:
+        """Resets the Context to the diagram's default and starts an episode from ``shot`` (see
+        ``diagrams.start_rally``) at ``start_time`` (s; a multiple of the 32 ms policy period, so
+        that a replay can run episodes one after another on one time line)."""
         from ace_drake.diagrams import start_rally
 
         shot = np.asarray(shot, dtype=float)
         if shot.shape != (9,) or not np.all(np.isfinite(shot)):
             raise ValueError(f"RallyRunner: a shot is 9 finite values [p, v, w], got {shot}")
+        periods = start_time / self._period
+        if start_time < 0.0 or abs(periods - round(periods)) > 1e-9:
+            raise ValueError(f"RallyRunner: start_time must be a non-negative multiple of {self._period} s, got {start_time}")
         self.context.SetTimeStateAndParametersFrom(self._default_context)
+        self.context.SetTime(start_time)
         start_rally(self.diagram, self.context, shot, seed=seed, skill=skill, q=q)
         self.simulator.Initialize()
 
@@ -62,15 +67,16 @@ class RallyRunner:
         """The episode's state from the ball's contacts so far."""
         return classify(self._ball.contact_events_port.Eval(self._ball.GetMyContextFromRoot(self.context)), serve)
 
-    def run(self, shot, seed: int = 0, serve: bool = False, skill=None, q=None) -> Episode:
+    def run(self, shot, seed: int = 0, serve: bool = False, skill=None, q=None, start_time: float = 0.0) -> Episode:
         """Runs one episode to its end (decided, or the time limit) and returns it."""
-        self.reset(shot, seed, skill, q)
+        self.reset(shot, seed, skill, q, start_time)
         steps = int(np.ceil(self.params.time_limit / self._period))
         result = self.result(serve)
         for step in range(1, steps + 1):
-            self.simulator.AdvanceTo(step * self._period)
+            self.simulator.AdvanceTo(start_time + step * self._period)
             result = self.result(serve)
             if result.done:
                 break
         status = self._supervisor.supervisor_state(self._supervisor.GetMyContextFromRoot(self.context))
-        return Episode(np.asarray(shot, dtype=float), timed_out(result), self.context.get_time(), (status.accepted, status.rejected))
+        duration = self.context.get_time() - start_time
+        return Episode(np.asarray(shot, dtype=float), timed_out(result), duration, (status.accepted, status.rejected))

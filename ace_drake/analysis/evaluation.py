@@ -1,0 +1,109 @@
+"""Return-rate evaluation of a rally controller (paper, Fig. 3c-g), one episode per incoming shot.
+
+Each shot (a ball state just after the opponent's hit) is played on the rally diagram with the
+controller driving the robot through the full control stack and the robot perceiving the ball
+through its sensors. The figures: the return rate with its 95% Wilson interval (SciPy), overall
+and binned by the shot's speed and spin (Fig. 3c-d); the distributions of the returns' outgoing
+speed and spin (Fig. 3e-f); the time from the bounce on the robot's half to the hit (Fig. 3g);
+and every episode that was not returned counted by its reason. Shots that were not playable (they
+did not bounce legally on the robot's half under the simulated physics: ``Outcome.INVALID``) are
+counted and left out of the rate.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+
+import numpy as np
+from scipy.stats import binomtest
+
+from ace_drake.config import RallyParams
+from ace_drake.play.episode import Outcome
+from ace_drake.play.runner import Episode, RallyRunner
+
+SPEED_BINS = (0.0, 6.0, 8.0, 10.0, 12.0, 14.0, np.inf)  # m/s, the shot's speed just after the hit
+SPIN_BINS = (0.0, 100.0, 200.0, 300.0, 400.0, np.inf)  # rad/s, its spin rate
+
+
+def return_rate(returned: int, played: int) -> dict:
+    """The fraction returned with its 95% Wilson score interval (None without episodes)."""
+    if played == 0:
+        return {"returned": 0, "played": 0, "rate": None, "ci95": None}
+    interval = binomtest(returned, played).proportion_ci(confidence_level=0.95, method="wilson")
+    return {"returned": returned, "played": played, "rate": returned / played, "ci95": [interval.low, interval.high]}
+
+
+def _distribution(values) -> dict | None:
+    """Median, 10th and 90th percentiles and the count of ``values`` (None when empty)."""
+    values = np.asarray(values, dtype=float)
+    if values.size == 0:
+        return None
+    p10, median, p90 = np.percentile(values, [10, 50, 90])
+    return {"count": int(values.size), "p10": p10, "median": median, "p90": p90}
+
+
+def _binned(values: np.ndarray, returned: np.ndarray, edges) -> list[dict]:
+    rows = []
+    for low, high in zip(edges[:-1], edges[1:]):
+        inside = (values >= low) & (values < high)
+        rows.append({"low": low, "high": None if np.isinf(high) else high, **return_rate(int(returned[inside].sum()), int(inside.sum()))})
+    return rows
+
+
+def summarize(episodes: list[Episode]) -> dict:
+    """The evaluation figures (module docstring) of finished episodes."""
+    outcomes = [episode.result.outcome for episode in episodes]
+    playable = [episode for episode, outcome in zip(episodes, outcomes) if outcome is not Outcome.INVALID]
+    returned = np.array([episode.result.outcome is Outcome.RETURNED for episode in playable], dtype=bool)
+    shots = np.array([episode.shot for episode in playable]).reshape(-1, 9)
+    hits = [episode.result.hit for episode in playable if episode.result.outcome is Outcome.RETURNED]
+    reasons = Counter(
+        f"{episode.result.outcome.value}: {episode.result.reason}" for episode in playable if episode.result.outcome is not Outcome.RETURNED
+    )
+    bounce_to_hit = [e.result.bounce_to_hit_time for e in playable if e.result.bounce_to_hit_time is not None]
+    return {
+        "episodes": len(episodes),
+        "invalid_shots": len(episodes) - len(playable),
+        "return_rate": return_rate(int(returned.sum()), len(playable)),
+        "by_incoming_speed": _binned(np.linalg.norm(shots[:, 3:6], axis=1), returned, SPEED_BINS),
+        "by_incoming_spin": _binned(np.linalg.norm(shots[:, 6:9], axis=1), returned, SPIN_BINS),
+        "outgoing_speed_m_s": _distribution([np.linalg.norm(hit.state_post[3:6]) for hit in hits]),
+        "outgoing_spin_rad_s": _distribution([np.linalg.norm(hit.state_post[6:9]) for hit in hits]),
+        "bounce_to_hit_s": _distribution(bounce_to_hit),
+        "not_returned_by_reason": dict(reasons.most_common()),
+        "segments_accepted": int(sum(e.segments[0] for e in episodes)),
+        "segments_refused": int(sum(e.segments[1] for e in episodes)),
+    }
+
+
+def run_episodes(
+    runner: RallyRunner,
+    shots: np.ndarray,
+    serve: np.ndarray,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> list[Episode]:
+    """Plays every shot (n, 9) once (``serve`` (n,) marks serves), episode i seeded with
+    ``seed * 1_000_003 + i``; reports progress every 10% when ``progress`` is given."""
+    shots = np.asarray(shots, dtype=float).reshape(-1, 9)
+    episodes = []
+    start = time.perf_counter()
+    for index, (shot, is_serve) in enumerate(zip(shots, serve)):
+        episodes.append(runner.run(shot, seed=seed * 1_000_003 + index, serve=bool(is_serve)))
+        if progress is not None and ((index + 1) % max(1, len(shots) // 10) == 0 or index + 1 == len(shots)):
+            rate = np.mean([e.result.outcome is Outcome.RETURNED for e in episodes])
+            progress(f"evaluate: {index + 1}/{len(shots)} episodes, returned {rate:.0%} so far, {time.perf_counter() - start:.0f} s")
+    return episodes
+
+
+def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarray, seed: int = 0, progress=None) -> dict:
+    """Evaluates ``controller`` (a policy callable or torch module) on ``shots`` with the rally
+    diagram of ``params``: the figures of ``summarize`` plus the wall time."""
+    from ace_drake.diagrams import build_rally_diagram
+
+    start = time.perf_counter()
+    runner = RallyRunner(build_rally_diagram(params, controller), params)
+    episodes = run_episodes(runner, shots, serve, seed, progress)
+    return {**summarize(episodes), "wall_time_s": time.perf_counter() - start}

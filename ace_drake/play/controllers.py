@@ -1,0 +1,36 @@
+"""The rally controllers a command line can name: ``still``, ``returner``, ``policy:<name>``.
+
+Every controller has a policy's interface (a callable observation -> action (16,) | None, or a
+torch module), so that the PolicyController runs any of them in the same rally diagram.
+"""
+
+from __future__ import annotations
+
+from ace_drake.config import ConfigError, RallyParams
+from ace_drake.robot_model import MODELS_DIR
+
+DEFAULT_CONTROLLER = "returner"  # the best shipped controller: what ``ace-drake rally`` plays with
+POLICIES_DIR = MODELS_DIR / "policies"
+
+
+def still(observation):
+    """A controller that never moves the robot (the supervisor holds its reset pose): a baseline."""
+    return None
+
+
+def controller_names() -> list[str]:
+    """The names ``make_controller`` accepts, shipped policies included."""
+    policies = sorted(path.stem for path in POLICIES_DIR.glob("*.pt")) if POLICIES_DIR.is_dir() else []
+    return ["still", "returner", *(f"policy:{name}" for name in policies)]
+
+
+def make_controller(name: str, params: RallyParams):
+    """The controller called ``name`` for the rally diagram of ``params``. Raises ConfigError
+    naming the choices for an unknown name."""
+    if name == "still":
+        return still
+    if name == "returner":
+        from ace_drake.control.returner import ModelBasedReturner
+
+        return ModelBasedReturner.for_rally(params)
+    raise ConfigError(f"unknown controller {name!r}; choose one of {', '.join(controller_names())}")

@@ -1,0 +1,81 @@
+"""The main job's rallies: a controller against the launcher opponent on one replayable time line.
+
+Each rally is one episode (paper, *Rally*): the opponent's shot drawn from the incoming-shot
+distribution, the robot's response through the full rally diagram. The episodes run back to back
+on one time line (each starts on a 32 ms boundary after the previous one's end, plus a pause) so
+that a Meshcat recording of the Simulator is one continuous replay of all of them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from pydrake.geometry import Meshcat
+
+from ace_drake.config import RallyParams, ShotParams
+from ace_drake.play.episode import Outcome
+from ace_drake.play.runner import Episode, RallyRunner
+
+PAUSE = 0.5  # s between two rallies in the replay
+
+
+def play_rallies(
+    controller,
+    params: RallyParams,
+    shots: ShotParams,
+    count: int,
+    seed: int = 0,
+    meshcat: Meshcat | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[tuple[Episode, bool]]:
+    """Plays ``count`` rallies of ``controller`` against the launcher (shots drawn from
+    ``shots`` with ``seed``) and returns each episode with whether its shot was a serve. With
+    ``meshcat``, the robot, court and ball are drawn and recorded (publish the recording and
+    take ``meshcat.StaticHtml()`` for a self-contained replay)."""
+    from ace_drake.diagrams import build_rally_diagram
+    from ace_drake.play.opponent import Launcher
+    from ace_drake.play.shots import make_distribution
+
+    if count < 1:
+        raise ValueError(f"play_rallies: count must be >= 1, got {count}")
+    rng = np.random.default_rng(seed)
+    launcher = Launcher(make_distribution(shots, params.physics))
+    runner = RallyRunner(build_rally_diagram(params, controller, meshcat), params)
+    period = params.control.segment_samples * 1e-3
+    if meshcat is not None:
+        meshcat.StartRecording(frames_per_second=60.0, set_visualizations_while_recording=False)
+    played, start = [], 0.0
+    for index in range(count):
+        shot, kind = launcher.shot(rng)
+        episode = runner.run(shot, seed=seed * 1_000_003 + index, serve=kind == "serve", start_time=start)
+        played.append((episode, kind == "serve"))
+        start += math.ceil((episode.duration + PAUSE) / period) * period
+        if progress is not None:
+            progress(f"rally {index + 1}/{count}: {episode.result.outcome.value} {episode.result.reason}".rstrip())
+    if meshcat is not None:
+        meshcat.StopRecording()
+        meshcat.PublishRecording()
+    return played
+
+
+def rally_rows(played: list[tuple[Episode, bool]]) -> list[dict]:
+    """One summary row per rally: the shot (kind, speed m/s, spin rad/s), the outcome and its
+    reason, the return's speed after the hit (m/s) and where it landed (m), the segments."""
+    rows = []
+    for episode, serve in played:
+        result = episode.result
+        row = {
+            "shot": "serve" if serve else "return",
+            "incoming_speed_m_s": float(np.linalg.norm(episode.shot[3:6])),
+            "incoming_spin_rad_s": float(np.linalg.norm(episode.shot[6:9])),
+            "outcome": result.outcome.value,
+            "reason": result.reason,
+            "outgoing_speed_m_s": None if result.hit is None else float(np.linalg.norm(result.hit.state_post[3:6])),
+            "landing_m": None if result.outcome is not Outcome.RETURNED else [float(v) for v in result.landing.state_pre[:2]],
+            "segments_accepted": episode.segments[0],
+            "segments_refused": episode.segments[1],
+        }
+        rows.append(row)
+    return rows
