@@ -274,7 +274,7 @@ def cmd_sysid(args) -> int:
 
 def cmd_bench(args) -> int:
     """Benchmarks by name; medians and ratios measured side by side."""
-    runners = {"ball": _bench_ball, "reach": _bench_reach, "control": _bench_control, "safety": _bench_safety, "perception": _bench_perception}
+    runners = {"ball": _bench_ball, "reach": _bench_reach, "control": _bench_control, "safety": _bench_safety, "perception": _bench_perception, "sim": _bench_sim}
     if args.name not in runners:
         raise ConfigError(f"bench: unknown benchmark {args.name!r}; available: {', '.join(runners)}")
     return runners[args.name](args)
@@ -354,6 +354,19 @@ def _bench_perception(args) -> int:
         for t, row in figures[path]["report_times"].items():
             print(f"{path} after {1e3 * float(t):.0f} ms: velocity error {row['velocity_error_mean_m_s']:.3f} m/s, spin error {row['spin_error_mean_rad_s']:.1f} rad/s")
     print(f"coverage by >= 3 cameras at >= 5 px: {100 * figures['coverage_3_views_5_px']:.1f} % of the play volume")
+    return 0
+
+
+def _bench_sim(args) -> int:
+    from ace_drake.analysis.sim_bench import print_sim_figures, bench_sim
+
+    if args.seconds <= 0 or args.repeats < 1:
+        raise ConfigError(f"bench sim: --seconds must be > 0 and --repeats >= 1, got {args.seconds} and {args.repeats}")
+    figures = bench_sim(seconds=args.seconds, episodes=args.repeats, seed=args.seed, progress=log)
+    if args.json:
+        emit_json(figures)
+    else:
+        print_sim_figures(figures)
     return 0
 
 
@@ -490,8 +503,9 @@ def build_parser() -> argparse.ArgumentParser:
     sysid.set_defaults(run=cmd_sysid)
 
     bench = commands.add_parser("bench", help="benchmarks (medians, p99, ratios)")
-    bench.add_argument("name", help="which benchmark: ball, reach, control, safety, perception")
-    bench.add_argument("--repeats", type=int, default=5, help="ball: timed runs per case")
+    bench.add_argument("name", help="which benchmark: ball, reach, control, safety, perception, sim")
+    bench.add_argument("--repeats", type=int, default=5, help="ball: timed runs per case; sim: timed rally episodes per sensor path")
+    bench.add_argument("--seconds", type=float, default=1.0, help="sim: simulated seconds per rally episode")
     bench.add_argument("--data", help="reach: match-data CSV whose shot_p1 events are the contact points; perception: whose shot_p2 events are the incoming shots")
     bench.add_argument("--shots", type=int, default=50, help="perception: incoming shots")
     bench.add_argument("--scenario", help="reach: robot scenario YAML (default models/scenario.yaml)")

@@ -536,6 +536,76 @@ class PerceptionParams:
 
 
 @dataclasses.dataclass(frozen=True)
+class ReturnerParams:
+    """The model-based returner (``control/returner.py``): where it sends the ball, which hits it
+    considers and how it predicts. Lengths in m (world frame of DESIGN.md), times in s, speeds in
+    m/s. The paper's robot has no such controller (it is the related work's approach), so every
+    value is this project's choice."""
+
+    target_x: float = 0.75  # landing point's x on the opponent's half (0.685: its centre)
+    target_y_limit: float = 0.45  # the skill's y_desired is clipped to +-this
+    # Flight times from the hit to the landing, tried in order until the racket state is reachable
+    # within the joint speed limits and the ball clears the net by ``net_clearance``.
+    flight_times: tuple[float, ...] = (0.55, 0.45, 0.65, 0.75, 0.38)
+    net_clearance: float = 0.04  # between the ball's bottom and the net cord
+    brush_speed: float = 0.0  # racket speed along the blade's upward tangent (> 0: topspin)
+    # The ball centre at the hit: height above the playing surface, and how far behind the table.
+    hit_height_min: float = 0.12
+    hit_height_max: float = 0.50
+    hit_x_min: float = -2.6
+    prediction_step: float = 0.032  # RK4 step of the incoming ball's prediction (one segment; contacts are located exactly)
+    prediction_horizon: float = 1.2  # how far ahead the incoming ball is predicted
+    candidates_tried: int = 3  # hit times planned per call before giving up
+    # Distance between all robot and court geometry at the hit configuration (the supervisor checks
+    # the motion with a 5 mm margin, and the motion around the hit comes closer than the hit).
+    ik_clearance: float = 0.03
+    # The joints' lag behind the command (eq. (9) ramp-tracking lag plus half a command period of
+    # zero-order hold); None: computed from the scenario's joint dynamics.
+    joint_lag: float | None = None
+
+    def __post_init__(self) -> None:
+        _require_positive(self, "target_x", "net_clearance", "hit_height_max", "prediction_step", "prediction_horizon", "candidates_tried")
+        _require_non_negative(self, "target_y_limit", "hit_height_min", "ik_clearance")
+        if not self.flight_times or any(not t > 0.0 for t in self.flight_times):
+            raise ConfigError(f"flight_times must be a non-empty list of positive times (s), got {self.flight_times}")
+        if not self.hit_height_min < self.hit_height_max:
+            raise ConfigError(f"hit_height_min ({self.hit_height_min}) must be < hit_height_max ({self.hit_height_max})")
+        if self.joint_lag is not None and not self.joint_lag >= 0.0:
+            raise ConfigError(f"joint_lag must be >= 0 s or null, got {self.joint_lag}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardParams:
+    """A rally episode's terminal reward (paper eq. (10), *Rewards*; ``learning/rewards.py``):
+
+        R_miss                    the robot did not hit the ball,
+        R_hit                     it hit the ball but did not return it,
+        R_return = return_base + w_p position_reward exp(-|y_land - y_desired| / position_length)
+                               + w_s spin_gain omega_y,
+
+    with the skill [y_desired, w_p, w_s] and omega_y the ball's spin about the y axis of its
+    travel frame at landing (topspin > 0). The paper gives no numbers: these are this project's.
+    """
+
+    miss: float = -1.0  # R_miss, also for an episode timed out before any hit
+    # An episode ended because the commanded motion would collide (paper's end condition (4)): the
+    # robot did not hit the ball, so R_miss by default; lower it to punish such commands more.
+    collision: float = -1.0
+    hit: float = 0.0  # R_hit (not returned): between a miss and a return, so touching the ball pays
+    return_base: float = 1.0  # every return gets this, whatever the skill
+    # The position term's maximum, at y_land = y_desired (hindsight relabelling gives it): equal to
+    # the base, so that an aimed return is worth twice an unaimed one.
+    position_reward: float = 1.0
+    position_length: float = 0.3  # m; a landing 0.3 m off y_desired gets 37 % (the half is 1.525 m wide)
+    spin_gain: float = 1.0 / 400.0  # per rad/s: 400 rad/s of topspin (about the robot's p90 spin) gives 1
+    invalid: float = 0.0  # the opponent's shot was a fault: there was no play to make
+
+    def __post_init__(self) -> None:
+        _require_positive(self, "position_length")
+        _require_non_negative(self, "position_reward", "spin_gain")
+
+
+@dataclasses.dataclass(frozen=True)
 class RallyParams:
     """One rally episode's diagram (``diagrams.add_rally``): the ball (``physics``, with the
     paper's post-table perturbations when ``perturb``), the robot (``scenario``: a scenario YAML in

@@ -396,8 +396,10 @@ def add_rally(builder: DiagramBuilder, params: RallyParams, policy, meshcat: Mes
     ``observation_builder`` (paper, *States*) reading the sensors' histories, the estimate, and the
     robot where its next segment starts (the supervisor's segment_start_state, and its racket state
     from ``planned_kinematics``); the control stack (``add_control_stack``) calling ``policy`` on
-    that observation every 32 ms. The light curtain is the diagram's input ``light_curtain``;
-    ``meshcat`` draws the robot, the court and the ball."""
+    that observation every 32 ms, or, when ``policy`` is None, reading each action from the
+    diagram's input ``action_request`` (17: action, valid flag; ``PolicyController``). The light
+    curtain is the diagram's input ``light_curtain``; ``meshcat`` draws the robot, the court and
+    the ball."""
     scenario = load_scenario(MODELS_DIR / params.scenario)
     ball = add_ball(builder, params.physics, perturb=params.perturb, seed=params.seed)
     robot = add_robot(builder, scenario, meshcat)
@@ -421,6 +423,8 @@ def add_rally(builder: DiagramBuilder, params: RallyParams, policy, meshcat: Mes
     builder.Connect(perception.estimator.estimate_status_port, observation.estimate_status_port)
     builder.Connect(observation.observation_port, control.policy_controller.observation_port)
     builder.ExportInput(control.supervisor.light_curtain_port, "light_curtain")
+    if policy is None:
+        builder.ExportInput(control.policy_controller.action_request_port, "action_request")
     if meshcat is not None:
         visualizer = builder.AddNamedSystem("ball_visualizer", BallVisualizer(meshcat, params.physics, draw_scene=False))
         builder.Connect(ball.ball_state_port, visualizer.ball_state_port)
@@ -441,6 +445,20 @@ def build_rally_diagram(params: RallyParams | None = None, policy=None, meshcat:
     builder.Connect(systems.robot.joint_plant.joint_state_port, joint_logger.get_input_port())
     diagram = builder.Build()
     diagram.set_name("rally_diagram")
+    return diagram
+
+
+def build_training_diagram(params: RallyParams | None = None) -> Diagram:
+    """The rally episode of ``add_rally`` for RL training (``learning.rally_env``): no loggers, no
+    Meshcat, and the action from the diagram's input ``action_request`` (17: action, valid flag)
+    read at each policy event. ``params`` default: RallyParams with the training sensors
+    (``PerceptionParams(positions="statistical")``); given params are used as they are. Start each
+    episode with ``start_rally`` and fix ``action_request`` before advancing."""
+    params = params or RallyParams(perception=PerceptionParams(positions="statistical"))
+    builder = DiagramBuilder()
+    add_rally(builder, params, None)
+    diagram = builder.Build()
+    diagram.set_name("training_diagram")
     return diagram
 
 
@@ -486,6 +504,7 @@ DOCUMENTED_DIAGRAMS = {
     "robot_swing_diagram": _documented_swing_diagram,
     "controlled_robot_diagram": _documented_controlled_robot_diagram,
     "rally_diagram": build_rally_diagram,
+    "training_diagram": build_training_diagram,
 }
 
 

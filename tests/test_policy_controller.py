@@ -70,3 +70,46 @@ def test_a_torch_module_is_a_policy():
 def test_not_a_policy_raises():
     with pytest.raises(TypeError, match="callable"):
         PolicyController(42, 3)
+
+
+def external_controller_diagram():
+    """A controller without a policy, its action_request exported as the diagram's input."""
+    builder = DiagramBuilder()
+    dut = builder.AddNamedSystem("dut", PolicyController(None, 3, ControlParams()))
+    source = builder.AddSystem(ConstantVectorSource(np.zeros(3)))
+    builder.Connect(source.get_output_port(), dut.observation_port)
+    builder.ExportInput(dut.action_request_port, "action_request")
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    return dut, diagram, simulator, dut.GetMyContextFromRoot(simulator.get_context())
+
+
+def test_without_a_policy_the_action_is_read_from_the_request_at_each_event():
+    dut, diagram, simulator, context = external_controller_diagram()
+    assert dut.external and dut.action_request_port.size() == 17
+    request = diagram.GetInputPort("action_request")
+    root = simulator.get_mutable_context()
+    request.FixValue(root, np.r_[np.full(16, 0.5), 1.0])
+    simulator.AdvanceTo(0.027)  # stops before the event at 27 ms: a request fixed now is read there
+    request.FixValue(root, np.r_[np.full(16, -0.25), 1.0])
+    simulator.AdvanceTo(0.0271)
+    np.testing.assert_array_equal(dut.action_port.Eval(context), -0.25)
+    assert dut.action_valid_port.Eval(context)[0] == 1.0 and dut.counts(context) == (1, 0)
+    # A request that is not valid means no new segment; the last action is kept but not valid.
+    request.FixValue(root, np.r_[np.full(16, 0.75), 0.0])
+    simulator.AdvanceTo(0.0591)
+    assert dut.action_valid_port.Eval(context)[0] == 0.0 and dut.counts(context) == (2, 0)
+    np.testing.assert_array_equal(dut.action_port.Eval(context), -0.25)
+    # A valid request with non-finite values is counted as invalid; values beyond the box are clipped.
+    request.FixValue(root, np.r_[np.full(16, np.nan), 1.0])
+    simulator.AdvanceTo(0.0911)
+    assert dut.action_valid_port.Eval(context)[0] == 0.0 and dut.counts(context) == (3, 1)
+    request.FixValue(root, np.r_[np.full(16, 3.0), 1.0])
+    simulator.AdvanceTo(0.1231)
+    np.testing.assert_array_equal(dut.action_port.Eval(context), 1.0)
+
+
+def test_with_a_policy_there_is_no_request_port():
+    dut = PolicyController(lambda observation: None, 3)
+    assert not dut.external and dut.action_request_port is None
+    assert dut.num_input_ports() == 1

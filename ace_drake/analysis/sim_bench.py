@@ -1,0 +1,268 @@
+"""``ace-drake bench sim``: how fast the closed-loop rally simulates, and where the time goes.
+
+Measured side by side in one process on one core (issue 6 aims at >= 20 x real time):
+
+- the real-time factor (simulated s per wall s) of the full rally diagram
+  (``diagrams.build_rally_diagram``: ball, robot, perception, estimator, observation, control stack
+  with collision checking, loggers) with (a) the nine analytic cameras and the triangulator and
+  (b) the training path's statistical position sensor, under a ready-pose controller (every 32 ms
+  the control stack steers towards the ready pose: ``ControlStack.action_towards``), over the same
+  incoming shots; median over episodes of ``seconds`` simulated seconds each;
+- RallyEnv (the training diagram) environment steps per second with uniformly random actions,
+  resets included, and how long its episodes last;
+- a profile of one episode per sensor path attributing wall time to the diagram's systems: a
+  ``sys.setprofile`` tracer charges the time between Python events to the innermost system
+  callback running (a method of a LeafSystem in ``ace_drake/systems``; helpers such as the
+  physics, EKF or control-stack code count for the system that called them); the rest is Drake's
+  C++ (integrator, event dispatch, caches) and the benchmark's own code. Tracing slows Python
+  more than C++, so the shares are indicative; the top functions by own time come from cProfile.
+"""
+
+from __future__ import annotations
+
+import cProfile
+import dataclasses
+import pstats
+import sys
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ace_drake.config import PerceptionParams, RallyParams, ShotParams
+from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.control.feasible_set import InfeasibleStartError
+
+SENSOR_PATHS = {"cameras": "analytic cameras + triangulator", "statistical": "statistical position sensor"}
+SYSTEMS_DIR = str(Path(__file__).resolve().parents[1] / "systems")
+OUTSIDE_SYSTEMS = "(Drake C++ and non-system Python)"
+
+
+class ReadyPosePolicy:
+    """A controller that always steers towards the ready (reset) pose through the control stack:
+    a policy callable observation -> action for ``build_rally_diagram``."""
+
+    def __init__(self, stack, layout):
+        self.stack, self.layout = stack, layout
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        q, v, a = np.split(self.layout.part(observation, "robot_state"), 3)
+        try:
+            return self.stack.action_towards(q, v, a, self.stack.reset_pose)
+        except InfeasibleStartError:  # on a reset outside the invariant set: nothing to ask
+            return np.zeros(ACTION_SIZE)
+
+
+@dataclasses.dataclass
+class RallyBench:
+    """A rally diagram under the ready-pose controller, and its runner (one Simulator)."""
+
+    positions: str
+    runner: object
+
+    @staticmethod
+    def build(positions: str) -> "RallyBench":
+        from ace_drake.control.stack import ControlStack
+        from ace_drake.diagrams import build_rally_diagram
+        from ace_drake.learning.observation import ObservationLayout
+        from ace_drake.play.runner import RallyRunner
+        from ace_drake.robot_model import MODELS_DIR, load_scenario
+
+        params = RallyParams(perception=PerceptionParams(positions=positions))
+        # The policy's own stack: action_towards needs the limits and mapping, not collision checks.
+        stack = ControlStack(load_scenario(MODELS_DIR / params.scenario), params.control)
+        policy = ReadyPosePolicy(stack, ObservationLayout(params.position_history, params.spin_history))
+        return RallyBench(positions, RallyRunner(build_rally_diagram(params, policy), params))
+
+    def episode(self, shot: np.ndarray, seed: int, seconds: float) -> tuple[float, float]:
+        """Simulates ``seconds`` from ``shot``; returns the wall and CPU (process) time of the
+        simulation, s."""
+        self.runner.reset(shot, seed=seed)
+        wall, cpu = time.perf_counter(), time.process_time()
+        self.runner.simulator.AdvanceTo(seconds)
+        return time.perf_counter() - wall, time.process_time() - cpu
+
+
+def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 10, seed: int = 0, profile: bool = True, progress: Callable[[str], None] | None = None) -> dict:
+    """The figures of the module docstring. ``seconds``: simulated s per rally episode;
+    ``episodes``: timed rally episodes per sensor path (after one warm-up); ``env_episodes``:
+    RallyEnv episodes with random actions (after one warm-up); ``profile``: add the per-system
+    profile."""
+    from ace_drake.learning.rally_env import RallyEnv
+    from ace_drake.play.shots import make_distribution
+
+    say = progress or (lambda _: None)
+    if seconds <= 0 or episodes < 1 or env_episodes < 1:
+        raise ValueError(f"bench sim: seconds must be > 0 and episodes >= 1, got {seconds}, {episodes}, {env_episodes}")
+    say("fitting the incoming-shot distribution (synthetic set)")
+    distribution = make_distribution(ShotParams(seed=seed))
+    shots = distribution.sample(np.random.default_rng(seed), episodes + 1)
+    figures: dict = {"simulated_seconds_per_episode": seconds, "episodes": episodes, "controller": "ready pose (ControlStack.action_towards)"}
+    benches = {}
+    for positions, label in SENSOR_PATHS.items():
+        say(f"rally diagram, {label}: building")
+        bench = benches[positions] = RallyBench.build(positions)
+        walls, cpus = [], []
+        for index, shot in enumerate(shots):
+            wall, cpu = bench.episode(shot, seed + index, seconds)
+            if index > 0:  # the first episode warms caches up
+                walls.append(wall)
+                cpus.append(cpu)
+                say(f"  episode {index}: {seconds / wall:.2f} x real time ({seconds / cpu:.2f} per CPU second)")
+        rtf = seconds / np.array(walls)
+        figures[f"rally_{positions}"] = {
+            "sensors": label,
+            "real_time_factor_median": float(np.median(rtf)),
+            "real_time_factor_min": float(np.min(rtf)),
+            # Simulated s per CPU s of this process: what the wall figure would be on an idle core.
+            "cpu_real_time_factor_median": float(np.median(seconds / np.array(cpus))),
+            "wall_seconds_median": float(np.median(walls)),
+        }
+    figures["ratio_statistical_to_cameras"] = figures["rally_statistical"]["real_time_factor_median"] / figures["rally_cameras"]["real_time_factor_median"]
+
+    say("RallyEnv (training diagram, statistical sensors), random actions")
+    env = RallyEnv(distribution=distribution)
+    figures["env"] = _bench_env(env, env_episodes, seed, say)
+
+    if profile:
+        figures["profile"] = {}
+        for positions, bench in benches.items():
+            say(f"profiling one rally episode, {SENSOR_PATHS[positions]}")
+            figures["profile"][positions] = profile_by_system(lambda: bench.episode(shots[0], seed, seconds), seconds)
+        say("profiling RallyEnv episodes with random actions")
+        rng = np.random.default_rng(seed)
+        figures["profile"]["env"] = profile_by_system(lambda: [_env_episode(env, rng, None) for _ in range(3)], None)
+    return figures
+
+
+def _env_episode(env, rng: np.random.Generator, seed: int | None) -> tuple[int, float]:
+    """One RallyEnv episode with uniformly random actions: (steps, simulated s)."""
+    env.reset(seed=seed)
+    steps, done = 0, False
+    while not done:
+        _, _, done, _, info = env.step(rng.uniform(-1.0, 1.0, ACTION_SIZE))
+        steps += 1
+    return steps, info["time"]
+
+
+def _bench_env(env, episodes: int, seed: int, say) -> dict:
+    rng = np.random.default_rng(seed)
+    _env_episode(env, rng, seed)  # warm-up; later resets are unseeded, as in training
+    rates, lengths, simulated, total_steps, total_wall, total_cpu, ends = [], [], [], 0, 0.0, 0.0, defaultdict(int)
+    for index in range(episodes):
+        start, cpu = time.perf_counter(), time.process_time()
+        steps, sim_time = _env_episode(env, rng, None)
+        wall = time.perf_counter() - start
+        total_cpu += time.process_time() - cpu
+        rates.append(steps / wall)
+        lengths.append(steps)
+        simulated.append(sim_time)
+        total_steps += steps
+        total_wall += wall
+        ends[env._episode.end] += 1
+        say(f"  episode {index + 1}: {steps} steps, {steps / wall:.1f} steps/s, ended by {env._episode.end}")
+    return {
+        "actions": "uniform random in [-1, 1]^16",
+        "steps_per_second": total_steps / total_wall,
+        "steps_per_cpu_second": total_steps / total_cpu,
+        "steps_per_second_median_episode": float(np.median(rates)),
+        "episode_steps_median": float(np.median(lengths)),
+        "real_time_factor": float(np.sum(simulated) / total_wall),
+        "ends": dict(ends),
+    }
+
+
+def profile_by_system(run: Callable[[], object], simulated_seconds: float | None, top: int = 12) -> dict:
+    """Runs ``run`` under the system tracer and then under cProfile (module docstring).
+
+    Returns: ``systems``, per system name (or module for callbacks without a system), its share of
+    the traced wall time and its callbacks' call counts; ``outside_systems_share``; and
+    ``top_functions``, the cProfile functions with the most own time. Call counts are per
+    simulated second when ``simulated_seconds`` is given."""
+    spent: dict[str, float] = defaultdict(float)
+    calls: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    stack: list[tuple[object, str]] = []
+    names: dict[int, str] = {}
+    last = [time.perf_counter()]
+
+    def owner_of(frame) -> str | None:
+        if not frame.f_code.co_filename.startswith(SYSTEMS_DIR):
+            return None
+        system = frame.f_locals.get("self")
+        if system is None or not hasattr(system, "get_name"):
+            return Path(frame.f_code.co_filename).stem
+        key = id(system)
+        if key not in names:
+            names[key] = system.get_name() or type(system).__name__
+        return names[key]
+
+    def tracer(frame, event, arg):
+        now = time.perf_counter()
+        spent[stack[-1][1] if stack else OUTSIDE_SYSTEMS] += now - last[0]
+        if event == "call":
+            owner = owner_of(frame)
+            if owner is not None and not (stack and stack[-1][1] == owner):
+                stack.append((frame, owner))
+                calls[owner][frame.f_code.co_name] += 1
+        elif event == "return" and stack and stack[-1][0] is frame:
+            stack.pop()
+        last[0] = time.perf_counter()
+
+    sys.setprofile(tracer)
+    try:
+        run()
+    finally:
+        sys.setprofile(None)
+    total = sum(spent.values())
+    per_second = 1.0 / simulated_seconds if simulated_seconds else 1.0
+    systems = {
+        name: {
+            "share": spent[name] / total,
+            "calls" + ("_per_simulated_second" if simulated_seconds else ""): {f: round(n * per_second, 1) for f, n in sorted(calls[name].items(), key=lambda item: -item[1])},
+        }
+        for name in sorted((n for n in spent if n != OUTSIDE_SYSTEMS), key=lambda n: -spent[n])
+    }
+
+    profiler = cProfile.Profile()
+    profiler.enable()
+    try:
+        run()
+    finally:
+        profiler.disable()
+    stats = pstats.Stats(profiler)
+    rows = sorted(stats.stats.items(), key=lambda item: -item[1][2])[:top]
+    total_profiled = max(stats.total_tt, 1e-12)
+    top_functions = [
+        {"function": f"{Path(file).name}:{line}({name})", "own_share": own / total_profiled, "calls": int(count)}
+        for (file, line, name), (_, count, own, _, _) in rows
+    ]
+    return {"systems": systems, "outside_systems_share": spent[OUTSIDE_SYSTEMS] / total, "top_functions": top_functions}
+
+
+def print_sim_figures(figures: dict, systems_shown: int = 8) -> None:
+    """The human-readable report of ``bench_sim``'s figures (stdout)."""
+    seconds = figures["simulated_seconds_per_episode"]
+    print(f"rally diagram, {figures['controller']} controller, {figures['episodes']} episodes of {seconds:g} simulated s, one core:")
+    for positions in SENSOR_PATHS:
+        row = figures[f"rally_{positions}"]
+        print(
+            f"  {row['sensors']:<34} {row['real_time_factor_median']:6.2f} x real time (median; min {row['real_time_factor_min']:.2f}; "
+            f"{row['cpu_real_time_factor_median']:.2f} per CPU second)"
+        )
+    print(f"  statistical / cameras: {figures['ratio_statistical_to_cameras']:.2f}")
+    env = figures["env"]
+    print(
+        f"RallyEnv, {env['actions']}: {env['steps_per_second']:.1f} steps/s with resets ({env['steps_per_cpu_second']:.1f} per CPU s; "
+        f"median episode {env['steps_per_second_median_episode']:.1f}), {env['episode_steps_median']:.0f} steps per episode, "
+        f"{env['real_time_factor']:.2f} x real time; ends: {env['ends']}"
+    )
+    for name, profile in figures.get("profile", {}).items():
+        print(f"profile ({name}): outside the systems {100 * profile['outside_systems_share']:.0f} %")
+        for system, row in list(profile["systems"].items())[:systems_shown]:
+            calls = next(value for key, value in row.items() if key.startswith("calls"))
+            counts = ", ".join(f"{function} x{count:g}" for function, count in list(calls.items())[:3])
+            print(f"  {system:<24} {100 * row['share']:5.1f} %   {counts}")
+        for function in profile["top_functions"][:6]:
+            print(f"    {100 * function['own_share']:5.1f} % own  {function['function']} x{function['calls']}")
