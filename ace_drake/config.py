@@ -553,18 +553,19 @@ class ReturnerParams:
     hit_height_min: float = 0.12
     hit_height_max: float = 0.50
     hit_x_min: float = -2.6
-    prediction_step: float = 0.032  # RK4 step of the incoming ball's prediction (one segment; contacts are located exactly)
+    prediction_step: float = 0.032  # RK4 step of the incoming ball's prediction (one segment)
     prediction_horizon: float = 1.2  # how far ahead the incoming ball is predicted
     candidates_tried: int = 3  # hit times planned per call before giving up
     # Distance between all robot and court geometry at the hit configuration (the supervisor checks
     # the motion with a 5 mm margin, and the motion around the hit comes closer than the hit).
     ik_clearance: float = 0.03
+    ik_solves_per_call: int = 4  # full IK solves (``solve_hit_ik``) a call may spend; refinements are free
     # The joints' lag behind the command (eq. (9) ramp-tracking lag plus half a command period of
     # zero-order hold); None: computed from the scenario's joint dynamics.
     joint_lag: float | None = None
 
     def __post_init__(self) -> None:
-        _require_positive(self, "target_x", "net_clearance", "hit_height_max", "prediction_step", "prediction_horizon", "candidates_tried")
+        _require_positive(self, "target_x", "net_clearance", "hit_height_max", "prediction_step", "prediction_horizon", "candidates_tried", "ik_solves_per_call")
         _require_non_negative(self, "target_y_limit", "hit_height_min", "ik_clearance")
         if not self.flight_times or any(not t > 0.0 for t in self.flight_times):
             raise ConfigError(f"flight_times must be a non-empty list of positive times (s), got {self.flight_times}")

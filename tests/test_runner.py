@@ -14,10 +14,14 @@ SHOT = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (0.0, -80.0, 0.0))
 
 
 class Recorder:
-    """A policy that never acts and keeps what it observed."""
+    """A policy that never acts, keeps what it observed and counts the episodes it was told of."""
 
     def __init__(self):
         self.observations = []
+        self.resets = 0
+
+    def reset(self):
+        self.resets += 1
 
     def __call__(self, observation):
         self.observations.append(np.array(observation))
@@ -63,3 +67,13 @@ def test_bad_shots_are_refused(runner_and_policy):
     runner, _ = runner_and_policy
     with pytest.raises(ValueError, match="9 finite values"):
         runner.run(np.zeros(6))
+
+
+def test_each_episode_starts_with_empty_logs_and_a_told_policy(runner_and_policy):
+    runner, policy = runner_and_policy
+    resets = policy.resets
+    for seed in (1, 2):
+        episode = runner.run(SHOT, seed=seed)
+    assert policy.resets == resets + 2
+    times = runner.diagram.GetSubsystemByName("ball_logger").FindLog(runner.context).sample_times()
+    assert times[0] == 0.0 and np.all(np.diff(times) > 0) and times[-1] <= episode.duration + 1e-9

@@ -6,10 +6,12 @@ through the control stack). The plan, from the true incoming ball state:
 
 1. predict the ball with the project's physics and hit it at the top of its bounce on the
    robot's half;
-2. search racket normals and speeds (racket contact model, paper eqs (7)-(8)) for the one whose
-   return lands nearest a target on the opponent's half;
+2. solve for the racket state whose return lands on a target on the opponent's half, inverting
+   the racket contact model (paper eqs (7)-(8)): ``control.returner.racket_plans``, the model-based
+   returner's racket planning;
 3. inverse kinematics for that racket pose, and the joint velocities that give the racket that
-   velocity (velocity-limit-weighted least squares on the racket Jacobian);
+   velocity (``control.returner.racket_joint_velocities``: velocity-limit-weighted least squares
+   on the racket Jacobian);
 4. a cubic Hermite joint trajectory from the ready pose at rest through (q_hit, v_hit) at the hit
    time, then braking to rest, within the position, velocity and acceleration limits;
 5. the command that makes the delayed joints (paper eq. (9)) follow it: the exact eq. (9)
@@ -26,7 +28,7 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from ace_drake.config import BallPhysicsParams, RobotScenario
 from ace_drake.control.joint_model import feedforward_command
-from ace_drake.physics.contact import racket_impact
+from ace_drake.control.returner import RacketPlan, racket_joint_velocities, racket_plans
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.propagate import ContactEvent, ContactKind, simulate
 from ace_drake.robot_model import RobotModel
@@ -37,19 +39,6 @@ from ace_drake.robot_model import RobotModel
 INCOMING_BALL = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (0.0, -80.0, 0.0))
 RETURN_TARGET = (0.8, 0.0)  # where the return should land on the opponent's half, m
 SWING_START = 0.05  # s after the episode starts; the robot waits at its ready pose until then
-
-
-@dataclasses.dataclass(frozen=True)
-class RacketPlan:
-    """The racket state at the hit: time (s), blade centre (3; m), forehand normal (3), velocity of
-    the blade centre (3; m/s), the ball state just before (9) and the predicted landing (2; m)."""
-
-    time: float
-    position: np.ndarray
-    normal: np.ndarray
-    velocity: np.ndarray
-    ball_state: np.ndarray
-    predicted_landing: np.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,7 +55,7 @@ class ScriptedSwing:
 
 def plan_racket(ball_state: np.ndarray, params: BallPhysicsParams, target=RETURN_TARGET) -> RacketPlan:
     """Steps 1-2 of the module docstring. Raises ValueError if the ball does not bounce on the
-    robot's half or no racket state in the search returns it."""
+    robot's half or no racket state returns it."""
     flight = simulate(ball_state, params, 2.0, stop_on=(ContactKind.FLOOR,))
     bounces = [e for e in flight.events[0] if e.kind == ContactKind.TABLE and e.state_pre[0] < 0.0]
     if not bounces:
@@ -74,46 +63,10 @@ def plan_racket(ball_state: np.ndarray, params: BallPhysicsParams, target=RETURN
     after = flight.times > bounces[0].time
     rising = after & (flight.states[:, 0, 5] > 0.0)
     apex_index = np.flatnonzero(after & ~rising)[0]  # first sample past the top of the bounce
-    hit_time = float(flight.times[apex_index])
-    ball = flight.states[apex_index, 0]
-
-    pitch, yaw, speed = np.meshgrid(np.radians(np.arange(-20, 41, 5)), np.radians(np.arange(-20, 21, 4)), np.arange(2.0, 9.1, 0.5), indexing="ij")
-    normals = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], axis=-1).reshape(-1, 3)
-    speeds = speed.reshape(-1, 1)
-    # Contact frame: z along the normal, x in the normal's vertical plane.
-    x_axis = np.cross(np.cross(normals, [0.0, 0.0, 1.0]), normals)
-    x_axis /= np.linalg.norm(x_axis, axis=-1, keepdims=True)
-    R_WC = np.stack([x_axis, np.cross(normals, x_axis), normals], axis=-1)
-    count = len(normals)
-    v_post, w_post = racket_impact(
-        np.broadcast_to(ball[3:6], (count, 3)), np.broadcast_to(ball[6:9], (count, 3)), speeds * normals, R_WC,
-        params.racket, params.aero.ball_radius,
-    )  # paper eqs (7)-(8)
-    returns = simulate(np.concatenate([np.broadcast_to(ball[:3], (count, 3)), v_post, w_post], axis=1), params, 2.0,
-                       stop_on=(ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR), record=False)
-    best, best_distance = None, np.inf
-    half_length, half_width = 0.5 * params.table.length, 0.5 * params.table.width
-    for index, event in enumerate(returns.stop_events):
-        if event is None or event.kind != ContactKind.TABLE:
-            continue
-        x, y = event.state_pre[:2]
-        if not (0.1 < x < half_length - 0.1 and abs(y) < half_width - 0.1):
-            continue
-        distance = np.hypot(x - target[0], y - target[1])
-        if distance < best_distance:
-            best, best_distance = index, distance
-    if best is None:
-        raise ValueError("plan_racket: no racket state in the search returns the ball")
-    normal = normals[best]
-    radius_and_half_blade = params.aero.ball_radius + 0.5 * params.racket.blade_thickness
-    return RacketPlan(
-        time=hit_time,
-        position=ball[:3] - radius_and_half_blade * normal,
-        normal=normal,
-        velocity=speeds[best, 0] * normal,
-        ball_state=ball.copy(),
-        predicted_landing=returns.stop_events[best].state_pre[:2].copy(),
-    )
+    plan = next(racket_plans(flight.states[apex_index, 0], float(flight.times[apex_index]), params, np.asarray(target, dtype=float)), None)
+    if plan is None:
+        raise ValueError("plan_racket: no racket state returns the ball")
+    return plan
 
 
 def plan_scripted_swing(model: RobotModel, ball_state: np.ndarray, params: BallPhysicsParams, target=RETURN_TARGET) -> ScriptedSwing:
@@ -124,11 +77,7 @@ def plan_scripted_swing(model: RobotModel, ball_state: np.ndarray, params: BallP
     if not ik.success:
         raise ValueError(f"plan_scripted_swing: no configuration puts the racket at {racket.position.round(3)}")
     q_hit = ik.q
-    # Joint velocities for the racket velocity: least squares weighted by each joint's speed limit,
-    # so that fast joints do more of the work. The blade's angular velocity is left free.
-    jacobian = model.racket_jacobian(q_hit)[3:]
-    weights = np.diag(model.velocity_limit**2)
-    v_hit = weights @ jacobian.T @ np.linalg.solve(jacobian @ weights @ jacobian.T, racket.velocity)
+    v_hit = racket_joint_velocities(model, q_hit, racket.velocity)
     if np.any(np.abs(v_hit) > model.velocity_limit):
         raise ValueError(f"plan_scripted_swing: the hit needs joint speeds {np.abs(v_hit).round(1)} over the limits")
 

@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 from pydrake.systems.framework import Diagram
+from pydrake.systems.primitives import VectorLogSink
 
 from ace_drake.config import RallyParams
 from ace_drake.play.episode import EpisodeResult, classify, timed_out
@@ -43,13 +44,16 @@ class RallyRunner:
         self._default_context = diagram.CreateDefaultContext()
         self._default_context.SetAccuracy(self.context.get_accuracy())  # copied on every reset
         self._ball = diagram.GetSubsystemByName("ball")
+        self._controller = diagram.GetSubsystemByName("policy_controller")
+        self._loggers = [system for system in diagram.GetSystems() if isinstance(system, VectorLogSink)]
         self._supervisor = diagram.GetSubsystemByName("safety_supervisor")
         self._period = self._supervisor.segment_samples * self._supervisor.period
 
     def reset(self, shot, seed: int = 0, skill=None, q=None, start_time: float = 0.0) -> None:
-        """Resets the Context to the diagram's default and starts an episode from ``shot`` (see
-        ``diagrams.start_rally``) at ``start_time`` (s; a multiple of the 32 ms policy period, so
-        that a replay can run episodes one after another on one time line)."""
+        """Resets the Context to the diagram's default (loggers emptied, the policy told) and
+        starts an episode from ``shot`` (see ``diagrams.start_rally``) at ``start_time`` (s; a
+        multiple of the 32 ms policy period, so that a replay can run episodes one after another
+        on one time line)."""
         from ace_drake.diagrams import start_rally
 
         shot = np.asarray(shot, dtype=float)
@@ -60,6 +64,9 @@ class RallyRunner:
             raise ValueError(f"RallyRunner: start_time must be a non-negative multiple of {self._period} s, got {start_time}")
         self.context.SetTimeStateAndParametersFrom(self._default_context)
         self.context.SetTime(start_time)
+        for logger in self._loggers:  # logs live in the Context's cache, not its state
+            logger.FindMutableLog(self.context).Clear()
+        self._controller.ResetPolicy()
         start_rally(self.diagram, self.context, shot, seed=seed, skill=skill, q=q)
         self.simulator.Initialize()
 

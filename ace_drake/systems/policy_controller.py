@@ -77,6 +77,7 @@ class PolicyController(LeafSystem):
         super().__init__()
         self.control = control or ControlParams()
         self._policy = None if policy is None else as_policy(policy)
+        self._source = policy
         segment = self.control.segment_samples * command_period
         if not 0.0 <= self.control.observation_lead < segment:
             raise ValueError(f"PolicyController: the observation lead must be in [0, {segment}) s, got {self.control.observation_lead}")
@@ -93,6 +94,13 @@ class PolicyController(LeafSystem):
             "action_valid", 1, self.CalcActionValid, prerequisites_of_calc={self.xd_ticket()}
         )
         self.DeclarePeriodicDiscreteUpdateEvent(segment, segment - self.control.observation_lead, self.UpdateAction)
+
+    def ResetPolicy(self) -> None:
+        """Tells a stateful policy that a new episode starts: calls its ``reset()`` if it has one
+        (the model-based returner remembers the ball it is playing)."""
+        reset = getattr(self._source, "reset", None)
+        if callable(reset):
+            reset()
 
     @property
     def external(self) -> bool:

@@ -1,0 +1,752 @@
+"""The model-based returner: the classical rally controller (paper, related work: predict the ball,
+choose a hitting point and racket state, solve for the motion) behind a policy's interface.
+
+``ModelBasedReturner`` is a callable observation -> action (16,) in [-1, 1] | None, called by the
+``PolicyController`` every T = 32 ms on the observation built 5 ms before the segment it commands
+starts (``learning.observation``); its actions go through the same eq. (12) mapping, spline QP,
+reset and safety supervisor as a learned policy's. Each call replans from the ball estimator's
+latest estimate (the estimate improves as the ball flies):
+
+1. **Predict** the incoming ball from the EKF estimate with the project's physics
+   (``physics.propagate.simulate``: flight eq. (1), table eqs (2)-(6), net, floor), sampled at the
+   instants the joints can hit it. The joints lag their command by the eq. (9) ramp-tracking lag
+   plus half a command period of zero-order hold (``joint_lag``: 4.3 ms by default), so a state
+   commanded at a segment boundary is reached that much later: the candidate hit times are
+   lead + lag + k T after the observation, k = 1, 2, ... (lead: the observation's 5 ms), and a
+   hit's (q_hit, v_hit) is the command's terminal state at its boundary.
+2. **Pick a hit**: a candidate after the ball's bounce on the robot's half and before anything
+   else touches it, with the ball centre ``hit_height_min``..``hit_height_max`` above the table
+   and in front of ``hit_x_min``, nearest the top of the bounce (where the ball's height changes
+   least with time, so timing errors cost least). The previous call's hit time is kept while it
+   stays valid, so that the plan does not hop between segments as the estimate moves; a later
+   candidate is taken when the robot cannot get there in time (the joint trajectory of step 5
+   would exceed the acceleration limits).
+3. **Solve the racket state** that sends the ball to the target on the opponent's half
+   (``target_x``, the skill's y_desired), inverting the racket contact model (eqs (7)-(8)):
+   ``solve_return`` finds, by Newton's method on the flight model, the outgoing velocity that
+   lands the ball on the target after a chosen flight time, each iterate's spin coming from the
+   racket state that makes it (``invert_racket_contact``: a racket moving along its normal, plus
+   an optional brushing speed along the blade for topspin, ``brush_speed``). Flight times are
+   tried in order (``flight_times``) until the ball clears the net and the joints can make the
+   racket state.
+4. **Inverse kinematics** for the racket pose (``solve_hit_ik``: Drake's InverseKinematics with
+   the blade free to roll about its normal and ``ik_clearance`` between all geometry, nearest the
+   segment-start configuration in a metric that makes the slow gantry expensive), then on later
+   calls the previous solution moved onto the updated pose by Gauss-Newton steps
+   (``refine_hit_ik``: continuity, and 0.3 ms instead of 2-60 ms); the **joint velocities** for
+   the racket velocity by least squares weighted by the joints' speed limits
+   (``racket_joint_velocities``).
+5. **Drive the joints** from the segment-start state (q0, v0) towards (q_hit, v_hit) at the hit's
+   boundary along the cubic Hermite between them, evaluated one segment ahead: that terminal
+   (q_T, v_T) becomes the action through the inverse of the eq. (12) mapping, clipped to the box
+   (a target outside the feasible set maps onto its boundary). When the hit falls in the segment
+   being commanded, the action follows through at the current joint velocities.
+6. **Check it as the supervisor will** (``ControlStack.propose`` on a stack like the
+   supervisor's: mapping, segment, reset, collision check): the Hermite's segment or its reset
+   can sweep the wrist or forearm into the table when the hit is over it, and a refused segment
+   costs the swing a whole period. If it would be refused, the returner sends instead the
+   time-optimal approach to q_hit (``ControlStack.action_towards``: each joint on its braking
+   curve, so the wrist turns before the arm reaches over the table), and if that too would be
+   refused, nothing.
+
+The returner returns None (no new segment: the supervisor runs the last plan's reset to the
+ready pose) while there is no track, when the ball is not coming (v_x >= 0: after the hit), and
+when no hit is possible (the ball does not bounce on the robot's half, or nothing is reachable).
+
+It remembers the ball it is playing between calls (a clock advanced by T per call, the last
+prediction, the bounce time and the hit plan): the memory is dropped when the estimate stops
+matching the last prediction (> 0.3 m), i.e. for a new ball; ``reset`` drops it explicitly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Iterator
+
+import numpy as np
+from pydrake.multibody.inverse_kinematics import InverseKinematics
+from pydrake.solvers import SnoptSolver, Solve
+
+from ace_drake.config import BallPhysicsParams, ControlParams, RacketParams, RallyParams, ReturnerParams, RobotScenario
+from ace_drake.control.action_mapping import inverse_map_action
+from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
+from ace_drake.control.joint_model import ramp_tracking_lag
+from ace_drake.control.stack import ControlStack
+from ace_drake.learning.observation import ObservationLayout
+from ace_drake.physics.contact import racket_impact, racket_restitution
+from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.robot_model import MODELS_DIR, IkResult, RobotModel, load_scenario
+
+_UP = np.array([0.0, 0.0, 1.0])
+SAME_BALL_DISTANCE = 0.3  # m: an estimate this far from the last prediction is a different ball
+# SNOPT's major iterations per IK solve: a solve that converges takes 10-50; a few wander for a
+# second before converging, and 100 bounds them to ~60 ms (measured) at no loss of success.
+IK_MAJOR_ITERATIONS = 100
+IMMINENT_MARGIN = 0.01  # s: a bounce predicted within one segment + this is remembered as happening
+
+
+# ---------------------------------------------------------------------------------------------
+# Racket planning (shared with analysis/scripted_swing.py)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class RacketPlan:
+    """The racket state at a hit: time (s, on the caller's clock), blade centre p_WR (3; m),
+    forehand normal (3; unit), velocity of the blade centre v_WR (3; m/s), the ball state just
+    before (9) and just after (9) the contact (eqs (7)-(8)), the predicted landing (2; m) and the
+    return's flight time to it (s)."""
+
+    time: float
+    position: np.ndarray
+    normal: np.ndarray
+    velocity: np.ndarray
+    ball_state: np.ndarray
+    ball_out: np.ndarray
+    predicted_landing: np.ndarray
+    flight_time: float
+
+
+def contact_frame(normal: np.ndarray) -> np.ndarray:
+    """R_WC (..., 3, 3) of a contact frame with z along ``normal`` (..., 3) and x in the normal's
+    vertical plane (the racket model is isotropic in the blade's plane, so any x will do)."""
+    normal = np.asarray(normal, dtype=float)
+    x_axis = np.cross(np.cross(normal, _UP), normal)
+    x_axis /= np.linalg.norm(x_axis, axis=-1, keepdims=True)
+    return np.stack([x_axis, np.cross(normal, x_axis), normal], axis=-1)
+
+
+def invert_racket_contact(
+    v_in: np.ndarray,
+    w_in: np.ndarray,
+    v_out: np.ndarray,
+    racket: RacketParams,
+    radius: float,
+    brush_speed: float = 0.0,
+    iterations: int = 20,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The blade normals n (..., 3) and racket velocities v_WR (..., 3) with which the racket
+    contact model (paper eqs (7)-(8), as ``physics.contact.racket_impact``) sends a ball arriving
+    with velocity v_in (3,; m/s) and spin w_in (3,; rad/s) off at velocities v_out (..., 3; m/s).
+
+    The racket moves along its normal at speed s plus ``brush_speed`` b (m/s) along the blade's
+    upward tangent t (v_WR = s n + b t; b > 0 brushes up: topspin). In the contact frame, eq. (7)
+    splits into the blade's plane and its normal (k = tangential_k, r the ball radius):
+
+        v_out_t = (1 - k) v_in_t + k b t - k r (n x w_in)                    (tangential)
+        v_out.n - s = -eps (v_in.n - s),  eps = eps_racket(|v_in.n - s|)      (normal)
+
+    so a + k r (n x w_in), with a = v_out - (1 - k) v_in - k b t, has no tangential part: it is
+    lambda n, lambda = n.a > 0 (the ball reverses). With W the cross-product matrix of w_in that
+    is (lambda I + k r W) n = a; |n| = 1 fixes lambda^2 as the positive root of
+    mu^2 + (C - |a|^2) mu - (a.w_hat)^2 C = 0, C = (k r |w_in|)^2 (W is skew, so
+    |(lambda I + k r W)^-1 a|^2 = (a.w_hat)^2 / lambda^2 + |a_perp|^2 / (lambda^2 + C)). The
+    tangent t depends on n, so with b != 0 this repeats to a fixed point. Then
+    s = (v_out.n + eps v_in.n) / (1 + eps), eps iterated to consistency. Raises ValueError if
+    some v_out cannot be made: the ball would not meet the blade (v_out.n <= v_in.n), or the spin
+    turns it more than the racket can undo (no root mu > 0)."""
+    v_in, w_in, v_out = (np.asarray(x, dtype=float) for x in (v_in, w_in, v_out))
+    k = racket.tangential_k
+    coupling = k * radius * w_in  # k r w
+    cross = np.array([[0.0, -coupling[2], coupling[1]], [coupling[2], 0.0, -coupling[0]], [-coupling[1], coupling[0], 0.0]])
+    spin_squared = float(coupling @ coupling)  # C
+    normal = v_out - v_in
+    normal = normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+    for _ in range(iterations if brush_speed else 1):
+        a = v_out - (1.0 - k) * v_in - k * brush_speed * _blade_up(normal)
+        a_squared = np.sum(a * a, axis=-1)
+        if spin_squared > 0.0:
+            along_squared = (a @ coupling) ** 2 / spin_squared
+            linear = spin_squared - a_squared
+            mu = 0.5 * (-linear + np.sqrt(linear**2 + 4.0 * along_squared * spin_squared))
+        else:
+            mu = a_squared
+        if np.any(mu <= 1e-12):
+            raise ValueError("invert_racket_contact: the ball's spin turns it more than any racket state can undo")
+        system = np.sqrt(mu)[..., None, None] * np.eye(3) + cross
+        updated = np.linalg.solve(system, a[..., None])[..., 0]
+        updated /= np.linalg.norm(updated, axis=-1, keepdims=True)
+        converged = np.max(np.abs(updated - normal)) < 1e-12
+        normal = updated
+        if converged:
+            break
+    v_in_n, v_out_n = normal @ v_in, np.sum(v_out * normal, axis=-1)
+    if np.any(v_out_n <= v_in_n):
+        raise ValueError(f"invert_racket_contact: the ball would not meet the blade (v_out.n = {v_out_n} <= v_in.n = {v_in_n} m/s)")
+    speed = v_in_n  # s; eps at the relative normal speed |v_in.n - s|
+    for _ in range(10):
+        eps = racket_restitution(v_in_n - speed, racket)
+        speed = (v_out_n + eps * v_in_n) / (1.0 + eps)
+    return normal, speed[..., None] * normal + brush_speed * _blade_up(normal)
+
+
+def _blade_up(normal: np.ndarray) -> np.ndarray:
+    """The blade's upward tangent (..., 3): world z projected onto the blade's plane, normalised."""
+    tangent = _UP - normal[..., 2:3] * normal
+    return tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class ReturnShot:
+    """A solved return: the ball's velocity and spin just after the hit (3 each), the blade normal
+    and racket velocity that produce them, where the ball lands (2; m) after ``flight_time`` (s),
+    and the clearance of the ball's bottom over the net cord (m)."""
+
+    v_out: np.ndarray
+    w_out: np.ndarray
+    normal: np.ndarray
+    racket_velocity: np.ndarray
+    landing: np.ndarray
+    flight_time: float
+    net_clearance: float
+
+
+def solve_return(
+    ball: np.ndarray,
+    target: np.ndarray,
+    flight_time: float,
+    params: BallPhysicsParams,
+    brush_speed: float = 0.0,
+    v_guess: np.ndarray | None = None,
+    steps: int = 8,
+    iterations: int = 8,
+    tolerance: float = 5e-3,
+) -> ReturnShot | None:
+    """The return of the ball ``ball`` (9,; the state just before the hit) that lands at
+    ``target`` (x, y) (m) ``flight_time`` s after the hit. Newton's method on the outgoing
+    velocity v_out (from ``v_guess``, m/s, or the ballistic one): the landing (ball centre one
+    radius above the table plane) from the flight model (eq. (1), RK4 in ``steps`` steps: within
+    1e-5 m of a 0.5 ms step), finite-difference Jacobians from one batch of four balls per
+    iteration, and each ball's spin from the racket state that makes its v_out
+    (``invert_racket_contact``, then ``racket_impact``: eqs (7)-(8)). None if it does not
+    converge to ``tolerance`` (m) or no racket state makes the velocity."""
+    ball = np.asarray(ball, dtype=float)
+    p_hit, v_in, w_in = ball[:3], ball[3:6], ball[6:9]
+    radius = params.aero.ball_radius
+    goal = np.array([target[0], target[1], radius])
+    if v_guess is None:  # ballistic, without air
+        v_guess = (goal - p_hit) / flight_time + np.array([0.0, 0.0, 0.5 * params.aero.gravity * flight_time])
+    v_out = np.asarray(v_guess, dtype=float)
+    step = 0.01  # m/s, finite-difference step
+    for _ in range(iterations):
+        # The nominal v_out and three perturbed copies, each with the spin its own racket state
+        # gives it (the spin moves with v_out by up to ~50 rad/s per m/s: it belongs in the Jacobian).
+        velocities = v_out + np.vstack([np.zeros(3), step * np.eye(3)])
+        try:
+            normals, racket_velocities = invert_racket_contact(v_in, w_in, velocities, params.racket, radius, brush_speed)
+        except ValueError:
+            return None
+        _, spins = racket_impact(v_in, w_in, racket_velocities, contact_frame(normals), params.racket, radius)  # paper eqs (7)-(8)
+        starts = np.hstack([np.broadcast_to(p_hit, (4, 3)), velocities, spins])
+        flight = simulate(starts, params, flight_time, dt=flight_time / steps, kinds=())
+        ends = flight.final_state[:, :3]
+        residual = ends[0] - goal
+        if np.linalg.norm(residual) < tolerance:
+            return ReturnShot(v_out, spins[0], normals[0], racket_velocities[0], ends[0, :2].copy(), flight_time, _net_clearance(flight.states[:, 0], params))
+        jacobian = (ends[1:] - ends[0]).T / step
+        v_out = v_out - np.linalg.solve(jacobian, residual)
+    return None
+
+
+def _net_clearance(states: np.ndarray, params: BallPhysicsParams) -> float:
+    """Height of the ball's bottom over the net cord where the sampled flight ``states`` (T, 9)
+    crosses x = 0 (linear interpolation), m; -inf if it never crosses or dips to the table first."""
+    x = states[:, 0]
+    radius = params.aero.ball_radius
+    crossing = np.flatnonzero((x[:-1] < 0.0) & (x[1:] >= 0.0))
+    if crossing.size == 0:
+        return -np.inf
+    i = crossing[0]
+    over_robot_half = (states[: i + 1, 0] > -0.5 * params.table.length) & (np.abs(states[: i + 1, 1]) < 0.5 * params.table.width)
+    if np.any(states[: i + 1, 2][over_robot_half] < radius):
+        return -np.inf
+    fraction = -x[i] / (x[i + 1] - x[i])
+    z = states[i, 2] + fraction * (states[i + 1, 2] - states[i, 2])
+    return float(z - radius - params.net.height)
+
+
+def racket_plans(
+    ball: np.ndarray,
+    hit_time: float,
+    params: BallPhysicsParams,
+    target: np.ndarray,
+    returner: ReturnerParams | None = None,
+    previous: RacketPlan | None = None,
+) -> Iterator[RacketPlan]:
+    """Racket states that return ``ball`` (9,; just before the hit at ``hit_time`` s) to
+    ``target`` (x, y) (m), one per flight time of ``returner.flight_times`` whose return clears the
+    net by ``returner.net_clearance``, in that order (the caller takes the first its robot can
+    make); a ``previous`` plan's flight time comes first, warm-started from its outgoing velocity
+    (replanning the same hit with a better estimate). The blade centre sits ball radius + half the
+    blade's thickness behind the ball along the normal."""
+    returner = returner or ReturnerParams()
+    ball = np.asarray(ball, dtype=float)
+    standoff = params.aero.ball_radius + 0.5 * params.racket.blade_thickness
+    flight_times = list(returner.flight_times)
+    if previous is not None:
+        flight_times = [previous.flight_time] + [t for t in flight_times if t != previous.flight_time]
+    for flight_time in flight_times:
+        guess = previous.ball_out[3:6] if previous is not None and flight_time == previous.flight_time else None
+        shot = solve_return(ball, target, flight_time, params, returner.brush_speed, v_guess=guess)
+        if shot is None or shot.net_clearance < returner.net_clearance:
+            continue
+        yield RacketPlan(
+            time=hit_time,
+            position=ball[:3] - standoff * shot.normal,
+            normal=shot.normal,
+            velocity=shot.racket_velocity,
+            ball_state=ball.copy(),
+            ball_out=np.concatenate([ball[:3], shot.v_out, shot.w_out]),
+            predicted_landing=shot.landing,
+            flight_time=flight_time,
+        )
+
+
+def racket_joint_velocities(model: RobotModel, q: np.ndarray, v_WR: np.ndarray) -> np.ndarray:
+    """Joint velocities (8,) that give the blade centre the velocity v_WR (3,; m/s) at q: the
+    least-squares solution weighted by each joint's squared speed limit, so that fast joints do
+    more of the work; the blade's angular velocity is left free."""
+    jacobian = model.racket_jacobian(q)[3:]
+    weights = np.diag(model.velocity_limit**2)
+    return weights @ jacobian.T @ np.linalg.solve(jacobian @ weights @ jacobian.T, np.asarray(v_WR, dtype=float))
+
+
+def solve_hit_ik(
+    model: RobotModel,
+    p_WR: np.ndarray,
+    normal_W: np.ndarray,
+    q_nominal: np.ndarray,
+    seeds: list[np.ndarray],
+    clearance: float,
+    position_tolerance: float = 1e-3,
+    angle_tolerance: float = np.radians(0.5),
+) -> IkResult:
+    """A configuration for a hit: the blade centre at ``p_WR`` (m) and the forehand normal along
+    ``normal_W`` (the constraints of ``RobotModel.solve_racket_pose_ik``: joint limits, blade free
+    to roll about its normal, ``clearance`` (m) between all robot and court geometry), nearest
+    ``q_nominal`` in the metric sum (q - q_nominal)^2 / A_j (A_j: each joint's acceleration
+    limit), i.e. preferring the joints that get there soonest (a joint needs ~ 2 sqrt(|dq| / A)
+    for a move from rest to rest), the slow gantry least. Drake's InverseKinematics, from each
+    seed in turn until one succeeds."""
+    start = time.perf_counter()
+    plant, world = model.plant, model.plant.world_frame()
+    tolerance = np.full(3, position_tolerance)
+    weights = np.diag(1.0 / model.acceleration_limit)
+    result = None
+    for attempt, seed in enumerate(seeds, start=1):
+        ik = InverseKinematics(plant, model.plant_context, with_joint_limits=True)
+        ik.AddPositionConstraint(model.racket_frame, np.zeros(3), world, p_WR - tolerance, p_WR + tolerance)
+        ik.AddAngleBetweenVectorsConstraint(world, normal_W, model.racket_frame, [0.0, 0.0, 1.0], 0.0, angle_tolerance)
+        ik.AddMinimumDistanceLowerBoundConstraint(clearance, clearance + 0.05)
+        ik.prog().AddQuadraticErrorCost(weights, q_nominal, ik.q())
+        ik.prog().SetSolverOption(SnoptSolver().solver_id(), "Major iterations limit", IK_MAJOR_ITERATIONS)
+        result = Solve(ik.prog(), seed)
+        if result.is_success():
+            return IkResult(True, result.GetSolution(ik.q()), time.perf_counter() - start, attempt)
+    q = result.GetSolution(ik.q()) if result is not None else np.asarray(q_nominal, dtype=float)
+    return IkResult(False, q, time.perf_counter() - start, len(seeds))
+
+
+def refine_hit_ik(
+    model: RobotModel,
+    q: np.ndarray,
+    p_WR: np.ndarray,
+    normal_W: np.ndarray,
+    iterations: int = 3,
+    position_tolerance: float = 1e-3,
+    angle_tolerance: float = np.radians(0.5),
+) -> np.ndarray | None:
+    """Moves a hit configuration q (8,) onto a nearby racket target (``solve_hit_ik``'s blade
+    centre and normal) by Gauss-Newton steps on the racket Jacobian, each the step of least
+    sum dq^2 / A_j that removes the position error and the normal's tilt error (the roll about
+    the normal is free). Returns None if it is not within the tolerances after ``iterations``
+    steps or leaves the joint limits: the caller then solves the full IK (clearance included;
+    a small correction of a clear configuration keeps most of its clearance)."""
+    q = np.asarray(q, dtype=float).copy()
+    inverse_weights = np.diag(model.acceleration_limit)
+    for _ in range(iterations + 1):
+        X_WR = model.racket_pose(q)
+        normal = X_WR.rotation().matrix()[:, 2]
+        position_error = p_WR - X_WR.translation()
+        tilt = np.cross(normal, normal_W)  # rotation vector (small angles) taking normal to normal_W
+        if np.linalg.norm(position_error) < position_tolerance and np.linalg.norm(tilt) < np.sin(angle_tolerance):
+            return q
+        jacobian = model.racket_jacobian(q)
+        blade_plane = np.eye(3) - np.outer(normal, normal)  # rotations about the normal are free
+        rows = np.vstack([jacobian[3:], blade_plane @ jacobian[:3]])
+        error = np.concatenate([position_error, tilt])
+        gram = rows @ inverse_weights @ rows.T + 1e-9 * np.eye(6)
+        q = q + inverse_weights @ rows.T @ np.linalg.solve(gram, error)
+        if np.any(q < model.lower) or np.any(q > model.upper):
+            return None
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# The controller
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class HitPlan:
+    """A planned hit: the joints' hit time (s on the returner's clock), the racket plan, and the
+    joint state there (q, v; 8 each)."""
+
+    time: float
+    racket: RacketPlan
+    q: np.ndarray
+    v: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+    """The incoming ball from an estimate: sample times (J,; s after the observation), states
+    (J, 9) and contacts [(time, kind, state just before)] in order."""
+
+    times: np.ndarray
+    states: np.ndarray
+    contacts: list[tuple[float, ContactKind, np.ndarray]]
+
+
+@dataclasses.dataclass
+class _Flight:
+    """What the returner remembers about the ball it is playing: its clock (s since its first call
+    for this ball; calls are one segment apart), the last prediction on that clock, the time of
+    the ball's bounce on the robot's half (or None), and the hit plan (or None)."""
+
+    clock: float = 0.0
+    prediction_times: np.ndarray | None = None
+    prediction_positions: np.ndarray | None = None
+    bounce_time: float | None = None
+    hit: HitPlan | None = None
+
+
+class ModelBasedReturner:
+    """The model-based returner (module docstring): ``returner(observation) -> action | None``.
+
+    Attributes for analysis: ``call_seconds`` (wall time of every call, s), ``last_plan`` (the
+    latest HitPlan or None) and ``last_choice`` (which action of step 6 the last call sent: 0 the
+    planned one, 1 the fallback, -1 none).
+    """
+
+    def __init__(
+        self,
+        scenario: RobotScenario | None = None,
+        control: ControlParams | None = None,
+        physics: BallPhysicsParams | None = None,
+        params: ReturnerParams | None = None,
+        layout: ObservationLayout | None = None,
+        model: RobotModel | None = None,
+        stack: ControlStack | None = None,
+        self_check: bool = True,
+    ):
+        """Args: the robot scenario, control parameters, ball physics and observation layout the
+        rally diagram is built with (``RallyParams``: its ``scenario`` loaded, ``control``,
+        ``physics``, and ``ObservationLayout(position_history, spin_history)``), the returner's
+        own parameters, and optionally a RobotModel to share. ``stack``: the control stack whose
+        proposals it checks its actions with (``ControlStack.propose``); by default, with
+        ``self_check``, one like the supervisor's (``diagrams.make_control_stack``: collision
+        checking on), else the maths only (no check: every action is sent as planned)."""
+        self.model = model or RobotModel(scenario)
+        if stack is None and self_check:
+            from ace_drake.diagrams import make_control_stack  # the supervisor's own stack: the same checks
+
+            stack = make_control_stack(self.model.scenario, control or ControlParams())
+        self.stack = stack or ControlStack(self.model.scenario, control, None)
+        self.physics = physics or BallPhysicsParams()
+        self.params = params or ReturnerParams()
+        self.layout = layout or ObservationLayout()
+        self.segment = self.stack.segment_duration
+        self.lead = self.stack.control.observation_lead
+        dynamics = self.model.scenario.dynamics
+        if self.params.joint_lag is None:
+            self.lag = max(ramp_tracking_lag(joint) for joint in dynamics.joints) + 0.5 * dynamics.command_period
+        else:
+            self.lag = self.params.joint_lag
+        self._samples_per_segment = max(1, round(self.segment / self.params.prediction_step))
+        self._step = self.segment / self._samples_per_segment
+        self._flight: _Flight | None = None
+        self.call_seconds: list[float] = []
+        self.last_plan: HitPlan | None = None
+        self.last_choice = -1
+        self._ik_budget = self.params.ik_solves_per_call
+
+    @classmethod
+    def for_rally(cls, rally: RallyParams, params: ReturnerParams | None = None) -> ModelBasedReturner:
+        """The returner for the rally diagram built with ``rally`` (``diagrams.build_rally_diagram``):
+        its scenario, control parameters, ball physics and observation layout."""
+        return cls(
+            scenario=load_scenario(MODELS_DIR / rally.scenario), control=rally.control, physics=rally.physics, params=params,
+            layout=ObservationLayout(rally.position_history, rally.spin_history),
+        )
+
+    def reset(self) -> None:
+        """Forgets the ball being played (the next call starts afresh)."""
+        self._flight = None
+        self.last_plan = None
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray | None:
+        start = time.perf_counter()
+        try:
+            return self._act(np.asarray(observation, dtype=float))
+        finally:
+            self.call_seconds.append(time.perf_counter() - start)
+
+    # ------------------------------------------------------------------------------ one call
+    def _act(self, observation: np.ndarray) -> np.ndarray | None:
+        layout = self.layout
+        self._ik_budget = self.params.ik_solves_per_call
+        estimate = layout.part(observation, "estimate")
+        valid = layout.part(observation, "estimate_status")[0] > 0.5
+        robot = layout.part(observation, "robot_state")
+        q0, v0, a0 = robot[:8], robot[8:16], robot[16:24]
+        flight = self._advance(estimate if valid else None)
+        if not valid or estimate[3] >= 0.0:
+            # No track, or the ball is not coming (the robot has hit it): no new segment.
+            self._flight = None if valid else flight
+            return None
+        if flight.hit is not None and flight.hit.time - flight.clock < self.lead + self.lag + 0.5 * self.segment:
+            if flight.hit.time - flight.clock > self.lead + self.lag - 0.5 * self.segment:
+                # The hit happens in the segment this action commands: follow through.
+                return self._first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
+            flight.hit = None  # the hit time passed and the ball is still coming: replan
+        prediction = self._predict(estimate)
+        if prediction.times.size == 0:
+            return None  # the ball reaches the floor before the next segment starts
+        flight.prediction_times = flight.clock + prediction.times
+        flight.prediction_positions = prediction.states[:, :3]
+        skill = layout.part(observation, "skill")
+        target = np.array([self.params.target_x, np.clip(skill[0], -self.params.target_y_limit, self.params.target_y_limit)])
+        candidates = self._candidates(flight, prediction)
+        hit = self._plan_hit(flight, candidates, prediction, q0, v0, target)
+        if hit is None and candidates and flight.hit is not None:
+            hit = flight.hit  # nothing new works (e.g. no IK this time): keep going for the last plan
+        flight.hit = hit
+        self.last_plan = hit
+        if hit is None:
+            return None
+        boundary = hit.time - flight.clock - self.lag  # when the command must be at (q_hit, v_hit), s after the observation
+        q_target, v_target = hermite(q0, v0, hit.q, hit.v, boundary - self.lead, self.segment)
+        return self._first_safe(q0, v0, a0, [
+            lambda: self._action_to(q0, v0, a0, q_target, v_target),
+            lambda: self.stack.action_towards(q0, v0, a0, hit.q),
+        ])
+
+    def _advance(self, estimate: np.ndarray | None) -> _Flight:
+        """The memory for this call: the clock advanced by one segment, or a fresh memory when the
+        estimate is far from where the last prediction put the ball now (a new ball)."""
+        flight = self._flight
+        if flight is not None:
+            flight.clock += self.segment
+            if estimate is not None and flight.prediction_times is not None:
+                expected = np.array([np.interp(flight.clock, flight.prediction_times, flight.prediction_positions[:, i]) for i in range(3)])
+                if np.linalg.norm(expected - estimate[:3]) > SAME_BALL_DISTANCE or flight.clock > flight.prediction_times[-1] + self.segment:
+                    flight = None
+        if flight is None:
+            flight = _Flight()
+        self._flight = flight
+        return flight
+
+    def _action_to(self, q0, v0, a0, q_target, v_target) -> np.ndarray | None:
+        """The action (16,) whose eq. (12) image from the segment start (q0, v0, a0) is (q_target,
+        v_target), or the boundary point on its ray when outside the feasible set."""
+        try:
+            sets = feasible_sets(q0, v0, a0, self.stack.limits, self.stack.control, self.stack.period)
+        except InfeasibleStartError:
+            return None
+        return np.clip(inverse_map_action(q_target, v_target, sets), -1.0, 1.0)
+
+    def _first_safe(self, q0, v0, a0, actions) -> np.ndarray | None:
+        """The first of ``actions`` (callables returning an action or None, in order of
+        preference) whose segment and reset the control stack accepts (``ControlStack.propose``:
+        the supervisor's own test, so an action sent is an action executed), or None when none is
+        (the supervisor then keeps its plan, as it would on a refusal). Without a collision check
+        in the stack, the first action."""
+        self.last_choice = -1
+        for choice, make in enumerate(actions):
+            try:
+                action = make()
+            except InfeasibleStartError:
+                action = None
+            if action is None:
+                continue
+            if self.stack.collision_check is None or self.stack.propose(q0, v0, a0, action).safe:
+                self.last_choice = choice
+                return action
+        return None
+
+    # ------------------------------------------------------------------------------ prediction
+    def _predict(self, estimate: np.ndarray) -> Prediction:
+        """The incoming ball from the estimate (at the observation time), sampled at lead + lag +
+        j dt (dt = T / samples_per_segment), until it is out of reach (behind ``hit_x_min``, on
+        the floor, bounced twice on the robot's half, or falling below ``hit_height_min`` after
+        its bounce) or the horizon.
+
+        The table is found as a crossing of its plane (``ContactKind.TABLE_PLANE``), kept as a
+        bounce when it lies on the table: with steps this long (10 m/s x 32 ms = 0.32 m) the
+        table's own guard misses a bounce within a step's travel of the table's end, where the
+        step leaves the table's footprint."""
+        params, table = self.params, self.physics.table
+        kinds = (ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR)
+        stops = (ContactKind.TABLE_PLANE, ContactKind.FLOOR)
+        first_sample = self.lead + self.lag
+        times: list[float] = []
+        states: list[np.ndarray] = []
+        contacts: list[tuple[float, ContactKind, np.ndarray]] = []
+        now, state = 0.0, np.asarray(estimate, dtype=float)
+        while True:
+            # One leg: to the next sample time, then on in steps of dt, up to a stopping contact.
+            upcoming = first_sample + self._step * len(times)
+            lead_in = upcoming - now
+            duration = lead_in + 8 * self.segment
+            leg = simulate(state, self.physics, lead_in, dt=lead_in, kinds=kinds, stop_on=stops) if lead_in > 1e-9 else None
+            if leg is None or leg.stop_events[0] is None:
+                if leg is not None:
+                    state, now = leg.final_state[0], upcoming
+                    contacts += [(now - lead_in + e.time, e.kind, e.state_pre) for e in leg.events[0]]
+                    times.append(now)
+                    states.append(state)
+                leg = simulate(state, self.physics, duration - lead_in, dt=self._step, kinds=kinds, stop_on=stops)
+                offset = now
+                stopped = leg.stop_events[0]
+                kept = leg.times[1:] if stopped is None else leg.times[1:][leg.times[1:] < stopped.time]
+                times.extend(offset + kept)
+                states.extend(leg.states[1 : 1 + kept.size, 0])
+            else:
+                offset, stopped = now, leg.stop_events[0]
+            contacts += [(offset + e.time, e.kind, e.state_pre) for e in leg.events[0] if e is not stopped]
+            if stopped is not None:
+                now = offset + stopped.time
+                on_table = abs(stopped.state_pre[0]) <= 0.5 * table.length and abs(stopped.state_pre[1]) <= 0.5 * table.width
+                if stopped.kind == ContactKind.TABLE_PLANE and on_table:
+                    contacts.append((now, ContactKind.TABLE, stopped.state_pre))
+                    state = stopped.state_post  # the table's impact map, eqs (2)-(6)
+                elif stopped.kind == ContactKind.TABLE_PLANE:
+                    kinds, stops = (ContactKind.NET, ContactKind.FLOOR), (ContactKind.FLOOR,)  # past the table
+                    state = stopped.state_pre
+                else:
+                    contacts.append((now, stopped.kind, stopped.state_pre))
+                    break  # the floor
+            else:
+                now, state = times[-1], states[-1]
+            robot_bounces = sum(kind == ContactKind.TABLE and pre[0] < 0.0 for _, kind, pre in contacts)
+            falling_out = robot_bounces >= 1 and state[5] < 0.0 and state[2] < params.hit_height_min
+            if robot_bounces >= 2 or state[0] < params.hit_x_min or falling_out or now - first_sample > params.prediction_horizon:
+                break
+        return Prediction(np.asarray(times), np.asarray(states).reshape(-1, 9), contacts)
+
+    # ------------------------------------------------------------------------------ the hit
+    def _candidates(self, flight: _Flight, prediction: Prediction) -> list[int]:
+        """Indices of the prediction's samples where the robot may hit (module docstring, step 2),
+        most preferred first."""
+        params = self.params
+        table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
+        first_is_bounce = bool(table_contacts) and table_contacts[0][1] == ContactKind.TABLE and table_contacts[0][2][0] < 0.0
+        if flight.bounce_time is not None:
+            # The bounce was imminent at an earlier call: it is this prediction's first contact if
+            # that lies within the margin of it (the same bounce, re-timed), else behind us.
+            remembered = flight.bounce_time - flight.clock
+            if first_is_bounce and abs(table_contacts[0][0] - remembered) < IMMINENT_MARGIN:
+                bounce, after = table_contacts[0][0], table_contacts[1:]
+            elif remembered <= IMMINENT_MARGIN:
+                bounce, after = remembered, table_contacts
+            else:
+                return []
+        elif first_is_bounce:
+            bounce, after = table_contacts[0][0], table_contacts[1:]
+            # Remembered only when it happens before the next call: a prediction that short is
+            # reliable, and the next call's estimate will be past it.
+            if bounce < self.segment + IMMINENT_MARGIN:
+                flight.bounce_time = flight.clock + bounce
+        else:
+            return []  # no bounce on the robot's half ahead: an invalid shot, not to be touched
+        end = after[0][0] if after else np.inf
+        times, states = prediction.times, prediction.states
+        index = np.arange(self._samples_per_segment, len(times), self._samples_per_segment)
+        index = index[(times[index] > bounce) & (times[index] < end)]
+        z, x = states[index, 2], states[index, 0]
+        index = index[(z >= params.hit_height_min) & (z <= params.hit_height_max) & (x >= params.hit_x_min) & (states[index, 3] < 0.0)]
+        if index.size == 0:
+            return []
+        after_bounce = np.flatnonzero((times > bounce) & (times < end))
+        apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
+        order = sorted(index, key=lambda i: abs(times[i] - apex))
+        if flight.hit is not None:  # keep the previous hit time while it is a candidate
+            kept = [i for i in order if abs(flight.clock + times[i] - flight.hit.time) < 1e-6]
+            order = kept + [i for i in order if i not in kept]
+        return order
+
+    def _plan_hit(self, flight: _Flight, candidates: list[int], prediction: Prediction, q0: np.ndarray, v0: np.ndarray, target: np.ndarray) -> HitPlan | None:
+        """The most preferred candidate hit (``_candidates``) with a racket state the joints can
+        make and reach in time (the cubic from the segment start within the acceleration limits);
+        if none is in time, the previous plan's hit time if it is still possible (a late switch
+        costs more than a late arrival), else the one that needs the least acceleration."""
+        limits = self.stack.limits
+        best, best_ratio = None, np.inf
+        for index in candidates[: self.params.candidates_tried]:
+            hit_time = flight.clock + prediction.times[index]
+            same_hit = flight.hit is not None and abs(flight.hit.time - hit_time) < 1e-6
+            previous = flight.hit if same_hit else None
+            for racket in racket_plans(prediction.states[index], hit_time, self.physics, target, self.params, previous.racket if previous else None):
+                q_hit = self._hit_configuration(racket, q0, previous)
+                if q_hit is None:
+                    break  # the position is out of reach: try another hit time
+                previous = HitPlan(hit_time, racket, q_hit, np.zeros(8))  # seeds the next flight time's IK
+                v_hit = racket_joint_velocities(self.model, q_hit, racket.velocity)
+                if np.any(np.abs(v_hit) > limits.velocity) or not np.all(in_invariant_set(q_hit, v_hit, limits, self.stack.control, self.stack.period)):
+                    continue  # too fast for the joints: a slower return
+                duration = prediction.times[index] - self.lag - self.lead
+                ratio = float(np.max(hermite_peak_acceleration(q0, v0, q_hit, v_hit, duration) / limits.acceleration))
+                if ratio <= 1.0:
+                    return HitPlan(hit_time, racket, q_hit, v_hit)
+                if same_hit:
+                    ratio = 0.0  # the plan being executed stays the fallback
+                if ratio < best_ratio:
+                    best, best_ratio = HitPlan(hit_time, racket, q_hit, v_hit), ratio
+                break
+        return best
+
+    def _hit_configuration(self, racket: RacketPlan, q0: np.ndarray, previous: HitPlan | None) -> np.ndarray | None:
+        """q_hit for the racket plan: the previous plan's configuration moved onto it
+        (``refine_hit_ik``) when there is one, else (or if that fails) the full IK
+        (``solve_hit_ik``) from the previous solution, the segment start and the default seeds,
+        within the call's budget of ``ik_solves_per_call`` solves."""
+        if previous is not None:
+            q = refine_hit_ik(self.model, previous.q, racket.position, racket.normal)
+            if q is not None:
+                return q
+        seeds = [q0] if previous is None else [previous.q, q0]
+        for attempt in (seeds, [self.model.seed_for(racket.position, roll) for roll in (0.0, 1.5, -1.5)]):
+            if self._ik_budget <= 0:
+                return None  # this call has spent its budget (a failing IK can take 60 ms a seed)
+            self._ik_budget -= 1
+            ik = solve_hit_ik(self.model, racket.position, racket.normal, q0, attempt, self.params.ik_clearance)
+            if ik.success:
+                return ik.q
+        return None
+
+
+def hermite(q0: np.ndarray, v0: np.ndarray, q1: np.ndarray, v1: np.ndarray, duration: float, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Position and velocity at time t (s) of the cubic Hermite from (q0, v0) at 0 to (q1, v1) at
+    ``duration`` (s), per joint; at and after ``duration`` the straight continuation
+    (q1 + v1 (t - duration), v1)."""
+    if t >= duration:
+        return q1 + v1 * (t - duration), np.array(v1, dtype=float)
+    s = t / duration
+    h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
+    d00, d10, d01, d11 = 6 * s**2 - 6 * s, 3 * s**2 - 4 * s + 1, -6 * s**2 + 6 * s, 3 * s**2 - 2 * s
+    q = h00 * q0 + h10 * duration * v0 + h01 * q1 + h11 * duration * v1
+    v = (d00 * q0 + d01 * q1) / duration + d10 * v0 + d11 * v1
+    return q, v
+
+
+def hermite_peak_acceleration(q0, v0, q1, v1, duration: float) -> np.ndarray:
+    """The largest |acceleration| (8,) of the cubic Hermite of ``hermite`` (linear in time: the
+    larger of its two ends)."""
+    if duration <= 0.0:
+        return np.full(np.shape(q0), np.inf)
+    delta = np.asarray(q1) - np.asarray(q0)
+    start = (6.0 * delta - (4.0 * np.asarray(v0) + 2.0 * np.asarray(v1)) * duration) / duration**2
+    end = (-6.0 * delta + (2.0 * np.asarray(v0) + 4.0 * np.asarray(v1)) * duration) / duration**2
+    return np.maximum(np.abs(start), np.abs(end))

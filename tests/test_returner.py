@@ -1,0 +1,172 @@
+"""The model-based returner: the racket contact inversion, the return solve, the controller's
+actions on constructed observations, and one episode through the full rally diagram."""
+
+import numpy as np
+import pytest
+
+from ace_drake.analysis.scripted_swing import INCOMING_BALL
+from ace_drake.config import BallPhysicsParams, RallyParams
+from ace_drake.control.action_mapping import map_action
+from ace_drake.control.feasible_set import feasible_sets
+from ace_drake.control.returner import (
+    ModelBasedReturner,
+    contact_frame,
+    hermite,
+    invert_racket_contact,
+    racket_plans,
+    solve_return,
+)
+from ace_drake.control.stack import ControlStack
+from ace_drake.learning.observation import ObservationLayout
+from ace_drake.physics.contact import racket_impact, racket_restitution
+from ace_drake.physics.propagate import ContactKind, simulate
+
+PARAMS = BallPhysicsParams()
+RADIUS = PARAMS.aero.ball_radius
+# The scripted swing's incoming ball at the top of its bounce on the robot's half (0.68 s).
+APEX_BALL = simulate(INCOMING_BALL, PARAMS, 0.68).final_state[0]
+
+
+@pytest.fixture(scope="module")
+def returner():
+    return ModelBasedReturner()
+
+
+def observation(layout: ObservationLayout, estimate, valid=True, q=None) -> np.ndarray:
+    """An observation with the EKF estimate ``estimate`` (9,) and the robot at rest at q (default:
+    the ready pose); empty histories."""
+    q = np.asarray(RallyParams().control.reset_pose or (-0.45, -0.15, 0.0, 0.15, 0.35, 0.0, -0.5, 0.0)) if q is None else q
+    empty = np.column_stack([np.zeros((10, 3)), -np.ones(10)])
+    return layout.assemble(
+        positions=empty, spins=empty, robot_state=np.concatenate([q, np.zeros(16)]), end_effector=np.zeros(13),
+        skill=[0.0, 1.0, 0.0], estimate=estimate if valid else np.zeros(9), estimate_status=[1.0 if valid else 0.0, 1.0 if valid else 0.0, 0.01 if valid else -1.0],
+    )
+
+
+def test_the_inversion_of_a_head_on_hit_is_hand_worked():
+    # No spin, straight along x: the normal is x and the normal law of eq. (7) alone sets the speed.
+    v_in, v_out = np.array([-5.0, 0.0, 0.0]), np.array([4.0, 0.0, 0.0])
+    normal, v_racket = invert_racket_contact(v_in, np.zeros(3), v_out, PARAMS.racket, RADIUS)
+    np.testing.assert_allclose(normal, [1.0, 0.0, 0.0], atol=1e-12)
+    speed = v_racket[0]
+    eps = racket_restitution(-5.0 - speed, PARAMS.racket)
+    assert 4.0 - speed == pytest.approx(-eps * (-5.0 - speed), abs=1e-9)  # v_out.n - s = -eps (v_in.n - s)
+    # By hand: eps(4.887 m/s) = 0.8901 exp(-0.011418 * 4.887) = 0.8418, s = (4 - 5 eps) / (1 + eps):
+    # the ball would come back at 4.2 m/s off a still racket, so the racket gives way a little.
+    assert speed == pytest.approx(-0.1135, abs=2e-4)
+
+
+@pytest.mark.parametrize("brush_speed", [0.0, 2.5])
+def test_the_inversion_reproduces_the_outgoing_velocity_through_eqs_7_8(brush_speed):
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        v_in = np.array([-7.0, 0.0, -1.0]) + rng.normal(size=3) * [2.0, 1.5, 1.5]
+        w_in = rng.normal(size=3) * 250.0
+        v_out = np.array([6.0, 0.0, 2.0]) + rng.normal(size=3) * [1.5, 1.0, 1.0]
+        normal, v_racket = invert_racket_contact(v_in, w_in, v_out, PARAMS.racket, RADIUS, brush_speed)
+        v_post, _ = racket_impact(v_in, w_in, v_racket, contact_frame(normal), PARAMS.racket, RADIUS)
+        np.testing.assert_allclose(v_post, v_out, atol=1e-9)
+        assert np.linalg.norm(normal) == pytest.approx(1.0) and normal[0] > 0.0  # the forehand faces the opponent
+        tangential = v_racket - (v_racket @ normal) * normal
+        assert np.linalg.norm(tangential) == pytest.approx(brush_speed, abs=1e-9)
+        assert tangential[2] >= -1e-12  # brushing upwards
+
+
+def test_a_solved_return_lands_on_the_target_over_the_net():
+    target = np.array([0.8, -0.3])
+    shot = solve_return(APEX_BALL, target, 0.55, PARAMS)
+    assert shot is not None
+    flight = simulate(np.concatenate([APEX_BALL[:3], shot.v_out, shot.w_out]), PARAMS, 2.0, stop_on=(ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR))
+    landing = flight.stop_events[0]
+    assert landing.kind == ContactKind.TABLE
+    assert landing.time == pytest.approx(0.55, abs=2e-3)
+    np.testing.assert_allclose(landing.state_pre[:2], target, atol=0.01)
+    assert shot.net_clearance > 0.04
+
+
+def test_racket_plans_send_the_predicted_ball_to_the_target_through_the_contact_model():
+    plan = next(racket_plans(APEX_BALL, 0.68, PARAMS, np.array([0.75, 0.2])))
+    v_post, w_post = racket_impact(APEX_BALL[3:6], APEX_BALL[6:9], plan.velocity, contact_frame(plan.normal), PARAMS.racket, RADIUS)
+    np.testing.assert_allclose(np.concatenate([v_post, w_post]), plan.ball_out[3:], atol=1e-9)
+    standoff = RADIUS + 0.5 * PARAMS.racket.blade_thickness
+    np.testing.assert_allclose(plan.position + standoff * plan.normal, APEX_BALL[:3], atol=1e-12)
+    landing = simulate(plan.ball_out, PARAMS, 2.0, stop_on=(ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR)).stop_events[0]
+    assert landing.kind == ContactKind.TABLE
+    np.testing.assert_allclose(landing.state_pre[:2], [0.75, 0.2], atol=0.01)
+
+
+def test_the_hermite_meets_its_ends_and_continues_straight():
+    q0, v0, q1, v1 = np.array([0.0, 1.0]), np.array([1.0, 0.0]), np.array([2.0, -1.0]), np.array([0.5, 3.0])
+    for t, expected in [(0.0, (q0, v0)), (0.4, (q1, v1)), (0.5, (q1 + 0.1 * v1, v1))]:
+        q, v = hermite(q0, v0, q1, v1, 0.4, t)
+        np.testing.assert_allclose(q, expected[0], atol=1e-12)
+        np.testing.assert_allclose(v, expected[1], atol=1e-12)
+
+
+def test_no_track_or_a_ball_going_away_means_no_new_segment(returner):
+    returner.reset()
+    assert returner(observation(returner.layout, np.zeros(9), valid=False)) is None
+    going_away = np.array([-1.5, 0.0, 0.3, 5.0, 0.0, 2.0, 0.0, 100.0, 0.0])
+    assert returner(observation(returner.layout, going_away)) is None
+
+
+def test_an_invalid_shot_is_left_alone(returner):
+    returner.reset()
+    into_the_net = np.array([1.5, 0.0, 0.05, -6.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    assert returner(observation(returner.layout, into_the_net)) is None
+
+
+def test_the_action_for_a_reachable_ball_moves_the_racket_towards_the_hit(returner):
+    returner.reset()
+    estimate = simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0]  # still on the opponent's side
+    obs = observation(returner.layout, estimate)
+    action = returner(obs)
+    plan = returner.last_plan
+    assert action is not None and plan is not None
+    assert np.all(np.abs(action) <= 1.0)
+    # The hit is after the bounce on the robot's half, at a height the returner accepts.
+    bounce = simulate(estimate, PARAMS, 1.0, stop_on=(ContactKind.TABLE,)).stop_events[0]
+    assert bounce.state_pre[0] < 0.0 and plan.time > bounce.time
+    assert returner.params.hit_height_min <= plan.racket.ball_state[2] <= returner.params.hit_height_max
+    # The segment this action commands ends nearer the hit configuration, and the racket there
+    # nearer the planned racket position.
+    robot = returner.layout.part(obs, "robot_state")
+    q0 = robot[:8]
+    stack = returner.stack
+    q_end, _ = map_action(action, feasible_sets(q0, robot[8:16], robot[16:], stack.limits, stack.control, stack.period))
+    assert np.linalg.norm(q_end - plan.q) < np.linalg.norm(q0 - plan.q)
+    model = returner.model
+    distance = [np.linalg.norm(model.racket_pose(q).translation() - plan.racket.position) for q in (q0, q_end)]
+    assert distance[1] < distance[0]
+
+
+class _Report:
+    def __init__(self, free):
+        self.free, self.pairs, self.time = free, () if free else ("racket - table",), 0.0
+
+
+@pytest.mark.parametrize("free", [True, False])
+def test_an_action_the_supervisor_would_refuse_is_not_sent(returner, free):
+    # The returner proposes its action to a control stack like the supervisor's; with a check that
+    # refuses everything it sends nothing (the supervisor keeps its plan), with one that accepts
+    # everything it sends its first choice.
+    dut = ModelBasedReturner(model=returner.model, stack=ControlStack(returner.model.scenario, returner.stack.control, lambda plan: _Report(free)))
+    estimate = simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0]
+    action = dut(observation(dut.layout, estimate))
+    assert (action is not None) == free
+    assert dut.last_plan is not None
+
+
+def test_an_easy_shot_is_returned_through_the_full_rally_diagram():
+    from ace_drake.diagrams import build_rally_diagram
+    from ace_drake.play.episode import Outcome
+    from ace_drake.play.runner import RallyRunner
+
+    params = RallyParams()  # cameras, triangulation, EKF, perturbations: the full stack
+    dut = ModelBasedReturner.for_rally(params)
+    runner = RallyRunner(build_rally_diagram(params, dut), params)
+    episode = runner.run(INCOMING_BALL, seed=0)
+    assert episode.result.outcome == Outcome.RETURNED, episode.result.reason
+    assert episode.segments[1] == 0  # no refused segment
+    landing = episode.result.landing.state_pre
+    assert 0.0 < landing[0] < 1.37 and abs(landing[1]) < 0.7625
