@@ -97,3 +97,15 @@ def test_tutorial_04_perception_writes_png_and_html(tmp_path):
     html = tmp_path / "cameras.html"
     assert html.is_file() and html.stat().st_size > EMPTY_MESHCAT_HTML and "animation" in html.read_text()
     assert str(html) in run.stdout
+
+
+def test_tutorial_05_rally_returns_the_ball_and_writes_its_files(tmp_path):
+    run = run_tutorial("05_rally.py", tmp_path)
+    assert "the rally diagram has" in run.stdout and "observation_builder" in run.stdout
+    graph = tmp_path / "rally_diagram.svg"
+    assert graph.is_file() or (tmp_path / "rally_diagram.dot").is_file()
+    assert "outcome: returned" in run.stdout and "the return lands at" in run.stdout
+    png = tmp_path / "rally.png"
+    assert png.is_file() and png.stat().st_size > 50_000
+    html = tmp_path / "rally.html"
+    assert html.is_file() and html.stat().st_size > EMPTY_MESHCAT_HTML and "animation" in html.read_text()
