@@ -47,13 +47,16 @@ def test_evaluate_plays_the_human_shots_of_a_match_file(capsys):
     assert result["episodes"] == 2 and len(result["data_sha256"]) == 64 and result["command"].startswith("ace-drake evaluate")
 
 
-def test_console_script_is_installed():
+def test_the_main_job_runs_on_its_defaults_through_the_console_script():
     completed = subprocess.run(
-        [str(Path(sys.executable).with_name("ace-drake")), "rally", "--controller", "still", "--rallies", "1", "--sensors", "statistical", "--json", "--html", ""],
-        capture_output=True, text=True, timeout=300,
+        [str(Path(sys.executable).with_name("ace-drake")), "rally", "--rallies", "2", "--json", "--html", ""],
+        capture_output=True, text=True, timeout=600,
     )
     assert completed.returncode == 0, completed.stderr
-    assert json.loads(completed.stdout)["command"] == "rally"
+    result = json.loads(completed.stdout)
+    assert result["command"] == "rally" and result["controller"] == "returner" and len(result["rallies"]) == 2
+    # The shipped controller hits what it can play (seed 0's two launcher shots are playable).
+    assert all(row["outgoing_speed_m_s"] is not None for row in result["rallies"] if row["outcome"] != "invalid")
 
 
 @needs_data
