@@ -1,5 +1,6 @@
-"""Reinforcement learning: the rally environment, its observation and rewards (issue 7 adds the
-learner).
+"""Reinforcement learning: the rally environment, its observation and rewards, and the learner's
+parts (SAC with the auxiliary decoder loss, event tables, hindsight relabelling, mirroring); the
+rollout workers and the train command are still to come.
 
 Importing this package does not import Drake's diagram builders; ``RallyEnv`` builds its
 training diagram when constructed.
@@ -14,9 +15,28 @@ from ace_drake.learning.rally_env import (
     SkillSampling,
     privileged_slice,
 )
+from ace_drake.learning.mirror import JointMirror, Mirror
+from ace_drake.learning.networks import Actor, DeterministicPolicy, TwinCritic
+from ace_drake.learning.replay import EVENTS, EpisodeSummary, EventReplay, EventThresholds, ReplayConfig, episode_events, relabel_episode
+from ace_drake.learning.sac import SacConfig, SacLearner, soft_target
 from ace_drake.learning.rewards import position_term, return_reward, spin_term, terminal_reward, travel_frame_spin
 
 __all__ = [
+    "EVENTS",
+    "Actor",
+    "DeterministicPolicy",
+    "EpisodeSummary",
+    "EventReplay",
+    "EventThresholds",
+    "JointMirror",
+    "Mirror",
+    "ReplayConfig",
+    "SacConfig",
+    "SacLearner",
+    "TwinCritic",
+    "episode_events",
+    "relabel_episode",
+    "soft_target",
     "END_CONDITIONS",
     "PRIVILEGED_PARTS",
     "ObservationLayout",

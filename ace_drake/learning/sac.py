@@ -1,0 +1,244 @@
+"""Soft Actor-Critic with an asymmetric critic and the paper's auxiliary loss (issue 7).
+
+Paper, Methods *Algorithm*: SAC (Haarnoja et al. 2018) with twin critics and target critics; the
+critic reads ground truth from the simulator (asymmetric actor-critic), the actor reads sensor
+histories; the policy loss has an auxiliary term reconstructing the ground-truth ball state from
+the actor's embedding. The authors' pseudocode (shared/paper/notes.md) adds: Adam with learning
+rate 1e-4 for actor and critic, a *fixed* entropy weight (no automatic temperature tuning),
+Polyak target updates, and auxiliary weight 1. One ``update`` on a batch of transitions
+(s, a, r, s', d) with s = (actor observation o, privileged observation x) does, in this order:
+
+    y        = r + gamma (1 - d) [min_j Q'_j(x', a') - alpha log pi(a' | o')],  a' ~ pi(. | o')
+    L_critic = sum_j mean (Q_j(x, a) - y)^2
+    L_actor  = mean [alpha log pi(a~ | o) - min_j Q_j(x, a~)] + aux_weight * mean (D(e(o)) - b)^2,
+               a~ ~ pi(. | o), e the actor's embedding, D its decoder, b the true ball state
+               (both divided by networks.BALL_STATE_SCALE)
+    theta'   = tau theta + (1 - tau) theta'
+
+d is 1 only at a terminal transition (the episode ended; the rally environment never truncates).
+The critic's features are the privileged observation plus the actor observation's parts named in
+``SacConfig.critic_observation_parts`` (``networks`` docstring).
+
+Batches are dicts of arrays (NumPy or torch) with keys ``BATCH_KEYS``: obs (B, n_obs),
+privileged (B, 28), action (B, 16), reward (B,), next_obs, next_privileged, done (B,).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import torch
+
+from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.learning.networks import (
+    BALL_STATE_SCALE,
+    Actor,
+    DeterministicPolicy,
+    TwinCritic,
+    observation_scale,
+    privileged_scale,
+)
+from ace_drake.learning.observation import ObservationLayout
+from ace_drake.learning.rally_env import PRIVILEGED_PARTS, privileged_slice
+
+BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
+PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())
+
+
+@dataclasses.dataclass(frozen=True)
+class SacConfig:
+    """Every hyper-parameter of the learner, with where its default comes from."""
+
+    actor_lr: float = 1e-4  # notes.md: Adam, learning rate 1e-4 for the actor
+    critic_lr: float = 1e-4  # notes.md: Adam, learning rate 1e-4 for the critic
+    # The paper gives none. An episode lasts ~17 policy steps (0.55 s / 32 ms) and its reward is
+    # terminal, so 0.99 discounts the first step's return by only ~16 %.
+    gamma: float = 0.99
+    # notes.md: a fixed entropy weight, value not public. Rewards are O(1) and terminal; with 16
+    # action dimensions 0.01 keeps the entropy bonus (~0.01 x 16 nats per step) below them.
+    alpha: float = 0.01
+    tau: float = 0.005  # Polyak factor (notes.md: Polyak updates; value not public; SAC paper's)
+    aux_weight: float = 1.0  # notes.md: decoder MSE with weight 1 added to the policy loss
+    batch_size: int = 256  # not public; the SAC paper's
+    # Network sizes: not public. Two 256-wide layers as in the SAC paper.
+    actor_hidden: tuple[int, ...] = (256, 256)
+    embedding_size: int = 256  # the actor's embedding (trunk output) that the decoder reads
+    decoder_hidden: tuple[int, ...] = (256,)
+    critic_hidden: tuple[int, ...] = (256, 256)
+    log_std_bounds: tuple[float, float] = (-5.0, 2.0)  # pre-tanh log std range (CleanRL's SAC)
+    # The paper's s_t (Methods *States*): histories, robot and end-effector state, skill; the
+    # EKF estimate in the observation vector is for classical controllers only.
+    actor_observation_parts: tuple[str, ...] = ("positions", "spins", "robot_state", "end_effector", "skill")
+    # Added to the privileged observation for the critic (networks docstring).
+    critic_observation_parts: tuple[str, ...] = ("robot_state",)
+    position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
+    spin_history: int = 10
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("actor_lr", "critic_lr", "tau", "batch_size", "embedding_size"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"SacConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.gamma < 1.0:
+            raise ValueError(f"SacConfig.gamma must be in [0, 1), got {self.gamma}")
+        if not self.tau <= 1.0:
+            raise ValueError(f"SacConfig.tau must be in (0, 1], got {self.tau}")
+        if not (self.alpha >= 0.0 and self.aux_weight >= 0.0):
+            raise ValueError(f"SacConfig.alpha and aux_weight must be >= 0, got {self.alpha}, {self.aux_weight}")
+
+    @property
+    def layout(self) -> ObservationLayout:
+        return ObservationLayout(self.position_history, self.spin_history)
+
+
+def soft_target(reward, done, next_q1, next_q2, next_log_prob, gamma: float, alpha: float):
+    """The soft Bellman target y = r + gamma (1 - d) (min(Q'_1, Q'_2) - alpha log pi(a'|s'))."""
+    return reward + gamma * (1.0 - done) * (torch.minimum(next_q1, next_q2) - alpha * next_log_prob)
+
+
+class SacLearner:
+    """The learner: actor, twin critics, target critics and their Adam optimisers (module
+    docstring). Seeded by ``config.seed``: network initialisation and every sampled action come
+    from its own torch generator, so the same seed and batches give the same updates, bit for
+    bit, and a learner restored from ``state_dict`` continues exactly as the original would."""
+
+    def __init__(self, config: SacConfig | None = None):
+        self.config = config or SacConfig()
+        c = self.config
+        layout = c.layout
+        self.generator = torch.Generator().manual_seed(c.seed)
+        obs_scale = observation_scale(layout)
+        self._actor_index = torch.as_tensor(np.concatenate([np.arange(layout.size)[layout.slice(p)] for p in c.actor_observation_parts]))
+        self._critic_obs_index = torch.as_tensor(
+            np.concatenate([np.arange(layout.size)[layout.slice(p)] for p in c.critic_observation_parts])
+            if c.critic_observation_parts else np.zeros(0, dtype=int)
+        )
+        self._actor_scale = torch.as_tensor(obs_scale, dtype=torch.float32)[self._actor_index]
+        self._critic_scale = torch.cat([
+            torch.as_tensor(privileged_scale(), dtype=torch.float32),
+            torch.as_tensor(obs_scale, dtype=torch.float32)[self._critic_obs_index],
+        ])
+        self._ball_slice = privileged_slice("ball_state")
+        self._ball_scale = torch.as_tensor(BALL_STATE_SCALE, dtype=torch.float32)
+        self.observation_size = layout.size
+        with torch.random.fork_rng(devices=[]):  # seed the initial weights, leave the global stream
+            torch.manual_seed(c.seed)
+            self.actor = Actor(len(self._actor_index), ACTION_SIZE, c.actor_hidden, c.embedding_size, c.decoder_hidden, c.log_std_bounds)
+            self.critic = TwinCritic(len(self._critic_scale), ACTION_SIZE, c.critic_hidden)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr)
+        self.updates = 0
+
+    # ------------------------------------------------------------------------------ features
+    def actor_features(self, obs: torch.Tensor) -> torch.Tensor:
+        """The actor's scaled input (B, n) from full observation vectors (B, layout.size)."""
+        return obs[:, self._actor_index] / self._actor_scale
+
+    def critic_features(self, privileged: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """The critic's scaled input: [privileged, the observation's critic parts] (B, n)."""
+        return torch.cat([privileged, obs[:, self._critic_obs_index]], dim=-1) / self._critic_scale
+
+    # ------------------------------------------------------------------------------ acting
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False, generator: torch.Generator | None = None) -> np.ndarray:
+        """Actions (..., 16) in [-1, 1] for observations (..., layout.size); sampled with
+        ``generator`` (default: the learner's own) unless ``deterministic`` (tanh of the mean)."""
+        obs_t = torch.as_tensor(np.atleast_2d(obs), dtype=torch.float32)
+        action, _, mean_action, _ = self.actor.sample(self.actor_features(obs_t), generator or self.generator)
+        out = (mean_action if deterministic else action).numpy()
+        return out.reshape(*np.shape(obs)[:-1], ACTION_SIZE)
+
+    def policy(self) -> DeterministicPolicy:
+        """A copy of the actor as a standalone deterministic policy module (networks)."""
+        return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale)
+
+    # ------------------------------------------------------------------------------ losses
+    def _tensors(self, batch: dict) -> dict[str, torch.Tensor]:
+        missing = [key for key in BATCH_KEYS if key not in batch]
+        if missing:
+            raise KeyError(f"SacLearner: the batch lacks {missing}; expected keys {BATCH_KEYS}")
+        return {key: torch.as_tensor(np.asarray(batch[key]), dtype=torch.float32) for key in BATCH_KEYS}
+
+    @torch.no_grad()
+    def target(self, batch: dict) -> torch.Tensor:
+        """The soft Bellman target y (B,) of the module docstring (samples a' from the actor)."""
+        b = batch if isinstance(batch.get("reward"), torch.Tensor) else self._tensors(batch)
+        next_action, next_log_prob, _, _ = self.actor.sample(self.actor_features(b["next_obs"]), self.generator)
+        next_q1, next_q2 = self.target_critic(self.critic_features(b["next_privileged"], b["next_obs"]), next_action)
+        return soft_target(b["reward"], b["done"], next_q1, next_q2, next_log_prob, self.config.gamma, self.config.alpha)
+
+    def auxiliary_loss(self, embedding: torch.Tensor, privileged: torch.Tensor) -> torch.Tensor:
+        """The paper's auxiliary loss: MSE of the decoded ball state against the true one (the
+        privileged observation's ball part), both divided by BALL_STATE_SCALE."""
+        truth = privileged[:, self._ball_slice] / self._ball_scale
+        return torch.mean((self.actor.decode(embedding) - truth) ** 2)
+
+    def update(self, batch: dict) -> dict[str, float]:
+        """One SAC update (critic, then actor, then targets) on ``batch``; returns the losses and
+        diagnostics: critic_loss, actor_loss (policy + weighted auxiliary), policy_loss,
+        aux_loss, entropy (mean -log pi), q_mean, target_mean."""
+        c = self.config
+        b = self._tensors(batch)
+        y = self.target(b)
+        critic_input = self.critic_features(b["privileged"], b["obs"])
+        q1, q2 = self.critic(critic_input, b["action"])
+        critic_loss = torch.mean((q1 - y) ** 2) + torch.mean((q2 - y) ** 2)
+        self.critic_optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic_optimizer.step()
+
+        action, log_prob, _, embedding = self.actor.sample(self.actor_features(b["obs"]), self.generator)
+        q1_pi, q2_pi = self.critic(critic_input, action)
+        policy_loss = torch.mean(c.alpha * log_prob - torch.minimum(q1_pi, q2_pi))
+        aux_loss = self.auxiliary_loss(embedding, b["privileged"])
+        actor_loss = policy_loss + c.aux_weight * aux_loss
+        self.actor_optimizer.zero_grad()
+        actor_loss.backward()  # also reaches the critic's grads, which its next zero_grad clears
+        self.actor_optimizer.step()
+
+        with torch.no_grad():
+            for target, source in zip(self.target_critic.parameters(), self.critic.parameters()):
+                target.mul_(1.0 - c.tau).add_(c.tau * source)
+        self.updates += 1
+        return {
+            "critic_loss": critic_loss.item(),
+            "actor_loss": actor_loss.item(),
+            "policy_loss": policy_loss.item(),
+            "aux_loss": aux_loss.item(),
+            "entropy": -log_prob.mean().item(),
+            "q_mean": 0.5 * (q1.mean() + q2.mean()).item(),
+            "target_mean": y.mean().item(),
+        }
+
+    # ------------------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """Everything needed to continue exactly: networks, optimisers, the sampling generator's
+        state, the update count and the config (a dict, to check on load)."""
+        return {
+            "config": dataclasses.asdict(self.config),
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "target_critic": self.target_critic.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restores a ``state_dict``; raises ValueError if it was written with another config."""
+        saved = {k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items()}
+        mine = dataclasses.asdict(self.config)
+        if saved != mine:
+            differing = sorted(k for k in mine if saved.get(k) != mine[k])
+            raise ValueError(f"SacLearner.load_state_dict: the checkpoint's config differs in {differing}")
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.target_critic.load_state_dict(state["target_critic"])
+        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        self.generator.set_state(state["generator"])
+        self.updates = int(state["updates"])

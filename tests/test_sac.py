@@ -1,0 +1,180 @@
+"""SacLearner: losses on hand-built batches, checkpoints, and a short run that learns."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ace_drake.learning.networks import BALL_STATE_SCALE, squashed_gaussian_log_prob
+from ace_drake.learning.rally_env import privileged_slice
+from ace_drake.learning.sac import PRIVILEGED_SIZE, SacConfig, SacLearner, soft_target
+
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny networks run fastest on one thread (and the test machine has two cores)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+SMALL = dict(actor_hidden=(32,), embedding_size=32, decoder_hidden=(32,), critic_hidden=(32, 32), position_history=3, spin_history=3)
+
+
+def make_batch(learner, size=16, seed=0):
+    rng = np.random.default_rng(seed)
+    n = learner.observation_size
+    return {
+        "obs": rng.normal(size=(size, n)),
+        "privileged": rng.normal(size=(size, PRIVILEGED_SIZE)) * np.r_[BALL_STATE_SCALE, np.ones(19)],
+        "action": rng.uniform(-1, 1, (size, 16)),
+        "reward": rng.choice([-1.0, 0.0, 2.0], size),
+        "next_obs": rng.normal(size=(size, n)),
+        "next_privileged": rng.normal(size=(size, PRIVILEGED_SIZE)),
+        "done": (rng.random(size) < 0.5).astype(float),
+    }
+
+
+def test_soft_target_by_hand():
+    r, d = torch.tensor([1.0, -1.0, 0.5]), torch.tensor([0.0, 1.0, 0.0])
+    q1, q2 = torch.tensor([2.0, 5.0, -1.0]), torch.tensor([3.0, 4.0, -2.0])
+    log_prob = torch.tensor([-10.0, 3.0, 4.0])
+    y = soft_target(r, d, q1, q2, log_prob, gamma=0.9, alpha=0.1)
+    expected = [1.0 + 0.9 * (2.0 + 1.0), -1.0, 0.5 + 0.9 * (-2.0 - 0.4)]
+    np.testing.assert_allclose(y.numpy(), expected, atol=1e-6)
+
+
+def test_learner_target_uses_the_target_twins_min_and_the_entropy_term():
+    learner = SacLearner(SacConfig(gamma=0.95, alpha=0.2, **SMALL))
+    batch = make_batch(learner)
+    state = learner.generator.get_state()
+    y = learner.target(batch)
+    # By hand: the same next actions (same generator state), the target twins, the formula.
+    learner.generator.set_state(state)
+    b = learner._tensors(batch)
+    with torch.no_grad():
+        a, log_prob, _, _ = learner.actor.sample(learner.actor_features(b["next_obs"]), learner.generator)
+        features = learner.critic_features(b["next_privileged"], b["next_obs"])
+        x = torch.cat([features, a], dim=-1)
+        q1 = learner.target_critic.q1(x).squeeze(-1).numpy()
+        q2 = learner.target_critic.q2(x).squeeze(-1).numpy()
+    expected = batch["reward"] + 0.95 * (1 - batch["done"]) * (np.minimum(q1, q2) - 0.2 * log_prob.numpy())
+    np.testing.assert_allclose(y.numpy(), expected, rtol=1e-5, atol=1e-6)
+    # Terminal transitions: the target is the reward alone.
+    terminal = batch["done"] == 1.0
+    np.testing.assert_allclose(y.numpy()[terminal], batch["reward"][terminal], rtol=1e-6)
+
+
+def test_critic_features_are_the_scaled_privileged_and_robot_state():
+    learner = SacLearner(SacConfig(**SMALL))
+    layout = learner.config.layout
+    batch = learner._tensors(make_batch(learner))
+    features = learner.critic_features(batch["privileged"], batch["obs"])
+    assert features.shape[1] == PRIVILEGED_SIZE + 24
+    np.testing.assert_allclose(features[:, 3:6].numpy(), batch["privileged"][:, 3:6].numpy() / 10.0, rtol=1e-6)
+    np.testing.assert_allclose(features[:, PRIVILEGED_SIZE:].numpy()[:, :8], batch["obs"][:, layout.slice("robot_state")][:, :8].numpy(), rtol=1e-6)
+
+
+def test_squashed_log_prob_matches_the_change_of_variables():
+    mean, log_std = torch.tensor([[0.3, -1.0]]), torch.tensor([[-0.5, 0.2]])
+    u = torch.tensor([[0.7, -2.5]])
+    reference = torch.distributions.TransformedDistribution(
+        torch.distributions.Normal(mean, log_std.exp()), [torch.distributions.TanhTransform()]
+    ).log_prob(torch.tanh(u)).sum(-1)
+    np.testing.assert_allclose(squashed_gaussian_log_prob(u, mean, log_std).numpy(), reference.numpy(), rtol=1e-5)
+
+
+def test_auxiliary_loss_is_the_decoder_mse_against_the_privileged_ball_state():
+    learner = SacLearner(SacConfig(**SMALL))
+    b = learner._tensors(make_batch(learner))
+    with torch.no_grad():
+        _, _, embedding = learner.actor(learner.actor_features(b["obs"]))
+        decoded = learner.actor.decode(embedding).numpy()
+        loss = learner.auxiliary_loss(embedding, b["privileged"]).item()
+    truth = b["privileged"][:, privileged_slice("ball_state")].numpy() / BALL_STATE_SCALE
+    assert loss == pytest.approx(np.mean((decoded - truth) ** 2), rel=1e-5)
+
+
+def test_actor_loss_entropy_term_sign_and_scale():
+    """With a constant critic, L_actor = alpha mean log pi - Q + aux_weight aux: the entropy term
+    is +alpha log pi (minimising it raises the entropy), linear in alpha."""
+    losses = {}
+    for alpha, aux_weight in ((0.0, 0.0), (0.5, 0.0), (1.0, 0.0), (1.0, 2.0)):
+        learner = SacLearner(SacConfig(alpha=alpha, aux_weight=aux_weight, **SMALL))
+        with torch.no_grad():
+            for net in (learner.critic.q1, learner.critic.q2):
+                for p in net.parameters():
+                    p.zero_()
+                net[-1].bias.fill_(3.0)  # Q = 3 everywhere
+        batch = make_batch(learner)
+        batch["done"][:] = 1.0
+        batch["reward"][:] = 3.0  # y = Q: the critic step before the actor's leaves Q = 3
+        losses[(alpha, aux_weight)] = learner.update(batch)
+    entropy = losses[(0.0, 0.0)]["entropy"]  # the same seed samples the same actions
+    assert losses[(0.0, 0.0)]["policy_loss"] == pytest.approx(-3.0)
+    for alpha in (0.5, 1.0):
+        assert losses[(alpha, 0.0)]["policy_loss"] == pytest.approx(-alpha * entropy - 3.0, rel=1e-5)
+    with_aux = losses[(1.0, 2.0)]
+    assert with_aux["actor_loss"] == pytest.approx(with_aux["policy_loss"] + 2.0 * with_aux["aux_loss"], rel=1e-6)
+
+
+def test_checkpoint_gives_identical_outputs_and_next_updates(tmp_path):
+    config = SacConfig(seed=3, **SMALL)
+    learner = SacLearner(config)
+    batches = [make_batch(learner, seed=s) for s in range(4)]
+    for batch in batches[:2]:
+        learner.update(batch)
+    path = tmp_path / "learner.pt"
+    torch.save(learner.state_dict(), path)
+    restored = SacLearner(config)
+    restored.update(batches[3])  # diverge first: loading must restore everything
+    restored.load_state_dict(torch.load(path, weights_only=False))
+    obs = batches[0]["obs"][:4]
+    np.testing.assert_array_equal(learner.act(obs, deterministic=True), restored.act(obs, deterministic=True))
+    for batch in batches[2:]:
+        assert learner.update(batch) == restored.update(batch)
+    for a, b in zip(learner.actor.parameters(), restored.actor.parameters()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="gamma"):
+        SacLearner(SacConfig(gamma=0.5, **SMALL)).load_state_dict(learner.state_dict())
+
+
+def test_the_standalone_policy_is_the_deterministic_actor(tmp_path):
+    from ace_drake.systems.policy_controller import as_policy
+
+    learner = SacLearner(SacConfig(**SMALL))
+    learner.update(make_batch(learner))
+    obs = make_batch(learner, seed=1)["obs"][:3]
+    policy = learner.policy()
+    torch.save(policy, tmp_path / "policy.pt")
+    loaded = torch.load(tmp_path / "policy.pt", weights_only=False)
+    expected = learner.act(obs, deterministic=True)
+    np.testing.assert_allclose(as_policy(loaded)(obs[0].astype(np.float32)), expected[0], atol=1e-6)
+    np.testing.assert_allclose(loaded(torch.as_tensor(obs, dtype=torch.float32)).numpy(), expected, atol=1e-6)
+
+
+def test_same_seed_same_learner():
+    a, b = SacLearner(SacConfig(seed=5, **SMALL)), SacLearner(SacConfig(seed=5, **SMALL))
+    batch = make_batch(a)
+    assert a.update(batch) == b.update(batch)
+
+
+def test_a_short_run_on_a_fixed_batch_decreases_the_critic_loss():
+    learner = SacLearner(SacConfig(critic_lr=1e-3, actor_lr=1e-3, **SMALL))
+    batch = make_batch(learner, size=64)
+    first = np.mean([learner.update(batch)["critic_loss"] for _ in range(5)])
+    for _ in range(100):
+        losses = learner.update(batch)
+    last = np.mean([learner.update(batch)["critic_loss"] for _ in range(5)])
+    assert last < 0.2 * first
+    assert math.isfinite(losses["actor_loss"])
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ValueError, match="gamma"):
+        SacConfig(gamma=1.0)
+    with pytest.raises(ValueError, match="tau"):
+        SacConfig(tau=0.0)
