@@ -350,8 +350,8 @@ def main() -> None:
     # 4. A scripted swing
     # ------------------------------------------------------------------------------------------
     # plan_scripted_swing predicts the incoming ball, picks the top of its bounce on the robot's half
-    # as the hit, searches racket normals and speeds (racket contact model, paper eqs (7)-(8)) for a
-    # return that lands near (0.8, 0) m, solves the IK for that racket pose, and joins the ready
+    # as the hit, solves the racket normal and velocity (the inverted racket contact model, paper
+    # eqs (7)-(8); control/returner.py) for a return that lands near (0.8, 0) m, solves the IK for that racket pose, and joins the ready
     # pose, the hit and a stop with a cubic joint trajectory within the limits. Its command is the
     # exact inverse of eq. (9), issued tau_d early. run_scripted_swing then plays that command
     # open-loop in the swing diagram: nothing corrects the swing once it has started.
