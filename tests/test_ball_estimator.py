@@ -89,6 +89,19 @@ def test_no_estimate_before_three_positions_have_arrived(rig):
     np.testing.assert_array_equal(status, [0.0, 0.0, -1.0])
 
 
+def test_each_measurement_is_used_by_the_first_update_after_its_release(rig):
+    # The 1 kHz update bounds the wait between a release and its use by 1 ms.
+    rig.start(seed=4)
+    context = rig.dut.GetMyContextFromRoot(rig.context)
+    for tick in np.arange(1, 120) * 1e-3:
+        rig.simulator.AdvanceTo(tick + 1e-7)  # just past the update at the tick
+        state = rig.dut.estimator_state(context)
+        for port, read in ((rig.dut.position_measurements_port, state.last_position_sequence), (rig.dut.spin_measurements_port, state.last_spin_sequence)):
+            released = [m.sequence for m in port.Eval(context).measurements if m.release_time <= tick]
+            assert read == (released[-1] if released else 0)
+    assert state.last_position_sequence > 10 and state.last_spin_sequence > 30
+
+
 def test_estimate_tracks_the_ball_in_flight_and_after_the_bounce(rig):
     rig.start()
     estimate, covariance, status = rig.at(0.15)

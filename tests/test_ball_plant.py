@@ -9,7 +9,7 @@ from ace_drake.config import BallPhysicsParams
 from ace_drake.diagrams import StaticRacket, build_ball_diagram, make_simulator
 from ace_drake.physics import contact
 from ace_drake.physics.flight import flight_acceleration, make_state
-from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.physics.propagate import ContactKind, contact_gap, simulate
 from ace_drake.systems.ball_plant import BallPlant
 
 PARAMS = BallPhysicsParams()
@@ -38,6 +38,31 @@ def test_derivatives_are_eq_1():
     np.testing.assert_array_equal(derivatives[6:], 0.0)
     np.testing.assert_array_equal(dut.ball_state_port.Eval(context), state)
     assert dut.contact_events_port.Eval(context) == ()
+
+
+def test_witnesses_have_the_sign_of_the_gaps_and_are_exact_near_contact():
+    # The witnesses return cheap lower bounds while clearly positive (BallPlant's docstring).
+    dut = BallPlant(PARAMS)
+    context = dut.CreateDefaultContext()
+    X_WR = RigidTransform(RotationMatrix.MakeYRotation(np.pi / 2), [-1.2, 0.0, 0.2])  # normal along +x
+    dut.racket_pose_port.FixValue(context, X_WR)
+    rng = np.random.default_rng(0)
+    positions = np.r_[rng.uniform([-3, -1.5, -1], [3, 1.5, 1], (300, 3)), [[0.5, 0.2, R + 1e-7], [R + 2e-9, 0.1, 0.05], [1.5, 0.0, -0.74]]]
+    for p_W in positions:
+        state = make_state(p_W, [1.0, 0.0, 0.0])
+        dut.SetBallState(context, state)
+        for kind in (ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR):
+            gap = float(contact_gap(kind, state, PARAMS))
+            witness = dut.CalcStaticGap(context, kind)
+            assert witness <= gap + 1e-15 and (witness > 0) == (gap > 0)
+            if witness <= 1e-9:
+                assert witness == gap
+    for depth in (0.003, 1e-8, -1e-6):  # in front of the blade's face, 2 cm off its centre
+        p_W = X_WR.multiply([0.02, 0.0, 0.5 * PARAMS.racket.blade_thickness + R + depth])
+        dut.SetBallState(context, make_state(p_W, [-1.0, 0.0, 0.0]))
+        assert dut.CalcRacketGap(context) == pytest.approx(depth, abs=1e-12)
+    dut.SetBallState(context, make_state([-0.6, 0.0, 0.2], [-6.0, 0.0, 0.0]))  # 0.6 m in front
+    assert 0.0 < dut.CalcRacketGap(context) <= 0.6 - R - 0.5 * PARAMS.racket.blade_thickness
 
 
 def test_drop_test_impact_time_within_a_microsecond():

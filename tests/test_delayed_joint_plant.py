@@ -104,6 +104,16 @@ def test_the_update_does_not_jump_the_joints():
     assert np.all(np.isfinite(dut.joint_state_port.Eval(context)))
 
 
+def test_at_a_sample_the_output_is_the_state_stored_there():
+    dut = DelayedJointPlant(MIXED)
+    context = moving_context(dut)
+    context.SetTime(PERIOD)
+    context.SetDiscreteState(dut.EvalUniquePeriodicDiscreteUpdate(context))
+    stored = context.get_discrete_state(0).get_value()  # [q, v] at t = PERIOD
+    np.testing.assert_array_equal(dut.joint_state_port.Eval(context), stored)
+    np.testing.assert_array_equal(dut.q_port.Eval(context), stored[:8])
+
+
 def test_v_is_the_time_derivative_of_q():
     dut = DelayedJointPlant(MIXED)
     context = moving_context(dut)

@@ -8,8 +8,8 @@ from hypothesis import strategies as st
 
 from ace_drake.config import AeroParams, BallPhysicsParams, ConfigError, from_dict
 from ace_drake.physics import contact
-from ace_drake.physics.flight import flight_acceleration, magnus_coefficient, make_state, rk4_step
-from ace_drake.physics.propagate import ContactKind, apply_impact, simulate
+from ace_drake.physics.flight import flight_acceleration, magnus_coefficient, make_state, one_ball_flight_acceleration, rk4_step
+from ace_drake.physics.propagate import ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, simulate
 
 PARAMS = BallPhysicsParams()
 AERO = PARAMS.aero
@@ -70,6 +70,26 @@ def test_magnus_coefficient_cap_and_zero_spin_limit():
         w = scale * np.array([3.0, -40.0, 5.0])
         delta = np.linalg.norm(flight_acceleration(v, w, AERO) - base)
         assert delta == pytest.approx(DENSITY_RATIO * np.linalg.norm(np.cross(v, w)), rel=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(-40, 40), min_size=3, max_size=3),
+    st.one_of(st.just([0.0, 0.0, 0.0]), st.lists(st.floats(-1000, 1000), min_size=3, max_size=3)),
+)
+def test_one_ball_acceleration_is_the_batched_one_bit_for_bit(v, w):
+    one = one_ball_flight_acceleration(tuple(v), tuple(w), AERO)
+    np.testing.assert_array_equal(one, flight_acceleration(np.array(v), np.array(w), AERO))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-3, 3), st.floats(-1.5, 1.5), st.floats(-1.0, 1.0))
+def test_gap_lower_bounds_are_below_the_gaps(x, y, z):
+    state = make_state([x, y, z], [0.0, 0.0, 0.0])
+    for kind in (ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR, ContactKind.TABLE_PLANE):
+        bound = contact_gap_lower_bound(kind, (x, y, z), PARAMS)
+        assert bound <= float(contact_gap(kind, state, PARAMS)) + 1e-15
+    assert contact_gap_lower_bound(ContactKind.FLOOR, (x, y, z), PARAMS) == float(contact_gap(ContactKind.FLOOR, state, PARAMS))
 
 
 def test_trajectory_is_continuous_as_spin_goes_to_zero():

@@ -52,6 +52,28 @@ def test_every_released_frame_becomes_a_measurement():
         assert np.all(np.linalg.eigvalsh(measurement.covariance) > 0)
 
 
+def test_each_frame_is_triangulated_once_and_absorbed_at_the_next_trigger(monkeypatch):
+    import ace_drake.systems.triangulator as module
+
+    calls = []
+    original = module.triangulate
+    monkeypatch.setattr(module, "triangulate", lambda *args: calls.append(args) or original(*args))
+    cameras, dut, diagram = constant_ball_diagram(CameraParams(dropout_probability=0.0))
+    simulator = Simulator(diagram)
+    context = dut.GetMyContextFromRoot(simulator.get_context())
+    shown_before = 0
+    for millisecond in range(1, 101):  # a consumer reading the output every 1 ms, as the estimator
+        simulator.AdvanceTo(millisecond * 1e-3 + 1e-7)
+        frame = cameras.detections_port.Eval(cameras.GetMyContextFromRoot(simulator.get_context()))
+        assert measurements(dut, simulator).last_sequence == frame.sequence  # shown from its release on
+        absorbed = context.get_abstract_state(0).get_value().last_frame_sequence
+        if millisecond % 5 == 0:  # a trigger: the frame shown before it is absorbed
+            assert absorbed == shown_before
+        assert frame.sequence - 1 <= absorbed <= frame.sequence
+        shown_before = frame.sequence
+    assert frame.sequence == 18 and len(calls) == 18  # each released frame triangulated once
+
+
 def test_exact_detections_give_the_ball_and_a_zero_covariance():
     cameras, dut, diagram = constant_ball_diagram(CameraParams(pixel_noise_sigma=0.0, dropout_probability=0.0))
     simulator = Simulator(diagram)
@@ -104,7 +126,7 @@ def fixed_frame_simulator(capacity=32):
 
 
 def release(dut, simulator, frame):
-    """Puts ``frame`` on the input and takes a step (the per-step update absorbs it)."""
+    """Puts ``frame`` on the input and advances one trigger period (the trigger's update absorbs it)."""
     dut.detections_port.FixValue(simulator.get_mutable_context(), frame)
     simulator.AdvanceTo(simulator.get_context().get_time() + 0.005)
     return measurements(dut, simulator)

@@ -13,9 +13,10 @@ Measured side by side in one process on one core (issue 6 aims at >= 20 x real t
 - a profile of one episode per sensor path attributing wall time to the diagram's systems: a
   ``sys.setprofile`` tracer charges the time between Python events to the innermost system
   callback running (a method of a LeafSystem in ``ace_drake/systems``; helpers such as the
-  physics, EKF or control-stack code count for the system that called them); the rest is Drake's
-  C++ (integrator, event dispatch, caches) and the benchmark's own code. Tracing slows Python
-  more than C++, so the shares are indicative; the top functions by own time come from cProfile.
+  physics, EKF or control-stack code, or the systems' state classes, count for the system that
+  called them); the rest is Drake's C++ (integrator, event dispatch, caches) and the benchmark's
+  own code. Tracing slows Python more than C++, so the shares are indicative; the top functions
+  by own time come from cProfile.
 """
 
 from __future__ import annotations
@@ -192,7 +193,9 @@ def profile_by_system(run: Callable[[], object], simulated_seconds: float | None
             return None
         system = frame.f_locals.get("self")
         if system is None or not hasattr(system, "get_name"):
-            return Path(frame.f_code.co_filename).stem
+            # A helper of the systems' modules (a state's method, a lambda) counts for the system
+            # that called it, or for its module when Drake called it directly.
+            return None if stack else Path(frame.f_code.co_filename).stem
         key = id(system)
         if key not in names:
             names[key] = system.get_name() or type(system).__name__

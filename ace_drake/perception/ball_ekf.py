@@ -68,7 +68,7 @@ from scipy import stats
 from ace_drake.config import BallPhysicsParams, EstimatorParams
 from ace_drake.perception.measurements import Measurement
 from ace_drake.physics.flight import flight_acceleration, rk4_step
-from ace_drake.physics.propagate import DEFAULT_KINDS, contact_gap, simulate
+from ace_drake.physics.propagate import DEFAULT_KINDS, contact_gap, contact_gap_lower_bound, simulate
 
 STATE_SIZE = 9
 BIAS = slice(9, 12)  # the spin sensor's bias, a consider parameter, in the 12 x 12 covariance
@@ -96,11 +96,12 @@ class Observation:
     value: np.ndarray
     covariance: np.ndarray
     lag: float = 0.0
+    # Processing order: capture time + lag, then contact < position < spin, then sequence. Stored,
+    # not a property: the filter compares keys of its whole history at every update.
+    key: tuple[float, int, int] = dataclasses.field(init=False, repr=False, compare=False)
 
-    @property
-    def key(self) -> tuple[float, int, int]:
-        """Processing order: capture time + lag, then contact < position < spin, then sequence."""
-        return (self.capture_time + self.lag, self.kind, self.sequence)
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "key", (self.capture_time + self.lag, self.kind, self.sequence))
 
     @staticmethod
     def of(measurement: Measurement, kind: int, lag: float = 0.0) -> Observation:
@@ -212,11 +213,9 @@ class BallEkf:
         self._start_covariance[BIAS, BIAS] = self._unshaped_bias_covariance
         # Fitting p and v to n positions leaves 3 (n - 2) degrees of freedom.
         self._fit_threshold = float(stats.chi2.ppf(p.initial_fit_confidence, 3 * (p.initial_position_count - 2)))
-        self._position_h = np.zeros((3, 12))
-        self._position_h[:, 0:3] = np.eye(3)
-        self._spin_h = np.zeros((3, 12))
-        self._spin_h[:, 6:9] = np.eye(3)
-        self._spin_h[:, BIAS] = np.eye(3)
+        # What each measurement sees of [x, b] (the columns of H that are I): p; w + b.
+        self._position_h = (slice(0, 3),)
+        self._spin_h = (slice(6, 9), BIAS)
 
     # ------------------------------------------------------------------------------ public
     def initial_state(self) -> EkfState:
@@ -435,14 +434,19 @@ class BallEkf:
         )
 
     # ------------------------------------------------------------------------------ maths
-    def _kalman_update(self, mean, covariance, innovation, h, noise):
-        """Schmidt-Kalman update: the gain's bias rows are zero; Joseph form (valid for any gain)."""
-        covariance_h = covariance @ h.T
-        innovation_covariance = h @ covariance_h + noise
+    def _kalman_update(self, mean, covariance, innovation, observed, noise):
+        """Schmidt-Kalman update: the gain's bias rows are zero; Joseph form (valid for any gain).
+
+        ``observed``: the slices of [x, b] whose sum the measurement sees (H = [I at each]); the
+        products with H are these columns and rows, the same numbers as the matrix products."""
+        covariance_h = sum(covariance[:, block] for block in observed)  # P H^T
+        innovation_covariance = sum(covariance_h[block] for block in observed) + noise  # H P H^T + R
         gain = np.linalg.solve(innovation_covariance, covariance_h.T).T
         gain[BIAS] = 0.0
         mean = mean + gain[:STATE_SIZE] @ innovation
-        reduction = np.eye(12) - gain @ h
+        reduction = np.eye(12)  # I - K H
+        for block in observed:
+            reduction[:, block] -= gain
         covariance = reduction @ covariance @ reduction.T + gain @ noise @ gain.T
         return mean, 0.5 * (covariance + covariance.T)
 
@@ -469,6 +473,12 @@ class BallEkf:
 
     def _contact_free_horizon(self, mean: np.ndarray) -> float:
         """How long (s, at most FREE_HORIZON_MAX) the ball at ``mean`` surely touches nothing."""
+        # Far from everything (most of a flight) the cheap lower bounds on the gaps already give
+        # the maximum; a relative 1e-9 covers their round-off and that of the speed.
+        position, velocity = mean[:3].tolist(), mean[3:6].tolist()
+        clear = min(contact_gap_lower_bound(kind, position, self.physics) for kind in DEFAULT_KINDS)
+        if clear > FREE_HORIZON_MAX * (math.sqrt(sum(v * v for v in velocity)) + FREE_SPEED_MARGIN) * (1.0 + 1e-9):
+            return FREE_HORIZON_MAX
         gap = min(float(contact_gap(kind, mean, self.physics)) for kind in DEFAULT_KINDS)
         if gap <= 0.0:
             return 0.0

@@ -40,7 +40,7 @@ class Measurement:
         covariance = np.array(self.covariance, dtype=float)
         if value.shape != (3,) or covariance.shape != (3, 3):
             raise ValueError(f"Measurement: value must be (3,) and covariance (3, 3), got {value.shape} and {covariance.shape}")
-        if not (np.all(np.isfinite(value)) and np.all(np.isfinite(covariance))):
+        if not (np.isfinite(value).all() and np.isfinite(covariance).all()):
             raise ValueError(f"Measurement {self.sequence}: value and covariance must be finite, got {value} and {covariance}")
         if self.release_time < self.capture_time:
             raise ValueError(f"Measurement {self.sequence}: released at {self.release_time} s before its capture at {self.capture_time} s")
@@ -75,7 +75,10 @@ class MeasurementHistory:
 
     def since(self, sequence: int) -> tuple[Measurement, ...]:
         """The measurements numbered above ``sequence``, oldest first."""
-        return tuple(m for m in self.measurements if m.sequence > sequence)
+        start = len(self.measurements)  # numbered in order: scan back from the newest
+        while start > 0 and self.measurements[start - 1].sequence > sequence:
+            start -= 1
+        return self.measurements[start:]
 
     def appended(self, measurement: Measurement) -> MeasurementHistory:
         """A new history with ``measurement`` released last (the oldest dropped beyond capacity)."""

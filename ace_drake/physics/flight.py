@@ -2,10 +2,13 @@
 
 A ball state is a (..., 9) array [p_W (m), v_W (m/s), w_W (rad/s)] in the world frame of
 DESIGN.md; spin is constant in flight (paper, Methods *Ball aerodynamics*). Every function is
-batched over the leading dimensions.
+batched over the leading dimensions, except ``one_ball_flight_acceleration``, the scalar twin of
+``flight_acceleration`` for per-ball callers.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -26,9 +29,10 @@ def magnus_coefficient(speed: np.ndarray, spin_rate: np.ndarray, aero: AeroParam
     """
     speed = np.asarray(speed, dtype=float)
     spin_rate = np.asarray(spin_rate, dtype=float)
-    safe_rate = np.where(spin_rate > 0.0, spin_rate, 1.0)
+    spinning = spin_rate > 0.0
+    safe_rate = np.where(spinning, spin_rate, 1.0)
     c_m = aero.magnus_slope * speed / (aero.ball_radius * safe_rate) + aero.magnus_offset
-    return np.where(spin_rate > 0.0, np.minimum(c_m, aero.magnus_cap), aero.magnus_cap)
+    return np.where(spinning, np.minimum(c_m, aero.magnus_cap), aero.magnus_cap)
 
 
 def flight_acceleration(v_W: np.ndarray, w_W: np.ndarray, aero: AeroParams) -> np.ndarray:
@@ -47,13 +51,37 @@ def flight_acceleration(v_W: np.ndarray, w_W: np.ndarray, aero: AeroParams) -> n
     drag_gain = -(3.0 / (8.0 * aero.ball_radius)) * aero.drag_coefficient * density_ratio * speed
     magnus_gain = -magnus_coefficient(speed, spin_rate, aero) * density_ratio
     gravity_scale = (1.0 - density_ratio) if aero.buoyancy else 1.0
-    return np.stack(
-        [
-            drag_gain * vx + magnus_gain * (vy * wz - vz * wy),
-            drag_gain * vy + magnus_gain * (vz * wx - vx * wz),
-            drag_gain * vz + magnus_gain * (vx * wy - vy * wx) - gravity_scale * aero.gravity,
-        ],
-        axis=-1,
+    a_x = drag_gain * vx + magnus_gain * (vy * wz - vz * wy)
+    a_y = drag_gain * vy + magnus_gain * (vz * wx - vx * wz)
+    a_z = drag_gain * vz + magnus_gain * (vx * wy - vy * wx) - gravity_scale * aero.gravity
+    acceleration = np.empty(np.shape(a_x) + (3,))  # filled per axis: np.stack costs more
+    acceleration[..., 0], acceleration[..., 1], acceleration[..., 2] = a_x, a_y, a_z
+    return acceleration
+
+
+def one_ball_flight_acceleration(v_W: tuple[float, float, float], w_W: tuple[float, float, float], aero: AeroParams) -> tuple[float, float, float]:
+    """``flight_acceleration`` of one ball in Python floats, m/s^2, equal to it bit for bit (the
+    same operations in the same order; tests/test_physics.py checks it).
+
+    For callers that evaluate one ball at a time, such as the BallPlant's derivatives (thousands of
+    calls per simulated second): NumPy's per-call overhead on 3-vectors makes the batched function
+    about six times slower there. Args: v_W (m/s) and w_W (rad/s) as 3 floats each.
+    """
+    vx, vy, vz = v_W
+    wx, wy, wz = w_W
+    density_ratio = aero.air_density / aero.ball_density
+    speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+    spin_rate = math.sqrt(wx * wx + wy * wy + wz * wz)
+    drag_gain = -(3.0 / (8.0 * aero.ball_radius)) * aero.drag_coefficient * density_ratio * speed
+    magnus = aero.magnus_cap
+    if spin_rate > 0.0:  # magnus_coefficient, with its limit at zero spin
+        magnus = min(aero.magnus_slope * speed / (aero.ball_radius * spin_rate) + aero.magnus_offset, aero.magnus_cap)
+    magnus_gain = -magnus * density_ratio
+    gravity_scale = (1.0 - density_ratio) if aero.buoyancy else 1.0
+    return (
+        drag_gain * vx + magnus_gain * (vy * wz - vz * wy),
+        drag_gain * vy + magnus_gain * (vz * wx - vx * wz),
+        drag_gain * vz + magnus_gain * (vx * wy - vy * wx) - gravity_scale * aero.gravity,
     )
 
 

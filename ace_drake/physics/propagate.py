@@ -76,6 +76,26 @@ def contact_gap(kind: ContactKind, state: np.ndarray, params: BallPhysicsParams)
     raise ValueError(f"contact_gap: no static guard for {kind!r} (racket contact lives in BallPlant)")
 
 
+def contact_gap_lower_bound(kind: ContactKind, p_W: tuple[float, float, float], params: BallPhysicsParams) -> float:
+    """A lower bound on ``contact_gap`` for one ball centred at p_W (3 floats, m), in a few float
+    operations: for callers that need only the gap's sign while the ball is clear, such as the
+    BallPlant's witness functions (thousands of calls per simulated second).
+
+    Table: the height above the playing surface's plane less r (the guard is max(z - r, d)); net:
+    the distance from the net's plane x = 0 less r; floor: the floor's gap itself. Exact up to
+    round-off (a few 1e-16 m): use it with a margin above that.
+    """
+    x, _, z = p_W
+    radius = params.aero.ball_radius
+    if kind in (ContactKind.TABLE, ContactKind.TABLE_PLANE):
+        return z - radius
+    if kind == ContactKind.NET:
+        return abs(x) - radius
+    if kind == ContactKind.FLOOR:
+        return z + params.table.surface_height - radius
+    raise ValueError(f"contact_gap_lower_bound: no static guard for {kind!r} (racket contact lives in BallPlant)")
+
+
 def is_contact(kind: ContactKind, state: np.ndarray, params: BallPhysicsParams) -> bool:
     """Whether a guard crossing of ``kind`` at (9,) ``state`` is a real contact.
 

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem, ValueProducer
+from pydrake.systems.framework import EventStatus, LeafSystem, ValueProducer
 
 from ace_drake.config import BallPhysicsParams, EstimatorParams
 from ace_drake.perception.ball_ekf import BallEkf, BallEstimate, EkfState
@@ -60,8 +60,9 @@ class BallEstimator(LeafSystem):
         numbered above the last ones read (``MeasurementHistory.since``) and new racket contacts.
 
     1 kHz bounds the wait between a measurement's release and its use by 1 ms, against 8-14 ms
-    of sensor latency; an update with nothing new costs two port reads. The outputs are computed
-    on demand (one prediction, cached per context time).
+    of sensor latency; an update with nothing new costs two port reads and says it did nothing
+    (EventStatus.DidNothing), which spares the Simulator writing the state back. The outputs are
+    computed on demand (one prediction, cached per context time).
     """
 
     def __init__(self, params: EstimatorParams | None = None, physics: BallPhysicsParams | None = None):
@@ -121,7 +122,7 @@ class BallEstimator(LeafSystem):
         spins = spins_history.since(last_spin)
         racket_times = [event.time for event in events[contacts_seen:] if event.kind == ContactKind.RACKET]
         if not (positions or spins or racket_times) and len(events) == contacts_seen:
-            return
+            return EventStatus.DidNothing()  # the Simulator skips writing the state back
         updated = EstimatorState(
             self.ekf.update(current.filter, positions, spins, racket_times),
             positions_history.last_sequence,
@@ -129,6 +130,7 @@ class BallEstimator(LeafSystem):
             len(events),
         )
         state.get_mutable_abstract_state(self._state_index).set_value(updated)
+        return EventStatus.Succeeded()
 
     # ------------------------------------------------------------------------------ outputs
     def _CalcEstimate(self, context, value):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
@@ -16,8 +18,12 @@ from pydrake.systems.framework import (
 from ace_drake.config import BallPhysicsParams
 from ace_drake.physics import contact
 from ace_drake.physics.contact import ResidualModel
-from ace_drake.physics.flight import flight_acceleration
-from ace_drake.physics.propagate import ContactEvent, ContactKind, apply_impact, contact_gap, is_contact
+from ace_drake.physics.flight import one_ball_flight_acceleration
+from ace_drake.physics.propagate import ContactEvent, ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, is_contact
+
+# m: a witness returns a cheap lower bound on its gap while that bound exceeds this (far above the
+# bounds' round-off of a few 1e-16 m), else the gap itself (BallPlant's docstring).
+WITNESS_BOUND_MARGIN = 1e-9
 
 
 class BallPlant(LeafSystem):
@@ -44,6 +50,13 @@ class BallPlant(LeafSystem):
     Contact times are located by the Simulator's witness isolation: use ``diagrams.make_simulator``
     (maximum step 1 ms, accuracy 1e-6), which keeps a racket from being tunnelled through at relative
     speeds up to 50 m/s and places contacts within 1e-6 s.
+
+    The witnesses are evaluated at both ends of every integrator step, thousands of times per
+    simulated second. Drake's triggering and isolation look only at the signs of witness values,
+    so while a cheap lower bound on a gap exceeds WITNESS_BOUND_MARGIN a witness returns that bound
+    (``physics.propagate.contact_gap_lower_bound``; for the racket, the distance between the ball's
+    and the blade's centres less the ball's radius and the blade's half-diagonal), and otherwise
+    the exact gap: every sign, hence every contact time, is the exact gap's.
     """
 
     def __init__(
@@ -60,6 +73,9 @@ class BallPlant(LeafSystem):
         self.params = params or BallPhysicsParams()
         self._perturb = perturb
         self._residual = racket_residual
+        racket = self.params.racket
+        # Every point of the blade lies within this distance of its centre, m.
+        self._blade_half_diagonal = math.hypot(racket.blade_radius, 0.5 * racket.blade_thickness)
         self._state_index = self.DeclareContinuousState(9)
         self._events_index = self.DeclareAbstractState(AbstractValue.Make(()))
         self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
@@ -81,7 +97,7 @@ class BallPlant(LeafSystem):
             self.MakeWitnessFunction(
                 kind.name.lower(),
                 direction,
-                lambda context, kind=kind: float(contact_gap(kind, self._state(context), self.params)),
+                lambda context, kind=kind: self.CalcStaticGap(context, kind),
                 UnrestrictedUpdateEvent(lambda context, event, state, kind=kind: self._ApplyContact(context, state, kind)),
             )
             for kind in (ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR)
@@ -105,11 +121,9 @@ class BallPlant(LeafSystem):
 
     # ------------------------------------------------------------------------------ dynamics
     def DoCalcTimeDerivatives(self, context, derivatives):
-        state = self._state(context)
-        derivative = np.zeros(9)
-        derivative[:3] = state[3:6]
-        derivative[3:6] = flight_acceleration(state[3:6], state[6:9], self.params.aero)  # paper eq. (1)
-        derivatives.get_mutable_vector().SetFromVector(derivative)
+        _, _, _, vx, vy, vz, wx, wy, wz = self._state(context).tolist()
+        acceleration = one_ball_flight_acceleration((vx, vy, vz), (wx, wy, wz), self.params.aero)  # paper eq. (1)
+        derivatives.get_mutable_vector().SetFromVector([vx, vy, vz, *acceleration, 0.0, 0.0, 0.0])
 
     def DoGetWitnessFunctions(self, context):
         if self.racket_pose_port.HasValue(context):
@@ -124,11 +138,28 @@ class BallPlant(LeafSystem):
         output.set_value(context.get_abstract_state(self._events_index).get_value())
 
     def CalcRacketGap(self, context) -> float:
-        """Distance from the ball's surface to the blade (a disc of radius R_b, thickness t), m."""
+        """Distance from the ball's surface to the blade (a disc of radius R_b, thickness t), m;
+        while the ball is clear of the blade's bounding sphere, a lower bound on it (the class
+        docstring)."""
         X_WR = self.racket_pose_port.Eval(context)
-        p_RB = X_WR.inverse().multiply(self._state(context)[:3])
+        p_WB = self._state(context)[:3]
+        x, y, z = p_WB.tolist()
+        x_R, y_R, z_R = X_WR.translation().tolist()
+        bound = math.sqrt((x - x_R) ** 2 + (y - y_R) ** 2 + (z - z_R) ** 2) - self._blade_half_diagonal - self.params.aero.ball_radius
+        if bound > WITNESS_BOUND_MARGIN:
+            return bound
+        p_RB = X_WR.inverse().multiply(p_WB)
         closest = self._closest_blade_point(p_RB)
         return float(np.linalg.norm(p_RB - closest) - self.params.aero.ball_radius)
+
+    def CalcStaticGap(self, context, kind: ContactKind) -> float:
+        """The witness of a table, net or floor contact, m: the gap (``contact_gap``), or a lower
+        bound on it while that is clearly positive (the class docstring)."""
+        state = self._state(context)
+        bound = contact_gap_lower_bound(kind, state[:3].tolist(), self.params)
+        if bound > WITNESS_BOUND_MARGIN:
+            return bound
+        return float(contact_gap(kind, state, self.params))
 
     # ------------------------------------------------------------------------------ contacts
     def _ApplyContact(self, context, state, kind: ContactKind) -> None:

@@ -2,11 +2,25 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
-from pydrake.systems.framework import LeafSystem
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from ace_drake.config import JOINT_NAMES, RobotDynamicsParams
 from ace_drake.control.joint_model import JointPropagator
+
+
+@dataclasses.dataclass(frozen=True)
+class _CommandSample:
+    """What the outputs need of the last command sample (``DelayedJointPlant._CalcSample``)."""
+
+    time: float
+    state: np.ndarray
+    zeta: np.ndarray
+    u_old: np.ndarray
+    u_new: np.ndarray
 
 
 class DelayedJointPlant(LeafSystem):
@@ -42,7 +56,10 @@ class DelayedJointPlant(LeafSystem):
     racket driven by them are exact, and the outputs do not depend on q_command directly. The joint
     state is not continuous state of a LinearSystem because the stiff poles (1000 rad/s) made the
     error-controlled integrator take 141,000 steps per simulated second; here a simulation costs
-    1000 updates per second plus whatever output evaluations its consumers need.
+    1000 updates per second plus whatever output evaluations its consumers need. What those read
+    of the last sample is cached once per sample (``_CalcSample``), and at the sample instant
+    itself (right after each update, where the BallPlant's racket witness starts every step) the
+    output is the stored state, with no propagation.
     """
 
     def __init__(self, params: RobotDynamicsParams | None = None):
@@ -63,7 +80,12 @@ class DelayedJointPlant(LeafSystem):
         self._sample_time_index = self.DeclareDiscreteState(1)
         self._command_history_index = self.DeclareDiscreteState(self._history_length * joint_count)
         self.q_command_port = self.DeclareVectorInputPort("q_command", joint_count)
-        output_prerequisites = {self.time_ticket(), self.xd_ticket()}
+        self._sample_cache = self.DeclareCacheEntry(
+            "the last command sample",
+            ValueProducer(allocate=lambda: AbstractValue.Make(None), calc=self._CalcSample),
+            {self.xd_ticket()},
+        )
+        output_prerequisites = {self.time_ticket(), self._sample_cache.ticket()}
         self.joint_state_port = self.DeclareVectorOutputPort(
             "joint_state", 2 * joint_count, self.CalcJointState, prerequisites_of_calc=output_prerequisites
         )
@@ -84,7 +106,7 @@ class DelayedJointPlant(LeafSystem):
 
     # ------------------------------------------------------------------------------ outputs
     def CalcJointState(self, context, output):
-        output.SetFromVector(self._joint_state_now(context).T.ravel())
+        output.SetFromVector(self._joint_state_now(context))
 
     def CalcQ(self, context, output):
         output.SetFromVector(self.joint_state_port.Eval(context)[: len(JOINT_NAMES)])
@@ -101,21 +123,36 @@ class DelayedJointPlant(LeafSystem):
         discrete_state.get_mutable_vector(self._command_history_index).SetFromVector(shifted)
 
     # ------------------------------------------------------------------------------ helpers
+    def _CalcSample(self, context, value):
+        """The last sample, for every output until the next: its time t_last (s), zeta there as
+        (8, 2) and flat [q, v] (16,), and each joint's inputs u_old, u_new (8,) of the period."""
+        zeta = context.get_discrete_state(self._joint_state_index).get_value()
+        history = context.get_discrete_state(self._command_history_index).get_value().reshape(self._history_length, -1)
+        value.set_value(
+            _CommandSample(
+                context.get_discrete_state(self._sample_time_index).GetAtIndex(0),
+                zeta.copy(),
+                zeta.reshape(2, -1).T.copy(),
+                history[self._older_input],
+                history[self._newer_input],
+            )
+        )
+
     def _joint_state_now(self, context) -> np.ndarray:
-        """zeta (8, 2) = [q, v] per joint at the context's time, from the last command sample."""
+        """[q, v] (16,) at the context's time, from the last command sample."""
         time = context.get_time()
-        sample_time = context.get_discrete_state(self._sample_time_index).GetAtIndex(0)
-        elapsed = time - sample_time
+        sample = self._sample_cache.Eval(context)
+        elapsed = time - sample.time
+        if elapsed == 0.0:  # at the sample itself (after each update): the state stored there
+            return sample.state
         if not -self._time_tolerance <= elapsed <= self.params.command_period + self._time_tolerance:
             raise RuntimeError(
                 f"DelayedJointPlant: the context time {time} s is {elapsed} s after the last command sample "
-                f"at {sample_time} s; the joints are defined from it up to one command period "
+                f"at {sample.time} s; the joints are defined from it up to one command period "
                 f"({self.params.command_period} s) later. Advance the context with a Simulator, or call "
                 "SetJointState after setting the time."
             )
-        zeta = context.get_discrete_state(self._joint_state_index).get_value().reshape(2, -1).T
-        history = context.get_discrete_state(self._command_history_index).get_value().reshape(self._history_length, -1)
-        return self.propagator.propagate(zeta, history[self._older_input], history[self._newer_input], elapsed)
+        return self.propagator.propagate(sample.zeta, sample.u_old, sample.u_new, elapsed).T.ravel()
 
     @staticmethod
     def _checked(name: str, value) -> np.ndarray:

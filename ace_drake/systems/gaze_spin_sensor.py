@@ -12,18 +12,16 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from ace_drake.config import SpinSensorParams
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.sensor_models import (
-    PendingMeasurement,
     SpinBias,
     draw_spin_bias,
     first_spin_capture_time,
-    insert_pending,
     racket_tracking_loss,
-    release_due,
     sample_spin_measurements,
     spin_at_times,
     spin_capture_times,
 )
 from ace_drake.physics.propagate import ContactKind
+from ace_drake.systems.statistical_position_sensor import SensorQueue
 
 SPIN_STREAM = 2  # random streams under the seed (the position sensor uses 1)
 BIAS_STREAM = 3
@@ -34,13 +32,12 @@ START_STREAM = 4
 class SpinSensorState:
     """The spin sensor's per-episode state.
 
-    history: released measurements; pending: sampled, not yet released; next_capture_time: s, the
-    next sample (NaN before the episode starts); biases: the accuracy bias of each contact
+    queue: the released measurements and those sampled, not yet released; next_capture_time: s,
+    the next sample (NaN before the episode starts); biases: the accuracy bias of each contact
     interval drawn so far (index = number of contacts before the sample).
     """
 
-    history: MeasurementHistory
-    pending: tuple[PendingMeasurement, ...] = ()
+    queue: SensorQueue
     next_capture_time: float = math.nan
     biases: tuple[SpinBias, ...] = ()
 
@@ -67,7 +64,7 @@ class GazeSpinSensor(LeafSystem):
             every measurement released at or before the context's time, the last
             ``history_capacity``.
     State:
-        abstract SpinSensorState (history, pending measurements, next sample time, biases).
+        abstract SpinSensorState (released and pending measurements, next sample time, biases).
     Parameters:
         numeric (1,): the seed; poll k draws from [seed, SPIN_STREAM, k] and the bias of contact
         interval i from [seed, BIAS_STREAM, i], the first sample time from [seed, START_STREAM];
@@ -88,7 +85,7 @@ class GazeSpinSensor(LeafSystem):
         """Args: params, the sensor model; seed, the default seed parameter."""
         super().__init__()
         self.params = params or SpinSensorParams()
-        self._empty = SpinSensorState(MeasurementHistory(capacity=self.params.history_capacity))
+        self._empty = SpinSensorState(SensorQueue(MeasurementHistory(capacity=self.params.history_capacity)))
         self._state_index = self.DeclareAbstractState(AbstractValue.Make(self._empty))
         self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
         self.ball_state_port = self.DeclareVectorInputPort("ball_state", 9)
@@ -121,7 +118,7 @@ class GazeSpinSensor(LeafSystem):
         seed = self._seed(context)
         rng = np.random.default_rng([seed, SPIN_STREAM, round(now / self.params.poll_period)])
         captures, next_capture_time = spin_capture_times(current.next_capture_time, now, self.params, rng)
-        pending, biases = current.pending, current.biases
+        sampled, biases = (), current.biases
         if captures.size:
             events = self.contact_events_port.Eval(context) if self.contact_events_port.HasValue(context) else ()
             contact_times = np.array([event.time for event in events])
@@ -142,14 +139,13 @@ class GazeSpinSensor(LeafSystem):
                 self.params,
                 rng,
             )
-            pending = insert_pending(pending, sampled)
-        history, pending = release_due(current.history, pending, now)
-        state.get_mutable_abstract_state(self._state_index).set_value(SpinSensorState(history, pending, next_capture_time, biases))
+        queue = current.queue.sampled(sampled, now)
+        state.get_mutable_abstract_state(self._state_index).set_value(SpinSensorState(queue, next_capture_time, biases))
 
     # ------------------------------------------------------------------------------ outputs
     def CalcSpinMeasurements(self, context, output):
         current = self._sensor_state(context)
-        output.set_value(release_due(current.history, current.pending, context.get_time())[0])
+        output.set_value(current.queue.released(context.get_time())[0])
 
     # ------------------------------------------------------------------------------ helpers
     def _started(self, context) -> SpinSensorState:

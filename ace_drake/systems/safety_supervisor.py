@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import EventStatus, LeafSystem
 
 from ace_drake.config import JOINT_NAMES
 from ace_drake.control.stack import ControlStack, Stage, plan_state
@@ -34,6 +34,9 @@ class SupervisorState:
     accepted: int = 0
     rejected: int = 0
     last_reason: str = ""
+
+    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
+        return self
 
 
 class SafetySupervisor(LeafSystem):
@@ -61,7 +64,9 @@ class SafetySupervisor(LeafSystem):
         abstract SupervisorState (the plan and counters).
     Events:
         periodic unrestricted update every command period (1 ms, offset 0): the light curtain,
-        and at multiples of the segment duration the segment decision.
+        and at multiples of the segment duration the segment decision. Most of these change
+        nothing and say so (EventStatus.DidNothing), which spares the Simulator writing the state
+        back; the q_command output comes from the plan and the time, not from the update.
     """
 
     def __init__(self, stack: ControlStack):
@@ -117,8 +122,10 @@ class SafetySupervisor(LeafSystem):
             updated = dataclasses.replace(current, stopped=False)
         elif not curtain and sample % self.segment_samples == 0:
             updated = self._decide(context, current, sample)
-        if updated is not current:
-            state.get_mutable_abstract_state(self._state_index).set_value(updated)
+        if updated is current:
+            return EventStatus.DidNothing()  # the Simulator skips writing the state back
+        state.get_mutable_abstract_state(self._state_index).set_value(updated)
+        return EventStatus.Succeeded()
 
     def _decide(self, context, current: SupervisorState, sample: int) -> SupervisorState:
         """At a segment boundary: the new segment + reset if safe, else the plan as it is."""

@@ -17,13 +17,32 @@ POSITION_STREAM = 1  # random stream of this sensor under its seed (the spin sen
 
 @dataclasses.dataclass(frozen=True)
 class SensorQueue:
-    """A sensor's per-episode state: what it has released and what it has sampled but not yet."""
+    """A sensor's per-episode state: what it has released and what it has sampled but not yet.
+    Immutable (it memoises ``released``, a function of its fields)."""
 
     history: MeasurementHistory
     pending: tuple[PendingMeasurement, ...] = ()
+    _released: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
         return self
+
+    def released(self, now: float) -> tuple[MeasurementHistory, tuple[PendingMeasurement, ...]]:
+        """``release_due`` at ``now`` (s): the history with the pending measurements released by
+        then, and the rest. Memoised per number released: the output port asks at every step,
+        and each ask would otherwise number and validate the same Measurements again."""
+        due = 0
+        while due < len(self.pending) and self.pending[due].release_time <= now:
+            due += 1
+        if due not in self._released:
+            self._released[due] = release_due(self.history, self.pending, now)
+        return self._released[due]
+
+    def sampled(self, new: tuple[PendingMeasurement, ...], now: float) -> SensorQueue:
+        """The queue at ``now`` (s) with ``new`` measurements sampled and what is due released."""
+        if not new:
+            return SensorQueue(*self.released(now))
+        return SensorQueue(*release_due(self.history, insert_pending(self.pending, new), now))
 
 
 class StatisticalPositionSensor(LeafSystem):
@@ -86,13 +105,12 @@ class StatisticalPositionSensor(LeafSystem):
         rng = np.random.default_rng([self._seed(context), POSITION_STREAM, trigger])
         p_WB = self.ball_state_port.Eval(context)[:3]
         sampled = sample_position_measurements(p_WB[None, :], np.array([now]), self.params, rng)
-        history, pending = release_due(queue.history, insert_pending(queue.pending, sampled), now)
-        state.get_mutable_abstract_state(self._queue_index).set_value(SensorQueue(history, pending))
+        state.get_mutable_abstract_state(self._queue_index).set_value(queue.sampled(sampled, now))
 
     # ------------------------------------------------------------------------------ outputs
     def CalcPositionMeasurements(self, context, output):
         queue = self._queue(context)
-        output.set_value(release_due(queue.history, queue.pending, context.get_time())[0])
+        output.set_value(queue.released(context.get_time())[0])
 
     # ------------------------------------------------------------------------------ helpers
     def _queue(self, context) -> SensorQueue:

@@ -7,7 +7,7 @@ import dataclasses
 from collections.abc import Sequence
 
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import EventStatus, LeafSystem
 
 from ace_drake.config import CameraParams
 from ace_drake.perception.cameras import Camera, DetectionFrame
@@ -42,15 +42,21 @@ class Triangulator(LeafSystem):
     State:
         abstract: the history and the sequence number of the last frame absorbed into it.
     Events:
-        per-step unrestricted update: absorbs the output (history plus the input frame's position)
-        into the state, so each frame is triangulated once; steps fall at least at every release
-        of the camera array (200 Hz), so no frame is missed.
+        periodic unrestricted update at the camera array's triggers (``params.trigger_rate``,
+        200 Hz, offset 0): absorbs the output (history plus the input frame's position) into the
+        state, so each frame is triangulated once. An update reads the inputs from before its
+        instant, so it absorbs the frame released during the period that ends there (the array
+        releases one per period); until then the output adds that frame itself, so it shows every
+        frame from its release on. Absorbing at the triggers, where the array's state changes
+        anyway, rather than at the releases keeps the output's cache from triangulating a frame
+        twice; an update with no new frame says so (EventStatus.DidNothing).
     """
 
     def __init__(self, cameras: Sequence[Camera], params: CameraParams | None = None, history_capacity: int = 32):
-        """Args: cameras, the calibrated array (as given to the ApsCameraArray); params, the pixel
-        noise (px, the covariance's scale), the outlier threshold (px) and the minimum views;
-        history_capacity, measurements kept on the output."""
+        """Args: cameras, the calibrated array (as given to the ApsCameraArray); params, the
+        array's too (its trigger rate times the absorbing updates), with the pixel noise (px, the
+        covariance's scale), the outlier threshold (px) and the minimum views; history_capacity,
+        measurements kept on the output."""
         super().__init__()
         if not cameras:
             raise ValueError("Triangulator: needs at least one camera")
@@ -68,7 +74,7 @@ class Triangulator(LeafSystem):
             self.CalcPositionMeasurements,
             prerequisites_of_calc={self.abstract_state_ticket(self._state_index), self.detections_port.ticket()},
         )
-        self.DeclarePerStepUnrestrictedUpdateEvent(self.AbsorbFrame)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / self.params.trigger_rate, 0.0, self.AbsorbFrame)
 
     # ------------------------------------------------------------------------------ outputs
     def CalcPositionMeasurements(self, context, output):
@@ -79,9 +85,11 @@ class Triangulator(LeafSystem):
         """Stores the output's history (with the input frame's position) as the state."""
         stored = context.get_abstract_state(self._state_index).get_value()
         frame = self.detections_port.Eval(context)
-        if frame.sequence > stored.last_frame_sequence:
-            history = self.position_measurements_port.Eval(context)  # cached: triangulated once
-            state.get_mutable_abstract_state(self._state_index).set_value(_TriangulatorState(history, frame.sequence))
+        if frame.sequence <= stored.last_frame_sequence:
+            return EventStatus.DidNothing()  # the Simulator skips writing the state back
+        history = self.position_measurements_port.Eval(context)  # cached: triangulated once
+        state.get_mutable_abstract_state(self._state_index).set_value(_TriangulatorState(history, frame.sequence))
+        return EventStatus.Succeeded()
 
     # ------------------------------------------------------------------------------ helpers
     def _current(self, context) -> _TriangulatorState:
