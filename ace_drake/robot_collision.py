@@ -1,29 +1,66 @@
-"""Sound collision checking of sampled joint trajectories, by conservative advancement.
+"""Sound collision checking of sampled joint trajectories: a broad phase over the whole plan at
+once, then conservative advancement on Drake's exact distances where it cannot decide.
 
 The safety supervisor checks each 32 ms segment plus its reset trajectory (up to ~1 s at 1 kHz)
 for robot self-collision and robot-court collision (table, net and posts, floor) before it
-streams them. ``TrajectoryCollisionChecker.check`` is *sound*: when it reports ``free``, every
-point of the robot's collision geometry stays at least ``margin`` (m) from the court and from its
-own other collision geometries at every instant of the continuous motion, not only at the
-samples. It may report as not free a motion that only comes within margin + 0.2 mm
-(``DISTANCE_ERROR`` + ``PROOF_TOLERANCE``) of something; it never misses a collision.
+streams them, inside a control step whose p99 budget is 2 ms. ``TrajectoryCollisionChecker.check``
+is *sound*: when it reports ``free``, every point of the robot's collision geometry stays at least
+``margin`` (m) from the court and from its own other collision geometries at every instant of the
+continuous motion, not only at the samples. It may report as not free a motion that only comes
+within margin + 0.2 mm (``DISTANCE_ERROR`` + ``PROOF_TOLERANCE``) of something; it never misses a
+collision.
 
 The continuous motion. Between samples k and k + 1 (``period`` h apart) each joint follows the
 cubic Hermite interpolant of (q_k, v_k) and (q_{k+1}, v_{k+1}) (``interpolate``); this is exact
-for piecewise-cubic (constant-jerk) motion with its knots at the samples.
+for piecewise-cubic (constant-jerk) motion with its knots at the samples. On interval k the
+Hermite velocity of a joint is a quadratic with Bernstein coefficients v_k,
+3 (q_{k+1} - q_k) / h - v_k - v_{k+1}, v_{k+1}, so |qdot| is at most the largest of their
+magnitudes, and its acceleration is linear, so |qddot| is at most the larger of its values at the
+ends; both bounds also cover motion with linear acceleration between consistent sampled a_k,
+a_{k+1} (``joint_speed_bounds``, ``joint_acceleration_bounds``). Each joint therefore strays at
+most h^2 / 8 max |qddot| from the chord between its samples, and each point of the robot, by the
+same argument, at most its ``robot_bounds`` deviation (~0.3 mm at full speed).
 
-Distances. Drake's SceneGraph signed distances (``ComputeSignedDistancePairwiseClosestPoints``,
-pairs within ``influence`` m) on the robot diagram owned by a ``SceneGraphCollisionChecker``,
-restricted to the body pairs the checker does not filter: its filter matrix honours SceneGraph's
-collision filters (the SDF's ``drake:collision_filter_group``s and the plant's adjacent-body
-filters) and filters bodies welded together (the robot's base and the court). Drake's distances
-for capsules, cylinders and boxes come from GJK and carry errors of order 1e-5 m (second
-differences along smooth motions up to 2e-5 m, measured): they are trusted to within
-``DISTANCE_ERROR`` = 1e-4 m, which every pair's budget gives up.
+Why three stages, cheapest first. In a rally most pairs stay far apart over the whole plan and a
+few come within centimetres for a few milliseconds. Conservative advancement on exact distances
+alone (this module's earlier design) spent most of its queries proving the obvious: each step
+can only go as far as worst-case speed bounds allow from the nearest of all pairs, and over a
+stroke those bounds overestimate the racket's travel several times. The broad phase proves the
+obvious for a whole plan in one compiled pass from the robot's actual positions at every sample;
+the exact stage then works only on the few (pair, interval) cells left open, with certificates
+that prove a grazing stretch in one query or converge onto a crossing in a few.
+
+Pairs. The checked pairs are those of Drake's ``SceneGraphCollisionChecker`` on the robot
+diagram: SceneGraph's collision filters (the SDF's ``drake:collision_filter_group``s and the
+plant's adjacent-body filters) and bodies welded together (the robot's base and the court) are
+left out.
+
+1. Gates, for the pairs whose distance depends on at most two joints (the carriages and the
+   court, the racket and the forearm, ...): mapped once, at construction, over the joints'
+   limits widened by ``GATE_PAD``; branch and bound with the pair rates (below) as Lipschitz
+   constants proves where they cannot come within the margin. An interval whose joint box (the
+   chord between its samples widened by the joints' deviation) meets no bad cell of a pair's map
+   is clear for that pair. ``certified`` names the pairs proven clear over the whole box. The
+   handle, 3 cm from the forearm at the ready pose and touching it below wrist_2 = -1 rad, costs
+   nothing unless the wrist gets there.
+2. Swept bounding boxes (``robot_bounds.SweptBounds``), for the other pairs of boxes, spheres,
+   capsules and cylinders: per block of ``BLOCK_SAMPLES`` intervals, then per interval, the
+   distance between the boxes that the two geometries (or the spheres covering one of them)
+   sweep, from their poses at the samples padded by their deviation, is a lower bound on the
+   pair's distance at every instant of the block or interval. In rally plans this leaves open
+   only cells where the geometries really are within a centimetre or so: the forearm, wrist and
+   racket over the table top and legs.
+3. Conservative advancement on Drake's signed distances (``ComputeSignedDistancePairClosestPoints``
+   on the robot diagram owned by the ``SceneGraphCollisionChecker``), for each pair only over the
+   intervals the first two stages left open, in time order (below).
+
+Distances. Drake's distances for capsules, cylinders and boxes come from GJK and carry errors of
+order 1e-5 m (second differences along smooth motions up to 2e-5 m, measured): they are trusted
+to within ``DISTANCE_ERROR`` = 1e-4 m, which every pair's budget gives up.
 
 Speed bounds. A prismatic joint j moves every point downstream of it at |qdot_j|; a revolute
 joint j at |qdot_j| times the point's distance from j's axis, at most rho_j(g) for the points of
-geometry g over all configurations (``_Kinematics.axis_radius``):
+geometry g over all configurations (``_Kinematics.axis_radius``; the lever arms of stage 2):
 
 - g on j's child body: its distance from the axis is fixed, and rho_j(g) is the exact maximum
   over the shape (boxes: their vertices; spheres and capsules: centres or segment ends plus the
@@ -45,71 +82,72 @@ geometry it moves. Exact symmetries drop more: turning a revolute joint does not
 distance to a sphere, capsule or cylinder lying on its axis on its parent body, or of one lying
 on its axis on its child body (the forearm capsule and wrist_1; the handle and wrist_3). A shape
 only symmetric to within eps (the SDF's 1.5708 for pi / 2) costs 2 eps of budget. So pair p's
-distance falls at most at c_p . |qdot| m/s (``pair_rates``).
+distance falls at most at c_p . |qdot| m/s (``pair_rates``); integrating c_p . bound over the
+intervals gives each pair's cumulative swept bound S_p.
 
-Joint speed bounds (``joint_speed_bounds``). On interval k the Hermite velocity of a joint is a
-quadratic with Bernstein coefficients v_k, 3 (q_{k+1} - q_k) / h - v_k - v_{k+1}, v_{k+1}, so
-|qdot| is at most the largest of their magnitudes; the bound also covers motion with linear
-acceleration between the sampled a_k, a_{k+1} (max(|v_k|, |v_{k+1}|) + max(|a_k|, |a_{k+1}|) h / 4).
-Integrating c_p . bound over the intervals gives each pair's cumulative swept bound S_p.
+Conservative advancement (stage 3). Each open pair has a frontier: every instant before it is
+proven clear for that pair (by stages 1-2 or by its own queries). The check queries, at the
+earliest frontier, the pairs whose frontier it is, and each query's distance d_p (with its
+witness normal n, from B to A) proves the pair clear for as long as one of three certificates
+holds, the furthest of which moves the pair's frontier; from a sample it then skips to the next
+interval stages 1-2 left open for the pair:
 
-Height certificates. For a pair of a moving robot geometry A and a static geometry B (the court,
-the robot's base), every point of B lies at or below B's top z_B, so the distance is at least the
-height of A's lowest point above z_B; that height falls at most at c^z . |qdot|, where c^z is the
-pair rate's coefficients with each joint whose axis is fixed in the world scaled by the fraction
-of its motion that can be vertical (zero for the gantry's carriages and the shoulder's yaw:
-``_Heights``). A swing over the table moves the racket mostly sideways, so at each query the
-advancement takes, per such pair, whichever certificate proves the longer step.
+- distance: every instant up to where S_p has grown by d_p - margin - slack_p (strictly inside
+  the interval if not even its end is reachable, near something and fast);
+- height, for a moving robot geometry A and a static geometry B (the court, the robot's base):
+  every point of B lies at or below B's top z_B, so the distance is at least the height of A's
+  lowest point above z_B, which falls at most at c^z . |qdot|, c^z the pair rate with each joint
+  whose axis is fixed in the world scaled by the fraction of its motion that can be vertical
+  (zero for the gantry's carriages and the shoulder's yaw: ``_Heights``); a swing over the table
+  moves the racket mostly sideways;
+- plane: the pair's distance is at least its gap along any fixed unit n (min over A of n . x
+  less max over B of n . x), which closed-form supports give at every sample from the poses the
+  broad phase computed; within an interval every point stays within its deviation of its chord,
+  so the gap is at least the linear blend of its values at the interval's ends less the two
+  geometries' deviations. Along a graze this proves the whole open run in one query; towards a
+  crossing it predicts where the margin is met, which converges in a few queries.
 
-Conservative advancement (``check``). From a configuration where the reported pairs have
-distances d_p, every instant up to the furthest sample at which S_p has grown by at most
-d_p - margin - slack_p for every pair (and the bound for all pairs, influence - margin for the
-pairs not reported) is proven clear: the check jumps there (binary search) and queries again.
-When not even the next sample is reachable (near something and fast) it steps inside the
-interval along the Hermite interpolant by exactly the reachable time; a configuration whose
-budget is below ``PROOF_TOLERANCE`` ends the check (this stops the steps shrinking without end
-along a motion that grazes the margin). While steps are long, each step also queries one step
-length beyond the next frontier, whose budgets prove an interval on both sides of it: when that
-interval meets the frontier, the check skips to its end (about twice the progress per query).
+A configuration where all three start below ``PROOF_TOLERANCE`` ends the check (this stops the
+steps shrinking without end along a motion that grazes the margin); the report names the pairs
+due there that are within margin + PROOF_TOLERANCE. Every instant before the earliest frontier is
+proven clear for every pair, which is what the report's ``time`` says.
 
-Gating. Pairs whose distance depends on at most two joints (the carriages and the court, the
-column and the upper arm, the racket and the forearm, ...) are mapped once, at construction, over
-the joints' limits widened by ``GATE_PAD``: branch and bound with the pair rates as Lipschitz
-constants proves where they cannot come within the margin. ``check`` filters out (in SceneGraph,
-in a second context) every such pair that the trajectory's joint ranges (samples widened by the
-Hermite's excursion) provably keep clear of, so a pair like the handle and the forearm (3 cm
-apart at the ready pose, in contact with wrist_2 below about -1 rad) costs nothing unless the
-wrist gets there. ``certified`` names the pairs proven clear over the whole box.
-
-Cost (one core): ~20-40 us per query; a 32 ms segment plus a 0.5 s reset to the ready pose takes
-a median of 6 queries and 0.3 ms, more when the motion passes close to the court (see
-tests/test_robot_collision.py, which prints its measurement).
+Cost (one core, ``ace-drake bench control``): ~0.15 ms for a rally plan (segment and reset, ~300
+samples) that the broad phase clears, which is 85% of them; ~0.3-0.6 ms with a few exact queries
+(~10 us each in Drake, ~40 us with the advancement's bookkeeping), for the plans that come within
+a centimetre of something or collide.
 """
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from pathlib import Path
 
+import numba
 import numpy as np
 from pydrake.common import Parallelism
-from pydrake.geometry import Box, Capsule, CollisionFilterDeclaration, Cylinder, Ellipsoid, GeometrySet, Sphere
+from pydrake.geometry import Box, Capsule, Cylinder, Ellipsoid, Sphere
 from pydrake.math import RigidTransform
 from pydrake.multibody.tree import BodyIndex
 from pydrake.planning import RobotDiagramBuilder, SceneGraphCollisionChecker
 
 from ace_drake.config import JOINT_NAMES, RobotScenario
 from ace_drake.control.trajectory import JointTrajectory
+from ace_drake.robot_bounds import Shape, SweptBounds
 from ace_drake.robot_model import MODELS_DIR, _joint_vector, add_robot_to_plant, check_joint_order, load_scenario
 
 PROOF_TOLERANCE = 1e-4  # m: a clearance below margin + DISTANCE_ERROR + this counts as a collision
 DISTANCE_ERROR = 1e-4  # m: Drake's signed distances are trusted to within this (module doc)
 SYMMETRY_TOLERANCE = 1e-4  # m: geometry this close to symmetric about a joint axis counts as symmetric
+BLOCK_SAMPLES = 16  # intervals per block of the swept-box stage (8-32 clear about as much; measured)
 GATE_PAD = 0.05  # rad or m: the gating box extends this far beyond each joint's position limits
 GATE_MAX_JOINTS = 2  # pairs whose distance depends on more joints are not gated
 GATE_MAX_QUERIES = 40000  # distance evaluations per pair when mapping where it may come close
-GATE_RESOLUTION = 0.01  # m: cells whose Lipschitz spread is below this are not split further
+# m: cells whose Lipschitz spread is below this are not split further, for pairs that depend on
+# one joint and on two (the map's cells grow as resolution^-(joints - 1) along its boundary).
+GATE_RESOLUTION = (0.0002, 0.002)
 _RIM_SAMPLES = 720  # points per cylinder rim when bounding its distance from an axis or point
 
 
@@ -123,9 +161,11 @@ class CollisionReport:
         proven clear); None if free. With the query budget spent: how far the motion was proven.
     pairs: "body/geometry - body/geometry" names of the pairs that close there, closest first
         (robot geometry first); empty if free or the query budget was spent.
-    queries: distance queries made (SceneGraph signed-distance calls).
-    min_distance: the smallest distance of the pairs queried along the motion, m (capped at the
-        influence distance; pairs left out by gating, see the module doc, are not queried).
+    queries: exact distance queries the advancement made (Drake signed-distance calls for one
+        pair; the broad phase makes none).
+    min_distance: the smallest clearance the check established, m, capped at the influence
+        distance: the swept-box bounds of the blocks and intervals they cleared, and Drake's
+        distances where it queried (pairs cleared by their gates are not measured).
     """
 
     free: bool
@@ -138,14 +178,19 @@ class CollisionReport:
 @dataclasses.dataclass(frozen=True)
 class _Pair:
     """A checked pair of collision geometries: its name, its distance-rate coefficients c (8,)
-    (m per rad or per m of each joint's motion), the budget it loses to inexact symmetry (m), and
-    the SceneGraph ids (robot geometry first)."""
+    (m per rad or per m of each joint's motion), the budget it loses to inexact symmetry and
+    distance error (m), the SceneGraph ids (robot geometry first), the sum of the two
+    geometries' lever arms rho (8,) (``_Kinematics.lever_arms``), and for the plane certificate
+    each geometry's body, pose in it (3 x 4) and ``Shape`` (half (3,), radius, rounding as (5,)),
+    A's then B's (None if either shape has no closed-form support)."""
 
     name: str
     rate: np.ndarray
     slack: float
     id_A: object
     id_B: object
+    arms: np.ndarray
+    geometry: tuple | None
 
 
 class TrajectoryCollisionChecker:
@@ -153,8 +198,8 @@ class TrajectoryCollisionChecker:
     doc). Joint vectors q (8,) are in JOINT_NAMES order, m and rad.
 
     margin: the clearance (m) every point of the robot must keep from the court and from itself.
-    influence: distances beyond this (m) are not computed; must exceed margin (larger lets the
-        advancement take longer steps when far from everything, at some cost per query).
+    influence: distances beyond this (m) are not reported by ``clearance`` and ``pair_distances``
+        nor in reports; must exceed margin.
 
     Attributes: ``speed_radii`` (8,) r_j (m per rad, 1 for the prismatic joints): every point of
     the robot's collision geometry moves at most sum_j |qdot_j| r_j m/s. ``certified``: names of
@@ -190,7 +235,6 @@ class TrajectoryCollisionChecker:
         self._kinematics = _Kinematics(self.plant, self.inspector)
         self.speed_radii = self._kinematics.speed_radii()
         self._pairs, self._pair_index = self._build_pairs()
-        self._slacks = [pair.slack for pair in self._pairs]
         self._rate_matrix = np.array([pair.rate for pair in self._pairs]).reshape(-1, len(JOINT_NAMES))
         self._full = self.checker.MakeStandaloneModelContext()
         self._heights = self._build_heights()
@@ -198,18 +242,36 @@ class TrajectoryCollisionChecker:
         # box they may come within margin (nowhere: certified clear).
         self.box_lower = self.plant.GetPositionLowerLimits() - GATE_PAD
         self.box_upper = self.plant.GetPositionUpperLimits() + GATE_PAD
-        gates = [gate for p in range(len(self._pairs)) if (gate := self._gate(p)) is not None]
-        self.certified = tuple(self._pairs[gate.pair].name for gate in gates if not gate.bad)
-        self._certified = np.array([gate.pair for gate in gates if not gate.bad], dtype=int)
-        self._certified_joints = np.array([np.isin(np.arange(len(JOINT_NAMES)), gate.joints) for gate in gates if not gate.bad], dtype=bool).reshape(-1, len(JOINT_NAMES))
-        self._gated = [gate for gate in gates if gate.bad]
-        self._contexts: dict[tuple[int, ...], tuple[object, np.ndarray]] = {}
+        self._gates = [gate for p in range(len(self._pairs)) if (gate := self._gate(p)) is not None]
+        self.certified = tuple(self._pairs[gate.pair].name for gate in self._gates if not gate.bad)
+        self._bounds = SweptBounds(self.plant, self.inspector, [(pair.id_A, pair.id_B) for pair in self._pairs], self._kinematics.lever_arms)
+        # For the broad phase: the pairs of each stage when the plan stays inside the gates' box.
+        self._box_lower, self._box_upper = self.box_lower.tolist(), self.box_upper.tolist()
+        self._gated_pairs = {gate.pair for gate in self._gates}
+        self._bad_gates = [gate for gate in self._gates if gate.bad]
+        self._bounded = np.flatnonzero(self._bounds.bounded)
+        self._bounded_ungated = np.array([p for p in self._bounded if p not in self._gated_pairs], dtype=int)
+        self._unbounded = np.flatnonzero(~self._bounds.bounded).tolist()
+        self._upstream = self._kinematics.upstream_matrix()
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Runs each compiled kernel once on the ready pose, so that loading (or, the first time,
+        compiling) it is part of the construction and not of a control step."""
+        q = np.tile(np.asarray(self.scenario.ready_pose, dtype=float), (2, 1))
+        _, _, bend = _motion_bounds(q, np.zeros_like(q), np.zeros_like(q), 0.001, self._upstream)
+        q_columns = np.ascontiguousarray(q.T)
+        self._bounds.open_intervals(q_columns, bend, BLOCK_SAMPLES, self._bounded, math.inf)  # every level
+        X_WB = self._bounds.kinematics.pose_rows(q_columns)
+        pair = next((pair for pair in self._pairs if pair.geometry is not None), None)
+        if pair is not None:
+            _plane_reach(X_WB[:, :, :1].copy(), X_WB, pair.geometry, np.array([0.0, 0.0, 1.0]), np.zeros(1), np.ones(1, dtype=bool), 0, 0.0, self.margin)
 
     # ------------------------------------------------------------------------------ configurations
     def clearance(self, q: np.ndarray) -> float:
         """The smallest signed distance (m) between the robot's collision geometry and the court
         or its own other (non-filtered) geometry at configuration q, capped at ``influence``."""
-        distances = self._distances(_joint_vector(q, "q"), self._full)
+        distances = self._distances(_joint_vector(q, "q"))
         return min(self.influence, min((d for _, d in distances), default=self.influence))
 
     def check_config(self, q: np.ndarray) -> bool:
@@ -219,7 +281,7 @@ class TrajectoryCollisionChecker:
     def pair_distances(self, q: np.ndarray) -> list[tuple[str, float]]:
         """The checked geometry pairs within ``influence`` at q, as (name, signed distance m),
         closest first."""
-        distances = self._distances(_joint_vector(q, "q"), self._full)
+        distances = self._distances(_joint_vector(q, "q"))
         return sorted(((self._pairs[p].name, d) for p, d in distances), key=lambda item: item[1])
 
     def pair_rates(self) -> dict[str, np.ndarray]:
@@ -230,175 +292,139 @@ class TrajectoryCollisionChecker:
     # ------------------------------------------------------------------------------ trajectories
     def check(self, trajectory: JointTrajectory, max_queries: int | None = None) -> CollisionReport:
         """Whether the continuous motion of ``trajectory`` (the Hermite interpolant of its samples)
-        keeps the robot at least ``margin`` clear of the court and itself, by conservative
-        advancement (module doc). Cost: one distance query (~20-40 us) per advancement step.
+        keeps the robot at least ``margin`` clear of the court and itself: gates and swept
+        boxes over the whole plan, then conservative advancement on exact distances where they
+        leave a pair open (module doc).
 
-        max_queries: a budget; once spent, the report is not free, with ``time`` how far the motion
-        was proven clear and no ``pairs`` (unproven rather than a collision found)."""
+        max_queries: a budget of exact queries; once spent, the report is not free, with ``time``
+        how far the motion was proven clear and no ``pairs`` (unproven rather than a collision
+        found)."""
         if max_queries is not None and max_queries < 1:
             raise ValueError(f"check: max_queries must be >= 1, got {max_queries}")
-        budget_left = math.inf if max_queries is None else max_queries
         q, v, a, period = _trajectory_arrays(trajectory)
-        n = q.shape[0] - 1
-        rates = np.ascontiguousarray(joint_speed_bounds(q, v, a, period).T)  # (8, n), joint-major
-        context, global_rate = self._context_for(np.ascontiguousarray(q.T), rates, period)
-        # Cumulative swept bounds at each sample (n + 1,): per pair (rows of `swept`) and for the
-        # pairs not reported (`swept_all`).
-        cumulative = np.zeros((len(JOINT_NAMES), n + 1))
-        np.cumsum(rates, axis=1, out=cumulative[:, 1:])
-        cumulative *= period
-        swept = self._rate_matrix @ cumulative
-        swept_all = global_rate @ cumulative
-        heights = self._heights
-        swept_height = heights.rate_matrix @ cumulative  # (H, n + 1): the height certificates'
-        margin, influence, period_ = self.margin, self.influence, period
-        index_get, slacks = self._pair_index.get, self._slacks
-        height_of, height_pairs = heights.certificate, heights.pair_certificate
-        # The query object is a live view of the context: it sees every position update.
-        update, query_object = self.checker.UpdateContextPositions, context.GetQueryObject()
-        distances = query_object.ComputeSignedDistancePairwiseClosestPoints
-        queries, min_distance = 0, influence
-
-        def probe(k: int, offset: float):
-            """Queries the configuration at sample k + offset s: its budgets [(swept row, m)] (the
-            pairs not reported first), or None if it is not provably margin clear."""
-            nonlocal queries, min_distance
-            config = q[k] if offset == 0.0 else interpolate(q[k], v[k], q[k + 1], v[k + 1], period_, offset)
-            update(context, config)
-            queries += 1
-            budgets = [(swept_all, influence - margin - DISTANCE_ERROR)]
-            closest = influence
-            lowest = {}  # per robot geometry: its lowest point's height at this configuration, m
-            for result in distances(max_distance=influence):
-                p = index_get((result.id_A.get_value(), result.id_B.get_value()))
-                if p is None:
-                    continue
-                d = result.distance
-                if d < closest:
-                    closest = d
-                budget = d - margin - slacks[p]
-                S = swept[p]
-                h = height_pairs[p]
-                if h >= 0:
-                    # The pair's height certificate, if it proves more: the robot geometry's
-                    # lowest point is above the top of the static one, and falls at most at
-                    # the (smaller) vertical rate bound.
-                    geometry, top, height_slack = height_of[h]
-                    if geometry not in lowest:
-                        lowest[geometry] = heights.lowest(query_object, geometry)
-                    height_budget = lowest[geometry] - top - margin - height_slack
-                    S_height = swept_height[h]
-                    if height_budget * (S[k + 1] - S[k]) > budget * (S_height[k + 1] - S_height[k]) if k < n else height_budget > budget:
-                        budget, S = height_budget, S_height
-                if budget < PROOF_TOLERANCE:
-                    return None
-                budgets.append((S, budget))
-            if closest < min_distance:
-                min_distance = closest
-            return budgets
-
-        # Forward advancement from the frontier (k, offset), everything before it proven clear;
-        # and, while steps are long, a speculative query one step length beyond the next
-        # frontier, which proves an interval around itself (pending until the frontier meets it).
-        k, offset = 0, 0.0
-        pending = None  # (first, last) samples proven by a speculative query
-        speculate = True  # off once a speculative query has found a collision
-        while True:
-            if queries >= budget_left:
-                return CollisionReport(False, k * period + offset, (), queries, min_distance)
-            budgets = probe(k, offset)
-            if budgets is None:
-                return self._collision_report(q, v, k, offset, period, context, queries, min_distance)
-            if k == n:
-                break
-            fraction = 1.0 - offset / period  # of interval k still ahead
-            furthest, step = n, math.inf
-            for S, budget in budgets:
-                interval = S[k + 1] - S[k]
-                ahead = fraction * interval
-                if ahead > budget:
-                    step = min(step, budget * period / interval)  # budget / the pair's rate bound
-                elif step == math.inf and furthest > k + 1:
-                    furthest = min(furthest, int(S.searchsorted(S[k + 1] + budget - ahead, side="right")) - 1)
-            if step < math.inf:
-                offset += step  # strictly inside interval k: some pair cannot reach its end
-                continue
-            length = furthest - k
-            k, offset = furthest, 0.0
-            if pending is not None and pending[0] <= k:
-                k, pending = max(k, pending[1]), None
-            if k >= n:
-                break
-            if speculate and pending is None and length >= 2 and queries + 1 < budget_left:
-                m = min(n, k + length)
-                budgets = probe(m, 0.0)
-                if budgets is None:
-                    speculate = False  # not free: find the first such configuration going forward
-                    continue
-                first = max(int(S.searchsorted(S[m] - budget, side="left")) for S, budget in budgets)
-                last = min(int(S.searchsorted(S[m] + budget, side="right")) - 1 for S, budget in budgets)
-                if first <= k:
-                    k = last
-                    if k >= n:
-                        break
-                else:
-                    pending = (first, last)
-        return CollisionReport(True, None, (), queries, min_distance)
+        if q.shape[0] == 1:  # one configuration: an interval that does not move
+            q, v, a = q[[0, 0]], np.zeros((2, len(JOINT_NAMES))), np.zeros((2, len(JOINT_NAMES)))
+        cumulative, sag, bend = _motion_bounds(q, v, a, period, self._upstream)
+        pairs, open_intervals, min_distance, X_WB = self._broad_phase(np.ascontiguousarray(q.T), sag, bend)
+        if not len(pairs):
+            return CollisionReport(True, None, (), 0, min_distance)
+        return self._advance(q, v, period, cumulative, bend, X_WB, pairs, open_intervals, math.inf if max_queries is None else max_queries, min_distance)
 
     # ------------------------------------------------------------------------------ internals
-    def _distances(self, q: np.ndarray, context) -> list[tuple[int, float]]:
+    def _broad_phase(self, q: np.ndarray, sag: np.ndarray, bend: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        """Stages 1 and 2 (module doc) for samples q (8, n + 1), the joints' deviations from their
+        chords (8, n) and the points' deviation terms bend (8, n), joints by samples (see
+        ``check``): the pairs left open (O,), which of their intervals are (O, n) bool, the
+        smallest clearance established (m, capped at influence), and the body poses at the
+        samples (``KinematicTree.pose_rows``)."""
+        n = sag.shape[1]
+        # On interval k each joint stays within sag_k of its chord: within [lower_k, upper_k]
+        # (8, n), and all of the motion within [low, high].
+        lower, upper = np.minimum(q[:, :-1], q[:, 1:]) - sag, np.maximum(q[:, :-1], q[:, 1:]) + sag
+        low, high = lower.min(axis=1).tolist(), upper.max(axis=1).tolist()
+        inside = [lo >= box_lo and hi <= box_hi for lo, hi, box_lo, box_hi in zip(low, high, self._box_lower, self._box_upper)]
+        pairs, rows = [], []  # the open pairs and their open intervals
+        if all(inside):
+            gated, gates = self._gated_pairs, self._bad_gates
+        else:  # only the gates whose joints stay inside their map decide
+            gates = [gate for gate in self._gates if all(inside[j] for j in gate.joints.tolist())]
+            gated = {gate.pair for gate in gates}
+        for gate in gates:
+            if gate.bad and gate.box_touches(low, high):
+                row = gate.touched(lower, upper)
+                if row.any():
+                    pairs.append(gate.pair)
+                    rows.append(row)
+        bounded = self._bounded_ungated if gated is self._gated_pairs else np.array([p for p in self._bounded.tolist() if p not in gated], dtype=int)
+        swept_open, smallest, X_WB = self._bounds.open_intervals(q, bend, BLOCK_SAMPLES, bounded, self.margin)
+        min_distance = min(self.influence, smallest)
+        failing = np.flatnonzero(swept_open.any(axis=1))
+        pairs += bounded[failing].tolist()
+        rows += list(swept_open[failing])
+        for p in self._unbounded:  # pairs only the exact stage can check
+            if p not in gated:
+                pairs.append(p)
+                rows.append(np.ones(n, dtype=bool))
+        return np.array(pairs, dtype=int), np.array(rows, dtype=bool).reshape(len(pairs), n), min_distance, X_WB
+
+    def _advance(self, q, v, period: float, cumulative: np.ndarray, bend: np.ndarray, X_WB: np.ndarray, pairs: np.ndarray, open_intervals: np.ndarray, budget: float, min_distance: float) -> CollisionReport:
+        """Stage 3 (module doc): conservative advancement of each of ``pairs`` over its open
+        intervals (O, n), at most ``budget`` exact queries; cumulative (n + 1, 8): each joint's
+        cumulative travel bound at each sample; bend (8, n): the points' deviation terms
+        (``_motion_bounds``); X_WB: the body poses at the samples (``KinematicTree.pose_rows``)."""
+        n = open_intervals.shape[1]
+        checked = [self._pairs[p] for p in pairs.tolist()]
+        heights, kinematics = self._heights, self._bounds.kinematics
+        height_of = [heights.pair_certificate[p] for p in pairs.tolist()]  # -1: none
+        swept = (self._rate_matrix[pairs] @ cumulative.T).tolist()  # per pair, S_p at each sample
+        swept_height = (heights.rate_matrix[height_of] @ cumulative.T).tolist()  # rows of -1 unused
+        deviation = np.array([pair.arms for pair in checked]) @ bend  # (O, n), m
+        # next_open[o][k]: the first interval at or after k left open for pair o (n if none).
+        index = np.where(open_intervals, np.arange(n), n)
+        next_open = np.concatenate([np.minimum.accumulate(index[:, ::-1], axis=1)[:, ::-1], np.full((len(pairs), 1), n)], axis=1).tolist()
+        frontier = [float(row[0]) for row in next_open]  # in samples: every earlier instant is proven
+        context = self._full
+        query_object = context.GetQueryObject()  # a live view: it sees every position update
+        distance = query_object.ComputeSignedDistancePairClosestPoints
+        queries = 0
+        while True:
+            u = min(frontier)
+            if u >= n:
+                return CollisionReport(True, None, (), queries, min_distance)
+            k, fraction = int(u), u - int(u)
+            config = q[k] if fraction == 0.0 else interpolate(q[k], v[k], q[k + 1], v[k + 1], period, fraction * period)
+            self.checker.UpdateContextPositions(context, config)
+            due_distances = {}  # the due pairs' distances at this configuration, m
+            X_now = None  # the body poses here, when a plane certificate needs them
+            due = [o for o, f in enumerate(frontier) if f == u]
+            for o in due:
+                if queries >= budget:
+                    return CollisionReport(False, u * period, (), queries, min_distance)
+                pair = checked[o]
+                result = distance(pair.id_A, pair.id_B)
+                queries += 1
+                min_distance = min(min_distance, result.distance)
+                due_distances[o] = result.distance
+                reach = _reach(swept[o], result.distance - self.margin - pair.slack, k, fraction)
+                h = height_of[o]
+                if h >= 0:  # the height certificate, if it proves more
+                    geometry, top, height_slack = heights.certificate[h]
+                    reach = max(reach, _reach(swept_height[o], heights.lowest(query_object, geometry) - top - self.margin - height_slack, k, fraction))
+                if pair.geometry is not None and reach < k + 1:  # the witness normal's plane, if it proves more
+                    if X_now is None:
+                        X_now = np.ascontiguousarray(X_WB[:, :, k : k + 1]) if fraction == 0.0 else kinematics.pose_rows(config[:, None])
+                    normal = result.nhat_BA_W if result.id_A == pair.id_A else -result.nhat_BA_W
+                    reach = max(reach, _plane_reach(X_now, X_WB, pair.geometry, normal, deviation[o], open_intervals[o], k, fraction, self.margin))
+                if reach == -math.inf:
+                    return self._collision_report(u * period, [(checked[o], due_distances.get(o)) for o in due], queries, min_distance)
+                # Inside an interval the frontier stays; from a sample, it skips what is clear.
+                frontier[o] = reach if reach % 1.0 else float(next_open[o][int(reach)])
+
+    def _distances(self, q: np.ndarray) -> list[tuple[int, float]]:
         """(pair, signed distance) of the checked pairs within ``influence`` at q."""
-        self.checker.UpdateContextPositions(context, q)
+        self.checker.UpdateContextPositions(self._full, q)
         index = self._pair_index
         out = []
-        for result in context.GetQueryObject().ComputeSignedDistancePairwiseClosestPoints(max_distance=self.influence):
+        for result in self._full.GetQueryObject().ComputeSignedDistancePairwiseClosestPoints(max_distance=self.influence):
             p = index.get((result.id_A.get_value(), result.id_B.get_value()))
             if p is not None:
                 out.append((p, result.distance))
         return out
 
-    def _collision_report(self, q, v, k: int, offset: float, period: float, context, queries: int, min_distance: float) -> CollisionReport:
-        """The report of the configuration at sample k + offset s, not provably margin clear:
-        names the pairs closer than margin + PROOF_TOLERANCE (after their symmetry slack),
-        closest first."""
-        config = q[k] if offset == 0.0 else interpolate(q[k], v[k], q[k + 1], v[k + 1], period, offset)
-        distances = self._distances(config, context)
-        close = sorted((d, self._pairs[p].name) for p, d in distances if d - self._pairs[p].slack < self.margin + PROOF_TOLERANCE)
-        closest = min((d for _, d in distances), default=self.influence)
-        return CollisionReport(False, k * period + offset, tuple(name for _, name in close), queries, min(min_distance, closest))
-
-    def _context_for(self, q: np.ndarray, rates: np.ndarray, period: float) -> tuple[object, np.ndarray]:
-        """The query context for a trajectory q (8, n + 1) with joint speed bounds rates (8, n),
-        with the gated pairs it provably keeps clear of filtered out, and the rate coefficients
-        of every pair left (elementwise max)."""
-        # The Hermite on interval k stays within period * rate of both ends, so within half of
-        # that of their midpoint: within [lower_k, upper_k], and all of it within [low, high].
-        spread = 0.5 * period * rates.max(axis=1) if rates.shape[1] else 0.0
-        low, high = q.min(axis=1) - spread, q.max(axis=1) + spread
-        inside = (low >= self.box_lower) & (high <= self.box_upper)
-        excluded = self._certified[~np.any(self._certified_joints & ~inside, axis=1)].tolist()
-        intervals = None
-        low_, high_ = low.tolist(), high.tolist()
-        for gate in self._gated:
-            if not inside[gate.joints].all():
-                continue
-            if gate.box_touches(low_, high_):
-                if intervals is None:
-                    middle, half = 0.5 * (q[:, :-1] + q[:, 1:]), 0.5 * period * rates
-                    intervals = (middle - half, middle + half)
-                if not rates.shape[1] or gate.touches(*intervals):
-                    continue
-            excluded.append(gate.pair)
-        key = tuple(sorted(excluded))
-        if key not in self._contexts:
-            context = self.checker.MakeStandaloneModelContext()
-            scene_graph = self.checker.model().scene_graph()
-            manager = scene_graph.collision_filter_manager(scene_graph.GetMyMutableContextFromRoot(context.model_context()))
-            for p in key:
-                manager.Apply(CollisionFilterDeclaration().ExcludeBetween(GeometrySet(self._pairs[p].id_A), GeometrySet(self._pairs[p].id_B)))
-            rates_left = [pair.rate for p, pair in enumerate(self._pairs) if p not in key]
-            self._contexts[key] = (context, np.max(rates_left, axis=0) if rates_left else np.zeros(len(JOINT_NAMES)))
-        return self._contexts[key]
+    def _collision_report(self, time: float, due: list[tuple[_Pair, float | None]], queries: int, min_distance: float) -> CollisionReport:
+        """The report of the configuration at ``time`` s, in the query context, not provably margin
+        clear for one of the ``due`` pairs (those whose frontier it is, with their distance there
+        (m) if queried; every other pair is proven clear there): names those closer than
+        margin + PROOF_TOLERANCE (after their slack), closest first."""
+        distance = self._full.GetQueryObject().ComputeSignedDistancePairClosestPoints
+        close = []
+        for pair, d in due:
+            if d is None:
+                d = distance(pair.id_A, pair.id_B).distance
+                min_distance = min(min_distance, d)
+            if d - pair.slack < self.margin + PROOF_TOLERANCE:
+                close.append((d, pair.name))
+        return CollisionReport(False, time, tuple(name for _, name in sorted(close)), queries, min_distance)
 
     def _build_heights(self) -> "_Heights":
         """The height certificates of the pairs of a moving robot geometry and a static one (see
@@ -410,8 +436,8 @@ class TrajectoryCollisionChecker:
         geometries, tops, rates, slacks, pair_certificate = [], [], [], [], np.full(len(self._pairs), -1, dtype=int)
         for p, pair in enumerate(self._pairs):
             body_B = plant.GetBodyFromFrameId(inspector.GetFrameId(pair.id_B))
-            if kin.upstream[int(body_B.index())]:
-                continue  # both move: no fixed plane between them
+            if kin.upstream[int(body_B.index())] or Shape.of(inspector.GetShape(pair.id_A)) is None:
+                continue  # both move (no fixed plane between them), or no closed-form lowest point
             points, radius = kin._points(pair.id_B)
             X_WB = query_object.GetPoseInWorld(pair.id_B).GetAsMatrix4() @ np.linalg.inv(inspector.GetPoseInFrame(pair.id_B).GetAsMatrix4())
             top = float(np.max(points @ X_WB[:3, :3].T[:, 2] + X_WB[2, 3])) + radius
@@ -440,7 +466,14 @@ class TrajectoryCollisionChecker:
             rate, slack = kin.pair_rate(id_A, id_B)
             name = f"{body_A.name()}/{inspector.GetName(id_A)} - {body_B.name()}/{inspector.GetName(id_B)}"
             index[(id_A.get_value(), id_B.get_value())] = index[(id_B.get_value(), id_A.get_value())] = len(pairs)
-            pairs.append(_Pair(name, rate, slack, id_A, id_B))
+            shapes = [Shape.of(inspector.GetShape(g)) for g in (id_A, id_B)]
+            geometry = None
+            if None not in shapes:
+                geometry = tuple(
+                    item for g, body, shape in ((id_A, body_A, shapes[0]), (id_B, body_B, shapes[1]))
+                    for item in (int(body.index()), inspector.GetPoseInFrame(g).GetAsMatrix34(), np.array([*shape.half, shape.radius, shape.rounding]))
+                )
+            pairs.append(_Pair(name, rate, slack, id_A, id_B, kin.lever_arms(id_A) + kin.lever_arms(id_B), geometry))
         return pairs, index
 
     def _gate(self, p: int) -> _Gate | None:
@@ -476,7 +509,7 @@ class TrajectoryCollisionChecker:
             spread = float(rate @ half)
             if d - spread >= required:
                 continue  # clear everywhere in the cell
-            if d + spread < required or spread <= GATE_RESOLUTION:
+            if d + spread < required or spread <= GATE_RESOLUTION[len(joints) - 1]:
                 bad.append((lower, upper))  # close everywhere in it, or not worth splitting
                 continue
             split = int(np.argmax(rate * half))  # halve the cell along its most uncertain joint
@@ -484,6 +517,74 @@ class TrajectoryCollisionChecker:
             left_upper[split] = right_lower[split] = centre[split]
             cells += [(lower, left_upper), (right_lower, upper)]
         return None
+
+
+def _reach(swept: list[float], budget: float, k: int, fraction: float) -> float:
+    """How far (in samples) a distance budget (m) proven at sample k + fraction carries along the
+    cumulative swept bound ``swept`` (n + 1 values): strictly inside interval k if the budget runs
+    out there, else the furthest sample reached; -inf if the budget is below PROOF_TOLERANCE."""
+    if not budget >= PROOF_TOLERANCE:  # (NaN included)
+        return -math.inf
+    interval = swept[k + 1] - swept[k]
+    ahead = (1.0 - fraction) * interval
+    if ahead > budget:
+        return k + fraction + budget / interval  # budget / the pair's rate bound, in samples
+    return float(bisect.bisect_right(swept, swept[k + 1] + budget - ahead) - 1)
+
+
+@numba.njit(cache=True)
+def _plane_reach(X_now, X_WB, geometry, normal, deviation, open_intervals, k, fraction, margin):
+    """How far (in samples) the plane certificate proves a pair at least ``margin`` (m) clear from
+    sample k + fraction (module doc): its gap along the unit ``normal`` (from B to A) at the
+    frontier (body poses X_now (num_bodies, 12, 1)) and at the following samples (X_WB), blended
+    linearly across each interval less the interval's ``deviation`` (m), over the pair's run of
+    open intervals; up to where the blend meets the margin, or to the end of the run. -inf if it
+    starts below PROOF_TOLERANCE. geometry: ``_Pair.geometry``."""
+    n = open_intervals.shape[0]
+    unit = normal / math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+    if not (math.isfinite(unit[0]) and math.isfinite(unit[1]) and math.isfinite(unit[2])):
+        return -np.inf  # no witness normal (touching)
+    previous = _plane_gap(X_now, 0, geometry, unit) - margin
+    scale = (1.0 - fraction) ** 2  # the first interval is only the rest of interval k
+    start = k + fraction
+    i = k
+    while i < n and (i == k or open_intervals[i]):
+        at_start = previous - scale * deviation[i]
+        if at_start < PROOF_TOLERANCE:
+            return -np.inf if i == k else float(i)
+        following = _plane_gap(X_WB, i + 1, geometry, unit) - margin
+        at_end = following - scale * deviation[i]
+        if at_end < 0.0:
+            return start + (i + 1 - start) * at_start / (at_start - at_end)
+        previous, scale, start, i = following, 1.0, float(i + 1), i + 1
+    return float(i)
+
+
+@numba.njit(cache=True)
+def _plane_gap(X_WB, s, geometry, normal):
+    """The gap (m) between a pair's geometries along the unit ``normal`` (from B to A) at sample s
+    of the body poses X_WB (num_bodies, 12, S): min over A of n . x less max over B of n . x, from
+    their poses and closed-form supports (``robot_bounds.Shape.support``)."""
+    body_A, X_BG_A, shape_A, body_B, X_BG_B, shape_B = geometry
+    return _support_gap(X_WB, s, body_A, X_BG_A, shape_A, normal, 1.0) + _support_gap(X_WB, s, body_B, X_BG_B, shape_B, normal, -1.0)
+
+
+@numba.njit(cache=True)
+def _support_gap(X_WB, s, body, X_BG, shape, normal, sign):
+    """sign n . p_WG less the shape's support along n: for sign 1 the smallest n . x over the
+    geometry, for sign -1 minus the largest (shapes are symmetric about G's origin)."""
+    # n in the body's frame, then in G's.
+    m0 = X_WB[body, 0, s] * normal[0] + X_WB[body, 4, s] * normal[1] + X_WB[body, 8, s] * normal[2]
+    m1 = X_WB[body, 1, s] * normal[0] + X_WB[body, 5, s] * normal[1] + X_WB[body, 9, s] * normal[2]
+    m2 = X_WB[body, 2, s] * normal[0] + X_WB[body, 6, s] * normal[1] + X_WB[body, 10, s] * normal[2]
+    u0 = abs(X_BG[0, 0] * m0 + X_BG[1, 0] * m1 + X_BG[2, 0] * m2)
+    u1 = abs(X_BG[0, 1] * m0 + X_BG[1, 1] * m1 + X_BG[2, 1] * m2)
+    u2 = abs(X_BG[0, 2] * m0 + X_BG[1, 2] * m1 + X_BG[2, 2] * m2)
+    support = u0 * shape[0] + u1 * shape[1] + u2 * shape[2] + shape[3] * math.sqrt(max(0.0, 1.0 - u2 * u2)) + shape[4]
+    # n . p_WG, with p_WG = p_WB + R_WB p_BG.
+    along = normal[0] * X_WB[body, 3, s] + normal[1] * X_WB[body, 7, s] + normal[2] * X_WB[body, 11, s]
+    along += m0 * X_BG[0, 3] + m1 * X_BG[1, 3] + m2 * X_BG[2, 3]
+    return sign * along - support
 
 
 class _Heights:
@@ -503,36 +604,15 @@ class _Heights:
         self.certificate = [(g, top, slack) for g, top, slack in zip(geometries, tops, slacks)]
         self.rate_matrix = rate_matrix
         self.pair_certificate = pair_certificate.tolist()
-        self._shapes = {}  # geometry id -> (kind, radius, half length, half extents or semi-axes)
-        for g in set(geometries):
-            shape = inspector.GetShape(g)
-            if isinstance(shape, Sphere):
-                self._shapes[g] = ("sphere", shape.radius(), 0.0, None)
-            elif isinstance(shape, Capsule):
-                self._shapes[g] = ("capsule", shape.radius(), 0.5 * shape.length(), None)
-            elif isinstance(shape, Cylinder):
-                self._shapes[g] = ("cylinder", shape.radius(), 0.5 * shape.length(), None)
-            elif isinstance(shape, Box):
-                self._shapes[g] = ("box", 0.0, 0.0, 0.5 * np.array([shape.width(), shape.depth(), shape.height()]))
-            elif isinstance(shape, Ellipsoid):
-                self._shapes[g] = ("ellipsoid", 0.0, 0.0, np.array([shape.a(), shape.b(), shape.c()]))
-            else:
-                raise ValueError(f"robot collision: unsupported collision shape {type(shape).__name__} ({inspector.GetName(g)})")
+        self._shapes = {g: (tuple((shape := Shape.of(inspector.GetShape(g))).half.tolist()), shape.radius, shape.rounding) for g in set(geometries)}
 
     def lowest(self, query_object, geometry) -> float:
-        """z (m) of the geometry's lowest point in the query's configuration."""
-        X_WG = query_object.GetPoseInWorld(geometry).GetAsMatrix34()
-        z, row = X_WG[2, 3], X_WG[2, :3]  # height of the origin; the world z axis in the geometry's frame
-        kind, radius, half_length, extents = self._shapes[geometry]
-        if kind == "sphere":
-            return z - radius
-        if kind == "capsule":
-            return z - abs(row[2]) * half_length - radius
-        if kind == "cylinder":
-            return z - abs(row[2]) * half_length - radius * math.sqrt(max(0.0, 1.0 - row[2] * row[2]))
-        if kind == "box":
-            return z - float(np.abs(row) @ extents)
-        return z - float(np.linalg.norm(row * extents))  # ellipsoid: its support along -z
+        """z (m) of the geometry's lowest point in the query's configuration (``Shape.lowest``,
+        in scalars: one pose)."""
+        u0, u1, u2, z = query_object.GetPoseInWorld(geometry).GetAsMatrix34()[2].tolist()
+        (h0, h1, h2), radius, rounding = self._shapes[geometry]
+        u0, u1, u2 = abs(u0), abs(u1), abs(u2)
+        return z - (u0 * h0 + u1 * h1 + u2 * h2 + radius * math.sqrt(max(0.0, 1.0 - u2 * u2)) + rounding)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -569,9 +649,9 @@ class _Gate:
         counts[(slice(1, None),) * len(joints)] = summed
         return _Gate(pair, joints, lower, width, counts, int(grid.sum()))
 
-    def touches(self, lower: np.ndarray, upper: np.ndarray) -> bool:
-        """Whether any of the boxes [lower, upper] (8, n), inside the gate's box, meets a bad cell
-        (closed cells: touching counts)."""
+    def touched(self, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+        """Which of the boxes [lower, upper] (8, n), inside the gate's box, meet a bad cell (n,)
+        bool (closed cells: touching counts)."""
         last = (np.array(self.counts.shape) - 2)[:, None]
         origin, width = self.origin[:, None], self.width[:, None]
         i0 = np.clip(np.floor((lower[self.joints] - origin) / width).astype(int), 0, last)
@@ -581,10 +661,10 @@ class _Gate:
             inside = c[i1[0]] - c[i0[0]]
         else:
             inside = c[i1[0], i1[1]] - c[i0[0], i1[1]] - c[i1[0], i0[1]] + c[i0[0], i0[1]]
-        return bool(np.any(inside > 0))
+        return inside > 0
 
     def box_touches(self, lower: list[float], upper: list[float]) -> bool:
-        """``touches`` for one box [lower, upper] (8,), in plain Python (fast)."""
+        """``touched`` for one box [lower, upper] (8,), in plain Python (fast)."""
         index = []
         for j, origin, width, size in zip(self.joints.tolist(), self.origin.tolist(), self.width.tolist(), self.counts.shape):
             i0 = min(max(math.floor((lower[j] - origin) / width), 0), size - 2)
@@ -606,14 +686,71 @@ def interpolate(q0: np.ndarray, v0: np.ndarray, q1: np.ndarray, v1: np.ndarray, 
     return (2 * s3 - 3 * s2 + 1) * q0 + (s3 - 2 * s2 + s) * period * v0 + (3 * s2 - 2 * s3) * q1 + (s3 - s2) * period * v1
 
 
+@numba.njit(cache=True)
+def _speed_bound(q0, q1, v0, v1, a0, a1, period):
+    """A bound on |qdot| over an interval (``joint_speed_bounds``)."""
+    # max(|v_k|, |v_k+1|) + max(|a_k|, |a_k+1|) * period / 4 is at least the end-point Bernstein terms.
+    linear = max(abs(v0), abs(v1)) + max(abs(a0), abs(a1)) * (period / 4.0)
+    middle = abs((q1 - q0) * (3.0 / period) - v0 - v1)
+    return max(middle, linear)
+
+
+@numba.njit(cache=True)
+def _acceleration_bound(q0, q1, v0, v1, a0, a1, period):
+    """A bound on |qddot| over an interval (``joint_acceleration_bounds``)."""
+    rise = (q1 - q0) * (6.0 / (period * period))
+    start = rise - (4.0 * v0 + 2.0 * v1) / period
+    end = (2.0 * v0 + 4.0 * v1) / period - rise
+    return max(abs(start), abs(end), abs(a0), abs(a1))
+
+
+@numba.njit(cache=True)
 def joint_speed_bounds(q: np.ndarray, v: np.ndarray, a: np.ndarray, period: float) -> np.ndarray:
     """Per interval and joint (n, 8), a bound on |qdot| over [t_k, t_{k+1}] for the Hermite
     interpolant of the samples (largest Bernstein coefficient of its quadratic velocity), and for
     motion with linear acceleration between the sampled a (max |v| + max |a| * period / 4)."""
-    # max(|v_k|, |v_k+1|) + max(|a_k|, |a_k+1|) * period / 4 is at least the end-point Bernstein terms.
-    linear = np.maximum(np.abs(v[:-1]), np.abs(v[1:])) + np.maximum(np.abs(a[:-1]), np.abs(a[1:])) * (period / 4.0)
-    middle = np.abs((q[1:] - q[:-1]) * (3.0 / period) - v[:-1] - v[1:])
-    return np.maximum(middle, linear)
+    out = np.empty((q.shape[0] - 1, q.shape[1]))
+    for k in range(q.shape[0] - 1):
+        for j in range(q.shape[1]):
+            out[k, j] = _speed_bound(q[k, j], q[k + 1, j], v[k, j], v[k + 1, j], a[k, j], a[k + 1, j], period)
+    return out
+
+
+@numba.njit(cache=True)
+def joint_acceleration_bounds(q: np.ndarray, v: np.ndarray, a: np.ndarray, period: float) -> np.ndarray:
+    """Per interval and joint (n, 8), a bound on |qddot| over [t_k, t_{k+1}] for the Hermite
+    interpolant of the samples (its acceleration is linear in time: the larger of its values at
+    the ends), and for motion with linear acceleration between the sampled a."""
+    out = np.empty((q.shape[0] - 1, q.shape[1]))
+    for k in range(q.shape[0] - 1):
+        for j in range(q.shape[1]):
+            out[k, j] = _acceleration_bound(q[k, j], q[k + 1, j], v[k, j], v[k + 1, j], a[k, j], a[k + 1, j], period)
+    return out
+
+
+@numba.njit(cache=True)
+def _motion_bounds(q, v, a, period, upstream):
+    """For samples q, v, a (n + 1, 8): the cumulative travel bound of each joint at each sample
+    (n + 1, 8), and per joint and interval, joints by intervals (8, n): how far the joint strays
+    from the chord between its samples, h^2 / 8 A, and the deviation terms of the robot's points,
+    h^2 / 8 (A + V (V + 4 U)) (module doc of robot_bounds; V, A: ``joint_speed_bounds``,
+    ``joint_acceleration_bounds``; U_j: the sum of V over the joints upstream of j, upstream
+    (8, 8) [i, j] = 1 if i is)."""
+    n, joints = q.shape[0] - 1, q.shape[1]
+    cumulative, sag, bend = np.zeros((n + 1, joints)), np.empty((joints, n)), np.empty((joints, n))
+    speed = np.empty(joints)
+    scale = period * period / 8.0
+    for k in range(n):
+        for j in range(joints):
+            speed[j] = _speed_bound(q[k, j], q[k + 1, j], v[k, j], v[k + 1, j], a[k, j], a[k + 1, j], period)
+            cumulative[k + 1, j] = cumulative[k, j] + period * speed[j]
+            sag[j, k] = scale * _acceleration_bound(q[k, j], q[k + 1, j], v[k, j], v[k + 1, j], a[k, j], a[k + 1, j], period)
+        for j in range(joints):
+            above = 0.0
+            for i in range(joints):
+                above += upstream[i, j] * speed[i]
+            bend[j, k] = sag[j, k] + scale * speed[j] * (speed[j] + 4.0 * above)
+    return cumulative, sag, bend
 
 
 def _trajectory_arrays(trajectory: JointTrajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -770,6 +907,25 @@ class _Kinematics:
         for inner, outer in zip(path[:-1], path[1:]):
             total += float(np.max(np.linalg.norm(self._origins_in_parent(outer) - self._origin_in_child(inner), axis=1)))
         return total + self._farthest(geometry_id, self._origin_in_child(path[-1]))
+
+    def lever_arms(self, geometry_id) -> np.ndarray:
+        """rho (8,): every point of the geometry moves at most at sum_j |qdot_j| rho_j m/s
+        (``axis_radius`` for the joints upstream of its body, 0 for the others)."""
+        body = int(self.plant.GetBodyFromFrameId(self.inspector.GetFrameId(geometry_id)).index())
+        arms = np.zeros(len(JOINT_NAMES))
+        for joint in self.upstream[body]:
+            arms[self.velocity_index[int(joint.index())]] = self.axis_radius(joint, geometry_id)
+        return arms
+
+    def upstream_matrix(self) -> np.ndarray:
+        """(8, 8): entry [i, j] is 1 if joint i is upstream of joint j (moves j's parent body)."""
+        upstream = np.zeros((len(JOINT_NAMES), len(JOINT_NAMES)))
+        for joints in self.upstream:
+            if joints:  # the body's inboard joint, then the joints above it
+                j = self.velocity_index[int(joints[0].index())]
+                for joint in joints[1:]:
+                    upstream[self.velocity_index[int(joint.index())], j] = 1.0
+        return upstream
 
     def robot_geometries(self) -> list:
         """Collision geometries on bodies moved by a joint."""

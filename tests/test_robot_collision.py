@@ -1,4 +1,5 @@
-"""The trajectory collision checker: filters, speed bounds, collisions found, soundness, cost."""
+"""The trajectory collision checker: filters, speed and acceleration bounds, collisions found,
+soundness (over thousands of plans, against Drake on a dense grid), cost."""
 
 import time
 
@@ -8,9 +9,12 @@ from pydrake.common import Parallelism
 from pydrake.geometry import Box, Capsule, Cylinder, Sphere
 from pydrake.planning import RobotDiagramBuilder, SceneGraphCollisionChecker
 
+from ace_drake.analysis.control_bench import ACTION_KINDS, make_stack, random_action, random_start
 from ace_drake.config import JOINT_NAMES, ControlParams
 from ace_drake.control.trajectory import JointTrajectory
-from ace_drake.robot_collision import DISTANCE_ERROR, PROOF_TOLERANCE, CollisionReport, TrajectoryCollisionChecker, interpolate, joint_speed_bounds
+from ace_drake.robot_collision import (
+    DISTANCE_ERROR, PROOF_TOLERANCE, CollisionReport, TrajectoryCollisionChecker, interpolate, joint_acceleration_bounds, joint_speed_bounds,
+)
 from ace_drake.robot_model import add_robot_to_plant, load_scenario
 
 PERIOD = 0.001
@@ -117,7 +121,8 @@ def test_ready_pose_is_clear_and_filtered_pairs_are_not_checked(dut):
     assert dut.check_config(ready)
     assert MARGIN < dut.clearance(ready) <= dut.influence
     report = dut.check(JointTrajectory.stationary(ready, PERIOD))
-    assert report == CollisionReport(True, None, (), 1, report.min_distance) and report.min_distance > MARGIN
+    # Proven by the gates and swept boxes alone: no exact query.
+    assert report == CollisionReport(True, None, (), 0, report.min_distance) and report.min_distance > MARGIN
     bodies = {tuple(sorted(part.split("/")[0] for part in name.split(" - "))) for name in dut.pair_rates()}
     # Adjacent links, the SDF's collision filter groups, and bodies welded to the world together.
     filtered = [
@@ -270,6 +275,23 @@ def test_joint_speed_bounds_hold_between_samples():
     assert bound >= v0 + a0 * PERIOD / 4 - 1e-12  # the peak of v at mid-interval
 
 
+def test_joint_acceleration_bounds_hold_between_samples():
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        q0, q1 = rng.normal(0, 1, 8), rng.normal(0, 1, 8)
+        v0, v1 = rng.normal(0, 20, 8), rng.normal(0, 20, 8)
+        trajectory = polynomial_trajectory(q0, v0, None, q0 + 0.01 * q1, v1, None, PERIOD)
+        bound = joint_acceleration_bounds(trajectory.q, trajectory.v, np.zeros((2, 8)), PERIOD)[0]
+        t = np.linspace(0, PERIOD, 201)
+        q = np.array([interpolate(trajectory.q[0], trajectory.v[0], trajectory.q[1], trajectory.v[1], PERIOD, s) for s in t])
+        acceleration = np.abs(np.gradient(np.gradient(q, t, axis=0), t, axis=0))[2:-2]
+        assert np.all(acceleration.max(axis=0) <= bound * (1 + 1e-3) + 1e-6)
+        assert np.all(acceleration.max(axis=0) >= bound * 0.95)  # the largest is at an end: tight
+    # Sampled accelerations count too (motion with linear acceleration between them).
+    a = np.full((2, 8), [[300.0], [-500.0]])
+    assert np.all(joint_acceleration_bounds(np.zeros((2, 8)), np.zeros((2, 8)), a, PERIOD) == 500.0)
+
+
 # ---------------------------------------------------------------------------------- collisions found
 def test_the_racket_pushed_into_the_table_is_found_with_its_time(dut, reference):
     assert not dut.check_config(RACKET_INTO_TABLE)
@@ -405,6 +427,48 @@ def test_free_means_free_and_dense_collisions_are_never_free(dut, reference):
     assert outcomes["unproven"] <= 0.1 * len(trajectories)
 
 
+def stack_plans(count, rng):
+    """What the supervisor checks: segment + reset plans of the control stack (its own collision
+    check off) from random invariant starts (control_bench.random_start) under random actions of
+    every kind (all +-1, alternating, uniform, corners)."""
+    stack = make_stack(check_collisions=False)
+    plans = []
+    while len(plans) < count:
+        q, v, a = random_start(stack, rng)
+        proposal = stack.propose(q, v, a, random_action(rng, ACTION_KINDS[rng.integers(len(ACTION_KINDS))], int(rng.integers(2))))
+        if proposal.plan is not None:
+            plans.append(proposal.plan)
+    return plans
+
+
+@pytest.mark.slow
+def test_plans_dense_sampling_finds_colliding_are_never_reported_free(dut, reference):
+    # Thousands of motions, short and fast near the court and the robot itself, and whole
+    # segment + reset plans: whatever the check reports free, Drake finds no configuration within
+    # the margin along it (every 0.1 ms, or 0.25 ms on the long plans); and (on every fourth of
+    # the others) a reported collision time is never after the first one found.
+    rng = np.random.default_rng(77)
+    plans = list(random_trajectories(dut, 1500, rng)) + stack_plans(500, rng)
+    outcomes = {"free": 0, "collision": 0, "unproven": 0, "not sampled": 0}
+    for i, plan in enumerate(plans):
+        report = dut.check(plan)
+        if not report.free and i % 4:
+            outcomes["not sampled"] += 1
+            continue
+        first = first_collision(reference, plan, spacing=1e-4 if plan.samples <= 60 else 2.5e-4)
+        if report.free:
+            assert first is None, f"check says free, but Drake finds a configuration within the margin at {first} s"
+            outcomes["free"] += 1
+        elif first is not None:
+            assert report.time <= first + 1e-12
+            outcomes["collision"] += 1
+        else:
+            outcomes["unproven"] += 1
+    print(f"\nsoundness over {len(plans)} plans: {outcomes}")
+    assert outcomes["free"] >= 500 and outcomes["collision"] >= 200
+    assert outcomes["unproven"] <= 0.05 * (outcomes["collision"] + outcomes["unproven"])
+
+
 # ---------------------------------------------------------------------------------- cost
 def typical_segments_with_resets(dut, count, rng):
     """A 32 ms fast segment (a swing around the hitting region behind the table: arm joints up
@@ -453,9 +517,9 @@ def test_cost_of_a_segment_and_its_reset(dut, reference):
 
 
 def test_a_query_budget_bounds_the_work(dut):
-    trajectory = next(typical_segments_with_resets(dut, 1, np.random.default_rng(1)))
-    full = dut.check(trajectory)
-    assert full.free and full.queries > 2
+    # A free motion that passes close enough to the court or the robot for some exact queries.
+    motions = random_trajectories(dut, 200, np.random.default_rng(1))
+    trajectory, full = next((motion, report) for motion in motions if (report := dut.check(motion)).free and report.queries > 2)
     report = dut.check(trajectory, max_queries=2)
     assert not report.free and report.pairs == () and report.queries == 2
     assert 0 < report.time < trajectory.duration
