@@ -3,7 +3,8 @@ a small safety run that must find no violation (the README's 100,000-case run is
 
 import numpy as np
 
-from ace_drake.analysis.control_bench import ACTION_KINDS, bench_safety, follow, make_stack, random_action, random_start
+from ace_drake.analysis.control_bench import ACTION_KINDS, bench_safety, follow, make_stack, random_action
+from ace_drake.control.stack import random_invariant_state
 from ace_drake.config import RobotScenario
 from ace_drake.control.feasible_set import in_invariant_set
 from ace_drake.control.joint_model import ramp_tracking_lag, simulate_joint
@@ -30,7 +31,7 @@ def test_random_starts_are_invariant_and_actions_cover_the_kinds():
     stack = make_stack(check_collisions=False)
     rng = np.random.default_rng(0)
     for _ in range(20):
-        q, v, a = random_start(stack, rng)
+        q, v, a = random_invariant_state(stack, rng)
         assert np.all(in_invariant_set(q, v, stack.limits, stack.control, stack.period))
         low, high = stack.limits.acceleration_bounds(v)
         assert np.all((low <= a) & (a <= high))

@@ -9,7 +9,8 @@ from pydrake.common import Parallelism
 from pydrake.geometry import Box, Capsule, Cylinder, Sphere
 from pydrake.planning import RobotDiagramBuilder, SceneGraphCollisionChecker
 
-from ace_drake.analysis.control_bench import ACTION_KINDS, make_stack, random_action, random_start
+from ace_drake.analysis.control_bench import ACTION_KINDS, make_stack, random_action
+from ace_drake.control.stack import random_invariant_state
 from ace_drake.config import JOINT_NAMES, ControlParams
 from ace_drake.control.trajectory import JointTrajectory
 from ace_drake.robot_collision import (
@@ -429,12 +430,12 @@ def test_free_means_free_and_dense_collisions_are_never_free(dut, reference):
 
 def stack_plans(count, rng):
     """What the supervisor checks: segment + reset plans of the control stack (its own collision
-    check off) from random invariant starts (control_bench.random_start) under random actions of
+    check off) from random invariant starts (control.stack.random_invariant_state) under random actions of
     every kind (all +-1, alternating, uniform, corners)."""
     stack = make_stack(check_collisions=False)
     plans = []
     while len(plans) < count:
-        q, v, a = random_start(stack, rng)
+        q, v, a = random_invariant_state(stack, rng)
         proposal = stack.propose(q, v, a, random_action(rng, ACTION_KINDS[rng.integers(len(ACTION_KINDS))], int(rng.integers(2))))
         if proposal.plan is not None:
             plans.append(proposal.plan)

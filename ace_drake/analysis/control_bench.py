@@ -18,10 +18,10 @@ import numpy as np
 
 from ace_drake.config import ControlParams, RobotScenario
 from ace_drake.control.action_mapping import ACTION_SIZE
-from ace_drake.control.feasible_set import InfeasibleStartError, in_invariant_set
+from ace_drake.control.feasible_set import InfeasibleStartError
 from ace_drake.control.joint_model import discretize
 from ace_drake.control.spline_qp import SegmentQp
-from ace_drake.control.stack import ControlStack, plan_state
+from ace_drake.control.stack import ControlStack, plan_state, random_invariant_state
 from ace_drake.control.trajectory import CommandLimits, JointTrajectory
 
 # The actor network's size for the latency budget: the observation of issue 7's actor (ball
@@ -276,19 +276,6 @@ REFUSALS = {
 }
 
 
-def random_start(stack: ControlStack, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A random joint state (q, v, a) in the control-invariant set: positions uniform within the
-    command limits, velocities uniform up to the limit or to a fifth of it, accelerations uniform
-    within the bounds a segment can end with (``CommandLimits.acceleration_bounds``)."""
-    limits = stack.limits
-    while True:
-        q = rng.uniform(limits.lower, limits.upper)
-        v = rng.uniform(-1.0, 1.0, 8) * limits.velocity * rng.choice([0.2, 1.0])
-        a = rng.uniform(*limits.acceleration_bounds(v))
-        if np.all(in_invariant_set(q, v, limits, stack.control, stack.period)):
-            return q, v, a
-
-
 def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: CommandLimits, checker=None) -> SafetyCounts:
     """One case: a random invariant start whose initial plan (its reset) and recent past
     (``lead_in``) are collision-free, then
@@ -298,7 +285,7 @@ def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: Comman
     with ``checker`` (margin 0), against collisions; the end must be at rest."""
     counts = SafetyCounts(cases=1)
     while True:
-        q, v, a = random_start(stack, rng)
+        q, v, a = random_invariant_state(stack, rng)
         plan, free = stack.initial_plan(q, v, a)
         # The joints lag the command by a few ms: they start on the way the command came, which
         # (extrapolated, ``follow``) must be clear too, or the start is not one the robot can be in.

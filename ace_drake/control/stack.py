@@ -23,7 +23,7 @@ import numpy as np
 
 from ace_drake.config import ControlParams, RobotScenario
 from ace_drake.control.action_mapping import inverse_map_action, map_action
-from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets
+from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
 from ace_drake.control.reset import ResetPlanner
 from ace_drake.control.spline_qp import SegmentQp
 from ace_drake.control.trajectory import CommandLimits, JointTrajectory
@@ -180,6 +180,20 @@ class ControlStack:
         else:
             plan = self.resets.plan_reset(q, v, a, self.reset_pose)
         return plan, self.check(plan).ok
+
+
+def random_invariant_state(stack: ControlStack, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A random joint state (q, v, a) (8,) each in the control-invariant set: positions uniform
+    within the command limits, velocities uniform up to the limit or to a fifth of it,
+    accelerations uniform within the bounds a segment can end with
+    (``CommandLimits.acceleration_bounds``). Units: rad or m, per s, per s^2."""
+    limits = stack.limits
+    while True:
+        q = rng.uniform(limits.lower, limits.upper)
+        v = rng.uniform(-1.0, 1.0, q.size) * limits.velocity * rng.choice([0.2, 1.0])
+        a = rng.uniform(*limits.acceleration_bounds(v))
+        if np.all(in_invariant_set(q, v, limits, stack.control, stack.period)):
+            return q, v, a
 
 
 def plan_state(plan: JointTrajectory, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -85,7 +85,7 @@ from ace_drake.config import (
     ShotParams,
 )
 from ace_drake.control.action_mapping import ACTION_SIZE
-from ace_drake.control.feasible_set import in_invariant_set
+from ace_drake.control.stack import random_invariant_state
 from ace_drake.learning.rewards import terminal_reward
 from ace_drake.play.episode import EpisodeResult, Outcome, classify, timed_out
 
@@ -442,17 +442,12 @@ class RallyEnv(gymnasium.Env):
     def _draw_dynamic_state(self):
         """(q, v, a) part-way along a collision-free reset plan from a random invariant state, or
         None after ``dynamic_attempts`` draws."""
-        limits, rng = self.stack.limits, self.np_random
         for _ in range(self.params.dynamic_attempts):
-            q = rng.uniform(limits.lower, limits.upper)
-            v = rng.uniform(-1.0, 1.0, len(q)) * limits.velocity * rng.choice([0.2, 1.0])
-            a = rng.uniform(*limits.acceleration_bounds(v))
-            if not np.all(in_invariant_set(q, v, limits, self.stack.control, self.stack.period)):
-                continue
+            q, v, a = random_invariant_state(self.stack, self.np_random)
             plan, free = self.stack.initial_plan(q, v, a)
             if not free:
                 continue
-            state = tuple(np.array(x) for x in plan.state(int(rng.integers(plan.samples))))
+            state = tuple(np.array(x) for x in plan.state(int(self.np_random.integers(plan.samples))))
             if self.stack.initial_plan(*state)[1]:  # the supervisor re-plans the reset from there
                 return state
         return None
