@@ -451,6 +451,40 @@ def cmd_diagrams(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    """A training run (``learning.trainer``): resumes from the run directory's checkpoint, trains,
+    exports the policy with its sidecar and learning curve."""
+    from ace_drake.learning.trainer import Trainer, export, load_train_config
+
+    config = load_train_config(args.config)
+    run_dir = Path(args.run_dir or REPO_ROOT / "out" / "train" / config.name)
+    log(f"train: {args.config} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
+    trainer = Trainer(config, run_dir, progress=log)
+    trainer.run()
+    evaluation = None
+    if args.evaluate_data:
+        from ace_drake.analysis.evaluation import evaluate
+        from ace_drake.learning.sac import load_policy
+        from ace_drake.play.shots import human_shots
+
+        policy_path = Path(args.export_dir) / f"{config.name}.pt"
+        export(trainer, args.export_dir, args.export)  # the actor to evaluate
+        shots, serve = human_shots(args.evaluate_data)
+        log(f"train: evaluating the exported actor on the {len(shots)} human shots of {args.evaluate_data} (cameras)")
+        figures = evaluate(load_policy(policy_path), RallyParams(), shots, serve, config.seed, progress=log)
+        evaluation = {"data": args.evaluate_data, "data_sha256": _sha256(args.evaluate_data), "sensors": "cameras", **figures}
+    sidecar = export(trainer, args.export_dir, args.export, {**_provenance(), **evaluation} if evaluation else _provenance())
+    summary = {"policy": str(Path(args.export_dir) / f"{config.name}.pt"), **{k: sidecar[k] for k in ("env_steps", "episodes", "updates", "wall_time_s", "actor_at")}}
+    if args.json:
+        emit_json({**summary, "final_evaluation": evaluation})
+    else:
+        print(f"exported {summary['policy']} after {summary['env_steps']} steps, {summary['updates']} updates, {summary['wall_time_s']:.0f} s")
+        if evaluation:
+            rate = evaluation["return_rate"]
+            print(f"return rate on {args.evaluate_data}: {rate['rate']:.1%} [{rate['ci95'][0]:.1%}, {rate['ci95'][1]:.1%}] of {rate['played']} playable shots")
+    return 0
+
+
 # ------------------------------------------------------------------------------ parser
 
 
@@ -478,6 +512,15 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--data", help="match-data CSV: one episode per human shot (shot_p2); default: the synthetic distribution")
     evaluate.add_argument("--episodes", type=int, help="at most this many episodes (default: all shots of --data, or 200)")
     evaluate.set_defaults(run=cmd_evaluate)
+
+    train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")
+    train.add_argument("config", help="training config YAML (learning.trainer.TrainConfig; e.g. configs/train_rally.yaml)")
+    train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
+    train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
+    train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
+    train.add_argument("--evaluate-data", help="match-data CSV: evaluate the exported policy on its human shots (cameras) into the sidecar")
+    train.add_argument("--json", action="store_true")
+    train.set_defaults(run=cmd_train)
 
     validate = commands.add_parser("physics-validate", help="replay recorded events through the ball model")
     validate.add_argument("--data", required=True, help="match-data CSV (format of ace_match_events_elite.csv)")

@@ -344,6 +344,28 @@ class RallyEnv(gymnasium.Env):
         joints = self._joints.joint_state_port.Eval(self._joints.GetMyContextFromRoot(self.context))
         return np.concatenate([ball, joints, self._episode.skill]).astype(np.float32)
 
+    def hold_action(self) -> np.ndarray:
+        """The action (16,) that continues the committed plan through the next segment, as near as
+        the action mapping reaches (eq. (12) inverted at the plan's state 32 ms after the segment
+        start; clipped onto the box): what "no new segment" does, for a controller that has no
+        action to give (``learning.demonstrations``). Zeros when the plan's start lies outside the
+        control-invariant set."""
+        from ace_drake.control.action_mapping import inverse_map_action
+        from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets
+
+        status = self._supervisor_state()
+        plan = status.plan
+        start = round((self.context.get_time() + self.stack.control.observation_lead) / plan.period) - status.plan_start
+        first = int(np.clip(start, 0, plan.samples))
+        last = int(np.clip(start + self.stack.control.segment_samples, 0, plan.samples))
+        q0, v0, a0 = plan.state(first)
+        q1, v1, _ = plan.state(last)
+        try:
+            sets = feasible_sets(q0, v0, a0, self.stack.limits, self.stack.control, self.stack.period)
+        except InfeasibleStartError:
+            return np.zeros(ACTION_SIZE)
+        return np.clip(inverse_map_action(q1, v1, sets), -1.0, 1.0)
+
     # ------------------------------------------------------------------------------ helpers
     def _observation(self) -> np.ndarray:
         builder = self._observation_builder

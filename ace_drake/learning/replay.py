@@ -141,26 +141,27 @@ class RingBuffer:
     """Fixed-capacity storage of transitions (float32 arrays allocated at the first insert);
     when full, each new transition overwrites the oldest."""
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, keys: tuple[str, ...] = TRANSITION_KEYS):
         self.capacity = capacity
+        self.keys = keys
         self.size = 0
         self._next = 0
         self._data: dict[str, np.ndarray] | None = None
 
     def add(self, transitions: dict[str, np.ndarray]) -> None:
-        count = len(transitions["reward"])
+        count = len(transitions[self.keys[0]])
         if count > self.capacity:  # only the newest fit
-            transitions, count = {key: transitions[key][-self.capacity:] for key in TRANSITION_KEYS}, self.capacity
+            transitions, count = {key: transitions[key][-self.capacity:] for key in self.keys}, self.capacity
         if self._data is None:
-            self._data = {key: np.zeros((self.capacity, *np.shape(transitions[key])[1:]), np.float32) for key in TRANSITION_KEYS}
+            self._data = {key: np.zeros((self.capacity, *np.shape(transitions[key])[1:]), np.float32) for key in self.keys}
         rows = (self._next + np.arange(count)) % self.capacity
-        for key in TRANSITION_KEYS:
+        for key in self.keys:
             self._data[key][rows] = transitions[key]
         self._next = int((self._next + count) % self.capacity)
         self.size = min(self.size + count, self.capacity)
 
     def get(self, rows: np.ndarray) -> dict[str, np.ndarray]:
-        return {key: self._data[key][rows] for key in TRANSITION_KEYS}
+        return {key: self._data[key][rows] for key in self.keys}
 
     def state_dict(self) -> dict:
         """The stored rows (only the filled ones) and the write position."""
@@ -267,3 +268,33 @@ class EventReplay:
 
     def __len__(self) -> int:
         return self.tables["all"].size
+
+
+class DemonstrationBuffer:
+    """The demonstrated transitions (observation, the demonstrator's action) that the learner's
+    behaviour-cloning term reads (``sac`` docstring), sampled uniformly."""
+
+    KEYS = ("obs", "privileged", "demo_action")
+
+    def __init__(self, capacity: int = 200_000, seed: int = 0):
+        self.buffer = RingBuffer(capacity, self.KEYS)
+        self.rng = np.random.default_rng(seed)
+
+    def add(self, transitions: dict[str, np.ndarray]) -> None:
+        """Stores an episode's rows (keys ``KEYS``; the rest ignored)."""
+        self.buffer.add({key: transitions[key] for key in self.KEYS})
+
+    def sample(self, batch_size: int) -> dict[str, np.ndarray]:
+        if self.buffer.size == 0:
+            raise ValueError("DemonstrationBuffer.sample: no demonstrations stored")
+        return self.buffer.get(self.rng.integers(self.buffer.size, size=batch_size))
+
+    def state_dict(self) -> dict:
+        return {"buffer": self.buffer.state_dict(), "rng": self.rng.bit_generator.state}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.buffer.load_state_dict(state["buffer"])
+        self.rng.bit_generator.state = state["rng"]
+
+    def __len__(self) -> int:
+        return self.buffer.size

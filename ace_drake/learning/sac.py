@@ -15,6 +15,16 @@ Polyak target updates, and auxiliary weight 1. One ``update`` on a batch of tran
                (both divided by networks.BALL_STATE_SCALE)
     theta'   = tau theta + (1 - tau) theta'
 
+Demonstrations (this project's addition, not the paper's; README *Training*): ``update`` may take a
+second batch of demonstrated transitions (observations with the model-based returner's actions,
+``rollout`` docstring) and then adds a behaviour-cloning term to the actor's loss (Nair et al.
+2018, "Overcoming exploration in RL with demonstrations"):
+
+    L_actor += bc_weight * mean |tanh(mu(o_demo)) - a_demo|^2     (mu: the Gaussian's mean)
+
+so that the sparse terminal reward is not the only thing telling 16 action dimensions how to hit
+a ball; with ``bc_weight`` 0 (the default) or no demonstration batch, the update is the paper's.
+
 d is 1 only at a terminal transition (the episode ended; the rally environment never truncates).
 The critic's features are the privileged observation plus the actor observation's parts named in
 ``SacConfig.critic_observation_parts`` (``networks`` docstring).
@@ -73,6 +83,8 @@ class SacConfig:
     actor_observation_parts: tuple[str, ...] = ("positions", "spins", "robot_state", "end_effector", "skill")
     # Added to the privileged observation for the critic (networks docstring).
     critic_observation_parts: tuple[str, ...] = ("robot_state",)
+    # The behaviour-cloning term's weight (module docstring; this project's, 0: the paper's SAC).
+    bc_weight: float = 0.0
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -85,8 +97,8 @@ class SacConfig:
             raise ValueError(f"SacConfig.gamma must be in [0, 1), got {self.gamma}")
         if not self.tau <= 1.0:
             raise ValueError(f"SacConfig.tau must be in (0, 1], got {self.tau}")
-        if not (self.alpha >= 0.0 and self.aux_weight >= 0.0):
-            raise ValueError(f"SacConfig.alpha and aux_weight must be >= 0, got {self.alpha}, {self.aux_weight}")
+        if not (self.alpha >= 0.0 and self.aux_weight >= 0.0 and self.bc_weight >= 0.0):
+            raise ValueError(f"SacConfig.alpha, aux_weight and bc_weight must be >= 0, got {self.alpha}, {self.aux_weight}, {self.bc_weight}")
 
     @property
     def layout(self) -> ObservationLayout:
@@ -176,11 +188,20 @@ class SacLearner:
         truth = privileged[:, self._ball_slice] / self._ball_scale
         return torch.mean((self.actor.decode(embedding) - truth) ** 2)
 
-    def update(self, batch: dict) -> dict[str, float]:
+    def behaviour_cloning_loss(self, demonstrations: dict) -> torch.Tensor:
+        """mean |tanh(mu(o)) - a_demo|^2 over a demonstration batch (keys ``obs``, ``demo_action``)."""
+        obs = torch.as_tensor(np.asarray(demonstrations["obs"]), dtype=torch.float32)
+        target = torch.as_tensor(np.asarray(demonstrations["demo_action"]), dtype=torch.float32)
+        mean, _, _ = self.actor(self.actor_features(obs))
+        return torch.mean(torch.sum((torch.tanh(mean) - target) ** 2, dim=-1))
+
+    def update(self, batch: dict, demonstrations: dict | None = None, bc_weight: float | None = None) -> dict[str, float]:
         """One SAC update (critic, then actor, then targets) on ``batch``; returns the losses and
-        diagnostics: critic_loss, actor_loss (policy + weighted auxiliary), policy_loss,
-        aux_loss, entropy (mean -log pi), q_mean, target_mean."""
+        diagnostics: critic_loss, actor_loss (policy + weighted auxiliary [+ weighted cloning]),
+        policy_loss, aux_loss, entropy (mean -log pi), q_mean, target_mean, and bc_loss when a
+        demonstration batch is given (``bc_weight`` overrides the config's, e.g. for annealing)."""
         c = self.config
+        bc_weight = c.bc_weight if bc_weight is None else bc_weight
         b = self._tensors(batch)
         y = self.target(b)
         critic_input = self.critic_features(b["privileged"], b["obs"])
@@ -195,6 +216,10 @@ class SacLearner:
         policy_loss = torch.mean(c.alpha * log_prob - torch.minimum(q1_pi, q2_pi))
         aux_loss = self.auxiliary_loss(embedding, b["privileged"])
         actor_loss = policy_loss + c.aux_weight * aux_loss
+        bc_loss = None
+        if demonstrations is not None and bc_weight > 0.0:
+            bc_loss = self.behaviour_cloning_loss(demonstrations)
+            actor_loss = actor_loss + bc_weight * bc_loss
         self.actor_optimizer.zero_grad()
         actor_loss.backward()  # also reaches the critic's grads, which its next zero_grad clears
         self.actor_optimizer.step()
@@ -204,6 +229,7 @@ class SacLearner:
                 target.mul_(1.0 - c.tau).add_(c.tau * source)
         self.updates += 1
         return {
+            **({} if bc_loss is None else {"bc_loss": bc_loss.item()}),
             "critic_loss": critic_loss.item(),
             "actor_loss": actor_loss.item(),
             "policy_loss": policy_loss.item(),
@@ -242,3 +268,31 @@ class SacLearner:
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.generator.set_state(state["generator"])
         self.updates = int(state["updates"])
+
+
+POLICY_FORMAT = 1
+
+
+def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> None:
+    """Writes a policy artefact: the SacConfig (as a dict) and the actor's weights
+    (``actor_state``, default the learner's actor), atomically. A few hundred kB."""
+    import os
+    from pathlib import Path
+
+    path = Path(path)
+    temporary = path.with_name(path.name + ".tmp")
+    torch.save({"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config),
+                "actor": actor_state or learner.actor.state_dict()}, temporary)
+    os.replace(temporary, path)
+
+
+def load_policy(path) -> DeterministicPolicy:
+    """The DeterministicPolicy of a ``save_policy`` artefact (what ``policy:<name>`` runs)."""
+    from ace_drake.config import from_dict
+
+    payload = torch.load(path, weights_only=False)
+    if not isinstance(payload, dict) or payload.get("format") != POLICY_FORMAT:
+        raise ValueError(f"{path}: not a policy artefact (format {POLICY_FORMAT})")
+    learner = SacLearner(from_dict(SacConfig, payload["sac_config"]))
+    learner.actor.load_state_dict(payload["actor"])
+    return learner.policy()

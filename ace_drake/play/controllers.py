@@ -33,4 +33,20 @@ def make_controller(name: str, params: RallyParams):
         from ace_drake.control.returner import ModelBasedReturner
 
         return ModelBasedReturner.for_rally(params)
+    if name.startswith("policy:"):
+        path = POLICIES_DIR / f"{name.removeprefix('policy:')}.pt"
+        if not path.is_file():
+            raise ConfigError(f"no shipped policy {path.name} in {POLICIES_DIR}; choose one of {', '.join(controller_names())}")
+        from ace_drake.learning.sac import load_policy
+
+        policy = load_policy(path)
+        if policy.index.numel() and int(policy.index.max()) >= _observation_size(params):
+            raise ConfigError(f"policy {name} reads a longer observation than the rally diagram of these params builds")
+        return policy
     raise ConfigError(f"unknown controller {name!r}; choose one of {', '.join(controller_names())}")
+
+
+def _observation_size(params: RallyParams) -> int:
+    from ace_drake.learning.observation import ObservationLayout
+
+    return ObservationLayout(params.position_history, params.spin_history).size

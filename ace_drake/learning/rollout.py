@@ -1,0 +1,241 @@
+"""Collecting episodes from the rally environment: the rollout worker's loop (issue 7).
+
+A ``RolloutWorker`` owns one ``RallyEnv`` and plays whole episodes with one of three behaviours
+(``MODES``), returning each as an ``Episode`` (transitions in ``replay.TRANSITION_KEYS`` layout
+plus the ``EpisodeSummary`` the event tables read):
+
+- ``"policy"``: the actor, sampled (SAC's exploration: the squashed Gaussian itself).
+- ``"ou"``: Ornstein-Uhlenbeck noise in the action box (paper, Methods *Algorithm*: "before
+  learning starts, actions are drawn from an Ornstein-Uhlenbeck process"; notes.md): temporally
+  correlated exploration, so that consecutive 32 ms segments push the arm the same way.
+- ``"demonstrator"``: the model-based returner (``control.returner``) acts, with Gaussian noise
+  on a share of its actions (DART, Laskey et al. 2017: the states the returner visits after its
+  own small errors, labelled with what it would do there). Every transition also records the
+  returner's clean action (``demo_action``) for the learner's behaviour-cloning term
+  (``sac`` docstring). This is this project's addition, not the paper's (README, *Training*).
+  When the returner has no action (no track yet, or after its hit), the label and the action are
+  ``RallyEnv.hold_action``: continue the committed plan.
+
+Every worker is seeded: worker ``index`` of a run with seed ``s`` draws its episodes from
+``numpy.random.SeedSequence([s, index])``, so a run's episodes do not depend on how many workers
+collect in parallel *per worker*, and the same seed gives the same episodes.
+
+The near-miss measure (``EpisodeSummary.closest_approach``): the ball centre's distance to the
+blade centre at every observation, and between consecutive observations the minimum of the
+linearly interpolated relative position (the ball moves ~0.3 m in 32 ms; the racket far less).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.learning.rally_env import RallyEnv, RallyEnvParams
+from ace_drake.learning.replay import TRANSITION_KEYS, EpisodeSummary
+
+MODES = ("policy", "ou", "demonstrator")
+
+
+@dataclasses.dataclass(frozen=True)
+class ExplorationParams:
+    """The noise of the non-policy modes.
+
+    ou_theta (1/s), ou_sigma (action units / sqrt(s)): the OU process dx = -theta x dt + sigma dW
+    sampled every 32 ms (the paper's values are not public; these give a stationary std of
+    sigma / sqrt(2 theta) = 0.5 and a correlation time of 1 / theta = 0.2 s, about a third of an
+    incoming ball's flight). demo_noise: std of the Gaussian added to the returner's actions;
+    demo_noise_fraction: the share of its steps that get noise (DART).
+    """
+
+    ou_theta: float = 5.0
+    ou_sigma: float = 1.58
+    demo_noise: float = 0.05
+    demo_noise_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("ou_theta", "ou_sigma", "demo_noise"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"ExplorationParams.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.demo_noise_fraction <= 1.0:
+            raise ValueError(f"ExplorationParams.demo_noise_fraction must be in [0, 1], got {self.demo_noise_fraction}")
+
+
+class OrnsteinUhlenbeck:
+    """Exact discretisation of dx = -theta x dt + sigma dW at step dt (s), per action component,
+    started from its stationary distribution; clipped into [-1, 1] when used as an action."""
+
+    def __init__(self, theta: float, sigma: float, dt: float, size: int = ACTION_SIZE):
+        self.decay = np.exp(-theta * dt)
+        self.stationary_std = sigma / np.sqrt(2.0 * theta) if theta > 0 else sigma * np.sqrt(dt)
+        self.step_std = self.stationary_std * np.sqrt(1.0 - self.decay**2)
+        self.size = size
+        self.x = np.zeros(size)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.x = rng.normal(0.0, self.stationary_std, self.size)
+
+    def sample(self, rng: np.random.Generator) -> np.ndarray:
+        self.x = self.decay * self.x + rng.normal(0.0, self.step_std, self.size)
+        return np.clip(self.x, -1.0, 1.0)
+
+
+@dataclasses.dataclass
+class Episode:
+    """One ended episode: ``transitions`` (TRANSITION_KEYS, plus ``demo_action`` (n, 16) in the
+    demonstrator mode), its ``summary`` for the event tables, the ``mode`` that played it, the
+    outcome and end condition (``RallyEnv`` info), the skill and the wall time (s)."""
+
+    transitions: dict[str, np.ndarray]
+    summary: EpisodeSummary
+    mode: str
+    outcome: str
+    end: str
+    skill: np.ndarray
+    seconds: float
+
+    @property
+    def steps(self) -> int:
+        return len(self.transitions["reward"])
+
+    @property
+    def returned(self) -> bool:
+        return self.outcome == "returned"
+
+
+def save_episodes(path, episodes: list[Episode]) -> None:
+    """Writes episodes to ``path`` (pickle), atomically (a temporary file renamed into place)."""
+    import os
+    import pickle
+    from pathlib import Path
+
+    path = Path(path)
+    temporary = path.with_name(path.name + ".tmp")
+    with open(temporary, "wb") as stream:
+        pickle.dump(episodes, stream, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(temporary, path)
+
+
+def load_episodes(path) -> list[Episode]:
+    """Reads the episodes ``save_episodes`` wrote."""
+    import pickle
+
+    with open(path, "rb") as stream:
+        episodes = pickle.load(stream)
+    if not isinstance(episodes, list) or not all(isinstance(e, Episode) for e in episodes):
+        raise ValueError(f"{path}: not a file of rollout episodes")
+    return episodes
+
+
+class RolloutWorker:
+    """One environment playing whole episodes (module docstring). ``set_actor`` installs fresh
+    actor weights (a ``SacLearner.actor`` state dict); ``collect(episodes, mode)`` plays them.
+
+    Args: env_params (default RallyEnvParams()); sac (a ``sac.SacConfig``: the actor's shape and
+    observation parts; default SacConfig()); seed, index: the run's seed and this worker's
+    number; exploration: the noise parameters; distribution: a shared ``ShotDistribution``.
+    """
+
+    def __init__(self, env_params: RallyEnvParams | None = None, sac=None, seed: int = 0, index: int = 0,
+                 exploration: ExplorationParams | None = None, distribution=None):
+        import torch
+
+        from ace_drake.learning.sac import SacConfig, SacLearner
+
+        self.env = RallyEnv(env_params, distribution)
+        self.index = index
+        self.exploration = exploration or ExplorationParams()
+        sequence = np.random.SeedSequence([seed, index])
+        env_seed, noise_seed, torch_seed = sequence.generate_state(3)
+        self.env.reset(seed=int(env_seed))  # seeds the env's stream; the first episode resets again
+        self.rng = np.random.default_rng(int(noise_seed))
+        config = sac or SacConfig()
+        self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31))
+        self.generator = torch.Generator().manual_seed(int(torch_seed) % 2**63)
+        self.noise = OrnsteinUhlenbeck(self.exploration.ou_theta, self.exploration.ou_sigma, self.env.period)
+        self._returner = None
+        self.episodes = 0
+        self.steps = 0
+
+    def set_actor(self, state_dict: dict) -> None:
+        """Installs actor weights (``SacLearner.actor.state_dict()``)."""
+        self.learner.actor.load_state_dict(state_dict)
+
+    @property
+    def returner(self):
+        if self._returner is None:
+            from ace_drake.control.returner import ModelBasedReturner
+
+            self._returner = ModelBasedReturner.for_rally(self.env.params.rally)
+        return self._returner
+
+    def collect(self, episodes: int, mode: str = "policy") -> list[Episode]:
+        """Plays ``episodes`` whole episodes with ``mode`` (MODES) and returns them."""
+        if mode not in MODES:
+            raise ValueError(f"RolloutWorker.collect: mode must be one of {MODES}, got {mode!r}")
+        return [self._play(mode) for _ in range(episodes)]
+
+    # ------------------------------------------------------------------------------ one episode
+    def _play(self, mode: str) -> Episode:
+        env = self.env
+        start = time.perf_counter()
+        obs, info = env.reset()
+        if mode == "ou":
+            self.noise.reset(self.rng)
+        if mode == "demonstrator":
+            self.returner.reset()
+        rows = {key: [] for key in (*TRANSITION_KEYS, "demo_action")}
+        closest = self._blade_distance(None)
+        done = False
+        while not done:
+            action, label = self._action(mode, obs)
+            next_obs, reward, done, _, next_info = env.step(action)
+            closest = self._blade_distance(closest)
+            for key, value in (("obs", obs), ("privileged", info["privileged"]), ("action", action), ("reward", reward),
+                               ("next_obs", next_obs), ("next_privileged", next_info["privileged"]), ("done", float(done)),
+                               ("demo_action", label)):
+                rows[key].append(value)
+            obs, info = next_obs, next_info
+        if mode != "demonstrator":
+            del rows["demo_action"]
+        transitions = {key: np.asarray(value, dtype=np.float32) for key, value in rows.items()}
+        self.episodes += 1
+        self.steps += len(transitions["reward"])
+        return Episode(transitions, EpisodeSummary(env.result, closest[0]), mode, info["outcome"], info["end"],
+                       info["skill"], time.perf_counter() - start)
+
+    def _action(self, mode: str, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(the action to play, the demonstrator's label or None)."""
+        if mode == "policy":
+            return self.learner.act(obs, generator=self.generator), None
+        if mode == "ou":
+            return self.noise.sample(self.rng), None
+        returner = self.returner
+        robot = returner.layout.part(obs, "robot_state")
+        q0, v0, a0 = robot[:8], robot[8:16], robot[16:24]
+        label = returner(obs)
+        if label is None:  # continue the plan, else head for the reset pose, whichever is safe first
+            label = returner._first_safe(q0, v0, a0, [self.env.hold_action,
+                                                       lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
+            if label is None:
+                label = self.env.hold_action()
+        if self.rng.random() < self.exploration.demo_noise_fraction:
+            noisy = np.clip(label + self.rng.normal(0.0, self.exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
+            if returner.stack.propose(q0, v0, a0, noisy).safe:  # noise that would collide is not explored
+                return noisy, label
+        return label, label
+
+    def _blade_distance(self, previous):
+        """(closest approach so far (m), relative position now): module docstring."""
+        env = self.env
+        ball = env._ball.ball_state_port.Eval(env._ball.GetMyContextFromRoot(env.context))[:3]
+        X_WR = env._kinematics.racket_pose_port.Eval(env._kinematics.GetMyContextFromRoot(env.context))
+        relative = ball - X_WR.translation()
+        if previous is None:
+            return float(np.linalg.norm(relative)), relative
+        closest, before = previous
+        step = relative - before
+        s = np.clip(-before @ step / max(step @ step, 1e-12), 0.0, 1.0)
+        return min(closest, float(np.linalg.norm(before + s * step))), relative

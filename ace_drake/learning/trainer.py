@@ -1,0 +1,490 @@
+"""``ace-drake train CONFIG``: the training run (issue 7; paper, Methods *Algorithm* and
+shared/paper/notes.md).
+
+A run lives in one directory (``run_dir``) and goes through four phases, each resumable:
+
+1. ``demonstrations`` (this project's addition; 0 episodes in the paper's setting): the rollout
+   workers play ``demonstrations`` episodes with the model-based returner (``rollout``), or the
+   episodes are read from ``demonstration_files``. They enter the replay tables like any episode
+   and the demonstration buffer of the behaviour-cloning term (``sac``).
+2. ``ou``: ``ou_episodes`` episodes of Ornstein-Uhlenbeck exploration before learning starts
+   (paper; notes.md).
+3. ``pretrain``: ``pretrain_updates`` learner updates on what was collected, with the cloning
+   weight ``pretrain_bc_weight`` (none in the paper's setting).
+4. ``learn``: asynchronous collection and learning until ``env_steps`` environment steps: every
+   worker always has a task in flight (``episodes_per_task`` episodes with the latest actor); the
+   learner updates as long as it is below ``updates_per_step`` updates per collected step and
+   otherwise waits for episodes; fresh weights go to every task submitted after an update chunk.
+   The cloning weight goes linearly from ``sac.bc_weight`` to ``bc_weight_final`` over the phase.
+
+Every ``checkpoint_every`` steps the whole learner state (networks, optimisers, generator, replay
+tables, demonstrations, counters, history) is written atomically to ``checkpoint.pt`` (a
+temporary file renamed over the old one), so a killed run loses only the work since then;
+``train`` on the same directory resumes from it (the workers are reseeded from the run's seed
+and the number of resumptions, so a resumed run is reproducible but not identical to an
+uninterrupted one). Every ``evaluate_every`` steps the deterministic actor is evaluated in the
+rally diagram (``analysis.evaluation.evaluate``) on ``evaluation_episodes`` shots; the best
+evaluated actor is kept. Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
+the ``progress`` callable. ``export`` writes a policy artefact (``models/policies/<name>.pt``),
+its sidecar JSON and the learning curve PNG.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from ace_drake.config import ConfigError, PerceptionParams, RallyParams, from_dict, to_dict
+from ace_drake.learning.rally_env import RallyEnvParams
+from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
+from ace_drake.learning.rollout import Episode, ExplorationParams, load_episodes
+from ace_drake.learning.sac import SacConfig, SacLearner
+
+PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """A training run (module docstring). Steps are environment steps (32 ms policy steps) of
+    every mode, demonstrations included."""
+
+    name: str = "rally_sac"  # the exported policy's name: models/policies/<name>.pt
+    seed: int = 0
+    env_steps: int = 200_000
+    workers: int = 2
+    backend: str = "ray"  # "ray" or "local" (one in-process worker, for debugging)
+    address: str = ""  # a Ray cluster's address; "" starts a local cluster
+    episodes_per_task: int = 4
+    demonstrations: int = 0  # returner episodes before learning (this project's; the paper: 0)
+    demonstration_files: tuple[str, ...] = ()  # rollout.save_episodes files to use instead
+    ou_episodes: int = 100  # OU exploration before learning starts (paper; count not public)
+    pretrain_updates: int = 0
+    pretrain_bc_weight: float = 10.0
+    bc_weight_final: float = 0.0
+    updates_per_step: float = 0.25  # the learner's update-to-data ratio (not public)
+    update_chunk: int = 50  # updates between looks at the workers and weight publications
+    checkpoint_every: int = 10_000
+    evaluate_every: int = 25_000
+    evaluation_episodes: int = 100
+    evaluation_data: str = ""  # a match-data CSV (its shot_p2 shots); "" the synthetic distribution
+    evaluation_sensors: str = "statistical"  # the rally diagram's position sensor for evaluations
+    mirror: bool = False  # mirror augmentation; the shipped robot is not mirror-symmetric (mirror.py)
+    torch_threads: int = 1
+    log_every: float = 30.0  # s between progress lines
+    sac: SacConfig = dataclasses.field(default_factory=SacConfig)
+    replay: ReplayConfig = dataclasses.field(default_factory=ReplayConfig)
+    env: RallyEnvParams = dataclasses.field(default_factory=RallyEnvParams)
+    exploration: ExplorationParams = dataclasses.field(default_factory=ExplorationParams)
+
+    def __post_init__(self) -> None:
+        for name in ("env_steps", "workers", "episodes_per_task", "update_chunk", "checkpoint_every",
+                     "evaluate_every", "evaluation_episodes", "torch_threads"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("demonstrations", "ou_episodes", "pretrain_updates"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
+            if not getattr(self, name) >= 0.0:
+                raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.backend not in ("ray", "local"):
+            raise ConfigError(f"TrainConfig.backend must be 'ray' or 'local', got {self.backend!r}")
+        if self.backend == "local" and self.workers != 1:
+            raise ConfigError("TrainConfig: the local backend runs one worker (workers: 1)")
+        if self.evaluation_sensors not in ("cameras", "statistical"):
+            raise ConfigError(f"TrainConfig.evaluation_sensors must be 'cameras' or 'statistical', got {self.evaluation_sensors!r}")
+        if self.evaluation_data and not Path(self.evaluation_data).is_file():
+            raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
+        for path in self.demonstration_files:
+            if not Path(path).is_file():
+                raise ConfigError(f"TrainConfig.demonstration_files: no such file {path}")
+
+
+def load_train_config(path) -> TrainConfig:
+    """A TrainConfig from a YAML file (missing fields keep their defaults). Raises ConfigError
+    naming the field for unknown names, wrong types and rejected values."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"train: config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+        return from_dict(TrainConfig, data)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    except (ConfigError, ValueError) as error:
+        raise ConfigError(f"{path}: {error}") from None
+
+
+@dataclasses.dataclass
+class Progress:
+    """The run's counters and history (all in the checkpoint)."""
+
+    phase: str = PHASES[0]
+    env_steps: int = 0
+    episodes: int = 0
+    demonstration_episodes: int = 0
+    ou_episodes: int = 0
+    pretrain_updates: int = 0
+    wall_time: float = 0.0  # s of training, summed over resumptions
+    resumptions: int = 0
+    next_checkpoint: int = 0
+    next_evaluation: int = 0
+    # (env_steps, updates, rollout return rate of the last 100 policy episodes) per log line
+    rollout_curve: list = dataclasses.field(default_factory=list)
+    # (env_steps, updates, evaluation figures) per evaluation
+    evaluations: list = dataclasses.field(default_factory=list)
+    learn_start: tuple = (0, 0)  # (env_steps, updates) when the learn phase began
+    best_rate: float = -1.0
+    best_actor: dict | None = None
+
+
+class Trainer:
+    """One training run in ``run_dir`` (module docstring); ``run()`` trains to the end (resuming
+    from the checkpoint if there is one) and returns the final Progress."""
+
+    def __init__(self, config: TrainConfig, run_dir, progress=print):
+        import torch
+
+        self.config = config
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.log = progress
+        torch.set_num_threads(config.torch_threads)
+        self.learner = SacLearner(config.sac)
+        augment = ()
+        if config.mirror:
+            from ace_drake.learning.mirror import Mirror
+
+            augment = (Mirror.from_robot().transitions,)
+        self.replay = EventReplay(dataclasses.replace(config.replay, seed=config.seed), config.sac.layout, config.env.reward, augment)
+        self.demonstrations = DemonstrationBuffer(seed=config.seed + 1)
+        self.state = Progress(next_checkpoint=config.checkpoint_every, next_evaluation=config.evaluate_every)
+        self._recent = deque(maxlen=100)  # outcomes of the latest policy episodes
+        self._losses: dict[str, list[float]] = {}
+        self._writer = None
+        self._pool = None
+        self._started = time.perf_counter()
+        self._last_log = self._started
+        checkpoint = self.run_dir / CHECKPOINT
+        if checkpoint.is_file():
+            self._load(checkpoint)
+        self._save_config()
+
+    # ------------------------------------------------------------------------------ the run
+    def run(self):
+        c = self.config
+        from torch.utils.tensorboard import SummaryWriter
+
+        self._writer = SummaryWriter(str(self.run_dir / "tensorboard"))
+        try:
+            if self.state.phase == "demonstrations":
+                self._demonstration_phase()
+            if self.state.phase == "ou":
+                self._collect_phase("ou", c.ou_episodes, "ou_episodes")
+                self._advance("pretrain")
+            if self.state.phase == "pretrain":
+                self._pretrain_phase()
+            if self.state.phase == "learn":
+                self._learn_phase()
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown()
+                self._pool = None
+            self._writer.close()
+        return self.state
+
+    def _advance(self, phase: str) -> None:
+        self.state.phase = phase
+        if phase == "learn":
+            self.state.learn_start = (self.state.env_steps, self.learner.updates)
+        self.checkpoint()
+        self.log(f"train: phase {phase} at {self.state.env_steps} steps")
+
+    def _workers(self):
+        if self._pool is None:
+            from ace_drake.learning.workers import WorkerPool
+
+            c = self.config
+            args = {"env_params": c.env, "sac": c.sac, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration}
+            self._pool = WorkerPool(c.workers, args, c.backend, c.address or None)
+            self._pool.publish(self.learner.actor.state_dict())
+        return self._pool
+
+    def _demonstration_phase(self) -> None:
+        c = self.config
+        if c.demonstration_files and self.state.demonstration_episodes == 0:
+            for path in c.demonstration_files:
+                episodes = load_episodes(path)
+                for episode in episodes:
+                    self._ingest(episode)
+                self.log(f"train: {len(episodes)} demonstration episodes from {path}")
+        elif c.demonstrations:
+            self._collect_phase("demonstrator", c.demonstrations, "demonstration_episodes")
+        self._advance("ou")
+
+    def _collect_phase(self, mode: str, total: int, counter: str) -> None:
+        """Collects until ``total`` episodes of ``mode`` have been ingested (counted in
+        ``self.state.<counter>``), checkpointing on the way."""
+        if getattr(self.state, counter) >= total:
+            return
+        pool = self._workers()
+        for index in range(pool.count):
+            pool.submit(index, self.config.episodes_per_task, mode)
+        while getattr(self.state, counter) < total:
+            index, episodes = pool.wait()
+            for episode in episodes:
+                if getattr(self.state, counter) < total:
+                    self._ingest(episode)
+                    setattr(self.state, counter, getattr(self.state, counter) + 1)
+            if getattr(self.state, counter) + pool.in_flight * self.config.episodes_per_task < total:
+                pool.submit(index, self.config.episodes_per_task, mode)
+            self._periodic(evaluate=False)
+        while pool.in_flight:  # finished tasks beyond the total are dropped
+            pool.wait()
+
+    def _pretrain_phase(self) -> None:
+        c = self.config
+        if c.pretrain_updates and len(self.replay) == 0:
+            raise ConfigError("train: pretrain_updates needs collected episodes (demonstrations or ou_episodes)")
+        while self.state.pretrain_updates < c.pretrain_updates:
+            chunk = min(c.update_chunk, c.pretrain_updates - self.state.pretrain_updates)
+            self._update(chunk, c.pretrain_bc_weight)
+            self.state.pretrain_updates += chunk
+            if self.state.pretrain_updates % (20 * c.update_chunk) < chunk:
+                self._log_line(force=True)
+        self._advance("learn")
+        if c.pretrain_updates:
+            self._evaluate()
+
+    def _learn_phase(self) -> None:
+        c = self.config
+        pool = self._workers()
+        pool.publish(self.learner.actor.state_dict())
+        for index in range(pool.count):
+            pool.submit(index, c.episodes_per_task, "policy")
+        learn_start, updates_start = self.state.learn_start
+        while self.state.env_steps < c.env_steps:
+            result = pool.wait(timeout=0.0 if self.config.backend == "ray" else None)
+            if result is not None:
+                index, episodes = result
+                for episode in episodes:
+                    self._ingest(episode)
+                pool.submit(index, c.episodes_per_task, "policy")
+            learned = self.state.env_steps - learn_start
+            if len(self.replay) >= c.sac.batch_size and self.learner.updates - updates_start < c.updates_per_step * learned:
+                progress = min(1.0, learned / max(1, c.env_steps - learn_start))
+                self._update(c.update_chunk, c.sac.bc_weight + progress * (c.bc_weight_final - c.sac.bc_weight))
+                pool.publish(self.learner.actor.state_dict())
+            elif result is None:
+                result = pool.wait()
+                if result is not None:
+                    index, episodes = result
+                    for episode in episodes:
+                        self._ingest(episode)
+                    pool.submit(index, c.episodes_per_task, "policy")
+            self._periodic(evaluate=True)
+        self.state.phase = "done"
+        self._evaluate()
+        self.checkpoint()
+        self.log(f"train: done: {self.state.env_steps} steps, {self.learner.updates} updates, {self.state.wall_time + self._elapsed():.0f} s")
+
+    # ------------------------------------------------------------------------------ pieces
+    def _ingest(self, episode: Episode) -> None:
+        summary = episode.summary
+        self.replay.add_episode(episode.transitions, summary)
+        if "demo_action" in episode.transitions:
+            self.demonstrations.add(episode.transitions)
+        self.state.env_steps += episode.steps
+        self.state.episodes += 1
+        if episode.mode == "policy":
+            self._recent.append(episode.returned)
+
+    def _update(self, count: int, bc_weight: float) -> None:
+        c = self.config
+        for _ in range(count):
+            batch = self.replay.sample(c.sac.batch_size)
+            demos = self.demonstrations.sample(c.sac.batch_size) if len(self.demonstrations) and bc_weight > 0 else None
+            losses = self.learner.update(batch, demos, bc_weight)
+            for key, value in losses.items():
+                self._losses.setdefault(key, []).append(value)
+
+    def _periodic(self, evaluate: bool) -> None:
+        s, c = self.state, self.config
+        self._log_line()
+        if evaluate and s.env_steps >= s.next_evaluation:
+            s.next_evaluation += c.evaluate_every * (1 + (s.env_steps - s.next_evaluation) // c.evaluate_every)
+            self._evaluate()
+        if s.env_steps >= s.next_checkpoint:
+            s.next_checkpoint += c.checkpoint_every * (1 + (s.env_steps - s.next_checkpoint) // c.checkpoint_every)
+            self.checkpoint()
+
+    def _log_line(self, force: bool = False) -> None:
+        now = time.perf_counter()
+        if not force and now - self._last_log < self.config.log_every:
+            return
+        self._last_log = now
+        s = self.state
+        rate = float(np.mean(self._recent)) if self._recent else None
+        losses = {key: float(np.mean(values)) for key, values in self._losses.items() if values}
+        self._losses = {}
+        step = s.env_steps
+        for key, value in losses.items():
+            self._writer.add_scalar(f"loss/{key}", value, step)
+        if rate is not None:
+            self._writer.add_scalar("rollout/return_rate_last_100", rate, step)
+            s.rollout_curve.append((step, self.learner.updates, rate))
+        self._writer.add_scalar("rollout/episodes", s.episodes, step)
+        self._writer.flush()
+        text = ", ".join(f"{key} {value:.4g}" for key, value in losses.items() if key in ("critic_loss", "q_mean", "bc_loss", "aux_loss"))
+        self.log(f"train [{s.phase}]: {step} steps, {s.episodes} episodes, {self.learner.updates} updates, "
+                 f"returned {'-' if rate is None else f'{rate:.0%}'} of the last {len(self._recent)} policy episodes, "
+                 f"{s.wall_time + self._elapsed():.0f} s; {text}")
+
+    def _evaluate(self) -> None:
+        """Evaluates the deterministic actor in the rally diagram (module docstring)."""
+        from ace_drake.analysis.evaluation import evaluate
+
+        c, s = self.config, self.state
+        shots, serve = evaluation_shots(c)
+        params = RallyParams(perception=PerceptionParams(positions=c.evaluation_sensors))
+        start = time.perf_counter()
+        figures = evaluate(self.learner.policy(), params, shots, serve, seed=c.seed)
+        rate = figures["return_rate"]
+        summary = {"rate": rate["rate"], "ci95": rate["ci95"], "played": rate["played"], "returned": rate["returned"],
+                   "not_returned_by_reason": figures["not_returned_by_reason"]}
+        s.evaluations.append((s.env_steps, self.learner.updates, summary))
+        if rate["rate"] is not None:
+            self._writer.add_scalar("evaluation/return_rate", rate["rate"], s.env_steps)
+            if rate["rate"] > s.best_rate:
+                s.best_rate = rate["rate"]
+                s.best_actor = {k: v.clone() for k, v in self.learner.actor.state_dict().items()}
+        self.log(f"train: evaluation at {s.env_steps} steps: returned {rate['returned']} of {rate['played']} "
+                 f"({(rate['rate'] or 0):.1%}), {time.perf_counter() - start:.0f} s")
+
+    def _elapsed(self) -> float:
+        return time.perf_counter() - self._started
+
+    # ------------------------------------------------------------------------------ checkpoints
+    def checkpoint(self) -> None:
+        """Writes the whole learner state atomically (module docstring)."""
+        import torch
+
+        self.state.wall_time += self._elapsed()
+        self._started = time.perf_counter()
+        payload = {
+            "config": to_dict(self.config),
+            "learner": self.learner.state_dict(),
+            "replay": self.replay.state_dict(),
+            "demonstrations": self.demonstrations.state_dict(),
+            "progress": dataclasses.asdict(self.state),
+            "recent": list(self._recent),
+        }
+        path = self.run_dir / CHECKPOINT
+        temporary = path.with_name(path.name + ".tmp")
+        torch.save(payload, temporary)
+        os.replace(temporary, path)
+
+    def _load(self, path: Path) -> None:
+        import torch
+
+        payload = torch.load(path, weights_only=False)
+        if payload["config"] != to_dict(self.config):
+            differing = sorted(k for k, v in to_dict(self.config).items() if payload["config"].get(k) != v)
+            raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
+        self.learner.load_state_dict(payload["learner"])
+        self.replay.load_state_dict(payload["replay"])
+        self.demonstrations.load_state_dict(payload["demonstrations"])
+        self.state = Progress(**payload["progress"])
+        self.state.resumptions += 1
+        self._recent.extend(payload["recent"])
+        self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
+
+    def _save_config(self) -> None:
+        import yaml
+
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(self.config))), sort_keys=False))
+
+
+def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The periodic evaluation's shots: the first ``evaluation_episodes`` shot_p2 shots of
+    ``evaluation_data``, else as many from the synthetic distribution (seeded by the run's seed)."""
+    from ace_drake.play.shots import human_shots, make_distribution
+
+    if config.evaluation_data:
+        shots, serve = human_shots(config.evaluation_data)
+        return shots[: config.evaluation_episodes], serve[: config.evaluation_episodes]
+    sample = make_distribution(dataclasses.replace(config.env.shots, seed=config.seed), config.env.rally.physics).draw(
+        np.random.default_rng(config.seed + 2), config.evaluation_episodes)
+    return sample.states, sample.serve
+
+
+def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict | None = None) -> dict:
+    """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (the sidecar: config, seed,
+    steps, updates, wall time, the periodic evaluations and ``evaluation``, e.g. the human-shot
+    figures) and ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best"
+    (the best evaluated actor) or "final". Returns the sidecar."""
+    from ace_drake.learning.sac import save_policy
+
+    if which not in ("best", "final"):
+        raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
+    s, c = trainer.state, trainer.config
+    actor = s.best_actor if which == "best" and s.best_actor is not None else None
+    policies_dir = Path(policies_dir)
+    policies_dir.mkdir(parents=True, exist_ok=True)
+    save_policy(policies_dir / f"{c.name}.pt", trainer.learner, actor)
+    chosen = max(s.evaluations, key=lambda e: (e[2]["rate"] or -1.0)) if actor is not None and s.evaluations else (s.evaluations[-1] if s.evaluations else None)
+    sidecar = {
+        "name": c.name,
+        "seed": c.seed,
+        "actor": "best evaluated" if actor is not None else "final",
+        "actor_at": None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
+        "env_steps": s.env_steps,
+        "episodes": s.episodes,
+        "updates": trainer.learner.updates,
+        "wall_time_s": round(s.wall_time, 1),
+        "evaluations": [{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
+        "final_evaluation": evaluation,
+        "config": json.loads(json.dumps(to_dict(c))),
+    }
+    (policies_dir / f"{c.name}.json").write_text(json.dumps(sidecar, indent=2, default=float) + "\n")
+    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name)
+    return sidecar
+
+
+def plot_learning_curve(state: Progress, path, title: str) -> None:
+    """Return rate against environment steps: the rollout policy's (last 100 episodes) and the
+    periodic evaluations' (with their 95 % intervals)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(6, 3.5), dpi=100)
+    if state.rollout_curve:
+        steps, _, rates = zip(*state.rollout_curve)
+        axes.plot(steps, rates, color="0.6", label="rollouts (stochastic actor, last 100)")
+    evaluated = [(e[0], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
+    if evaluated:
+        steps = [e[0] for e in evaluated]
+        rates = np.array([e[1]["rate"] for e in evaluated])
+        low = rates - np.array([e[1]["ci95"][0] for e in evaluated])
+        high = np.array([e[1]["ci95"][1] for e in evaluated]) - rates
+        axes.errorbar(steps, rates, yerr=[low, high], fmt="o-", color="C0", capsize=3, label="evaluation (deterministic actor)")
+    axes.set_xlabel("environment steps (32 ms)")
+    axes.set_ylabel("return rate")
+    axes.set_ylim(0.0, 1.0)
+    axes.set_title(title)
+    axes.grid(alpha=0.3)
+    axes.legend(loc="lower right", fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)

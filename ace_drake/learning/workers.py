@@ -1,0 +1,109 @@
+"""Parallel rollout workers on Ray, asynchronous with the learner (issue 7; paper, Methods
+*Algorithm*: "several rollout workers ... asynchronous with the learner").
+
+``WorkerPool`` runs ``rollout.RolloutWorker``s either as Ray actors (``backend="ray"``: an
+in-process local cluster by default, or an existing cluster at ``address``, e.g.
+``"ray://head:10001"``, to scale out to many machines) or in this process (``backend="local"``:
+one worker, tasks run when their result is asked for; for debugging with a plain stack trace).
+
+The learner keeps one task in flight per worker: ``submit(index, episodes, mode)`` starts one,
+``wait()`` returns the first finished (worker index, episodes), and ``publish(actor_state)``
+sends fresh actor weights that every *subsequently submitted* task plays with (Ray ships them
+once through its object store; a worker loads them when its next task starts).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+BACKENDS = ("ray", "local")
+
+
+class WorkerPool:
+    """``count`` rollout workers (module docstring). ``worker_args``: the keyword arguments of
+    ``RolloutWorker`` shared by all (``env_params``, ``sac``, ``seed``, ``exploration``); worker
+    i gets ``index=i``."""
+
+    def __init__(self, count: int, worker_args: dict, backend: str = "ray", address: str | None = None):
+        if backend not in BACKENDS:
+            raise ValueError(f"WorkerPool: backend must be one of {BACKENDS}, got {backend!r}")
+        if count < 1:
+            raise ValueError(f"WorkerPool: count must be >= 1, got {count}")
+        if backend == "local" and count != 1:
+            raise ValueError("WorkerPool: the local backend runs exactly one worker (use backend 'ray' for more)")
+        self.backend = backend
+        self.count = count
+        self._actor_ref = None
+        self._actor_state = None
+        self._pending: dict = {}  # ray: object ref -> worker index; local: deque of (index, task)
+        if backend == "ray":
+            import ray
+
+            from ace_drake.learning.rollout import RolloutWorker
+
+            if not ray.is_initialized():
+                if address:
+                    ray.init(address=address, log_to_driver=False)
+                else:  # a local cluster: this machine's cores, no dashboard
+                    ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
+            remote = ray.remote(num_cpus=1)(RolloutWorker)
+            self._workers = [remote.remote(**worker_args, index=i) for i in range(count)]
+        else:
+            from ace_drake.learning.rollout import RolloutWorker
+
+            self._workers = [RolloutWorker(**worker_args, index=0)]
+            self._queue: deque = deque()
+
+    def publish(self, actor_state: dict) -> None:
+        """Fresh actor weights for the tasks submitted from now on."""
+        if self.backend == "ray":
+            import ray
+
+            self._actor_ref = ray.put(actor_state)
+        else:
+            self._actor_state = actor_state
+
+    def submit(self, index: int, episodes: int, mode: str) -> None:
+        """Starts worker ``index`` playing ``episodes`` episodes in ``mode`` (rollout.MODES) with
+        the last published weights."""
+        worker = self._workers[index]
+        if self.backend == "ray":
+            if self._actor_ref is not None and mode == "policy":
+                worker.set_actor.remote(self._actor_ref)  # actor tasks run in order: before the collect
+            self._pending[worker.collect.remote(episodes, mode)] = index
+        else:
+            self._queue.append((index, episodes, mode, self._actor_state if mode == "policy" else None))
+
+    @property
+    def in_flight(self) -> int:
+        return len(self._pending) if self.backend == "ray" else len(self._queue)
+
+    def wait(self, timeout: float | None = None):
+        """(worker index, episodes) of the first finished task, or None after ``timeout`` s."""
+        if self.backend == "ray":
+            import ray
+
+            if not self._pending:
+                raise RuntimeError("WorkerPool.wait: no task in flight")
+            done, _ = ray.wait(list(self._pending), num_returns=1, timeout=timeout)
+            if not done:
+                return None
+            index = self._pending.pop(done[0])
+            return index, ray.get(done[0])
+        if not self._queue:
+            raise RuntimeError("WorkerPool.wait: no task in flight")
+        index, episodes, mode, actor_state = self._queue.popleft()
+        if actor_state is not None:
+            self._workers[index].set_actor(actor_state)
+        return index, self._workers[index].collect(episodes, mode)
+
+    def shutdown(self) -> None:
+        """Stops the workers (and a local Ray cluster this pool started)."""
+        if self.backend == "ray":
+            import ray
+
+            for worker in self._workers:
+                ray.kill(worker)
+            self._pending.clear()
+            if ray.is_initialized():
+                ray.shutdown()

@@ -1,0 +1,198 @@
+"""The training machinery: the cloning term, OU exploration, rollout workers on the real
+diagram, the trainer's phases, checkpoints and resumption, export and the policy controller."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from ace_drake.config import ConfigError
+from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
+from ace_drake.learning.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
+from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
+from ace_drake.learning.trainer import TrainConfig, Trainer, export, load_train_config
+
+SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
+
+
+def _batch(learner: SacLearner, rows: int, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    n = learner.observation_size
+    return {
+        "obs": rng.normal(size=(rows, n)), "privileged": rng.normal(size=(rows, 28)),
+        "action": rng.uniform(-1, 1, (rows, ACTION_SIZE)), "reward": rng.normal(size=rows),
+        "next_obs": rng.normal(size=(rows, n)), "next_privileged": rng.normal(size=(rows, 28)),
+        "done": (rng.random(rows) < 0.2).astype(float), "demo_action": rng.uniform(-0.9, 0.9, (rows, ACTION_SIZE)),
+    }
+
+
+def test_cloning_loss_by_hand_and_its_weight_in_the_actor_loss():
+    learner = SacLearner(dataclasses.replace(SMALL, seed=1))
+    batch = _batch(learner, 8, 0)
+    obs = torch.as_tensor(batch["obs"], dtype=torch.float32)
+    mean, _, _ = learner.actor(learner.actor_features(obs))
+    by_hand = ((torch.tanh(mean).double() - torch.as_tensor(batch["demo_action"])) ** 2).sum(-1).mean()
+    assert learner.behaviour_cloning_loss(batch).item() == pytest.approx(by_hand.item(), rel=1e-5)
+
+    # Same state, same generator: with and without the term, the actor losses differ by w * bc.
+    twin = SacLearner(dataclasses.replace(SMALL, seed=1))
+    with_term = learner.update(batch, batch, bc_weight=2.5)
+    without = twin.update(batch)
+    assert with_term["policy_loss"] == pytest.approx(without["policy_loss"], rel=1e-5)
+    assert with_term["actor_loss"] - without["actor_loss"] == pytest.approx(2.5 * with_term["bc_loss"], rel=1e-4)
+    assert "bc_loss" not in without
+
+
+def test_cloning_alone_fits_the_demonstrated_actions():
+    learner = SacLearner(dataclasses.replace(SMALL, seed=2, actor_lr=1e-3))
+    batch = _batch(learner, 64, 1)
+    first = learner.behaviour_cloning_loss(batch).item()
+    for _ in range(300):
+        loss = learner.behaviour_cloning_loss(batch)
+        learner.actor_optimizer.zero_grad()
+        loss.backward()
+        learner.actor_optimizer.step()
+    assert learner.behaviour_cloning_loss(batch).item() < 0.1 * first
+
+
+def test_demonstration_buffer_samples_stored_rows():
+    buffer = DemonstrationBuffer(capacity=10, seed=0)
+    with pytest.raises(ValueError, match="no demonstrations"):
+        buffer.sample(4)
+    rows = {"obs": np.arange(12.0).reshape(12, 1), "privileged": np.zeros((12, 28)), "demo_action": np.arange(12.0).reshape(12, 1)}
+    buffer.add(rows)
+    assert len(buffer) == 10  # the newest ten
+    sample = buffer.sample(200)
+    assert set(sample["obs"][:, 0]) == set(np.arange(2.0, 12.0))
+    np.testing.assert_array_equal(sample["obs"], sample["demo_action"])
+
+
+def test_ou_noise_has_its_stationary_spread_and_correlation():
+    noise = OrnsteinUhlenbeck(theta=5.0, sigma=1.0, dt=0.032, size=4000)
+    rng = np.random.default_rng(0)
+    noise.reset(rng)
+    first = noise.x.copy()
+    second = noise.decay * first + rng.normal(0.0, noise.step_std, first.size)
+    assert np.std(first) == pytest.approx(1.0 / np.sqrt(10.0), rel=0.05)
+    assert np.std(second) == pytest.approx(np.std(first), rel=0.05)  # stationary
+    assert np.corrcoef(first, second)[0, 1] == pytest.approx(np.exp(-5.0 * 0.032), abs=0.03)
+
+
+@pytest.fixture(scope="module")
+def worker():
+    return RolloutWorker(sac=SMALL, seed=5, index=0)
+
+
+def test_rollout_episodes_on_the_real_diagram(worker, tmp_path):
+    episodes = worker.collect(2, "ou") + worker.collect(1, "policy") + worker.collect(1, "demonstrator")
+    for episode in episodes:
+        t = episode.transitions
+        n = episode.steps
+        assert n >= 1 and set(TRANSITION_KEYS) <= set(t)
+        assert t["obs"].shape == (n, worker.env.layout.size) and t["privileged"].shape == (n, 28)
+        assert np.all(np.abs(t["action"]) <= 1.0)
+        assert list(t["done"]) == [0.0] * (n - 1) + [1.0]  # ends once, at the last step
+        assert np.all(t["reward"][:-1] == 0.0)  # eq. (10) is terminal
+        np.testing.assert_array_equal(t["next_obs"][:-1], t["obs"][1:])  # consecutive steps chain
+        assert episode.summary.closest_approach is not None and episode.summary.closest_approach >= 0.0
+    demo = episodes[-1]
+    assert demo.transitions["demo_action"].shape == (demo.steps, ACTION_SIZE)
+    assert "demo_action" not in episodes[0].transitions
+    path = tmp_path / "episodes.pkl"
+    save_episodes(path, episodes)
+    again = load_episodes(path)
+    np.testing.assert_array_equal(again[-1].transitions["demo_action"], demo.transitions["demo_action"])
+
+
+def test_rollouts_are_reproducible_from_the_seed():
+    first = RolloutWorker(sac=SMALL, seed=11, index=1).collect(2, "ou")
+    second = RolloutWorker(sac=SMALL, seed=11, index=1).collect(2, "ou")
+    for a, b in zip(first, second):
+        for key in TRANSITION_KEYS:
+            np.testing.assert_array_equal(a.transitions[key], b.transitions[key])
+
+
+def _config(**overrides) -> TrainConfig:
+    fields = dict(name="tiny", seed=3, env_steps=60, workers=1, backend="local", episodes_per_task=1, demonstrations=1,
+                  ou_episodes=1, pretrain_updates=4, update_chunk=2, checkpoint_every=20, evaluate_every=10_000,
+                  evaluation_episodes=1, log_every=1e9, updates_per_step=0.1, sac=dataclasses.replace(SMALL, bc_weight=1.0))
+    fields.update(overrides)
+    return TrainConfig(**fields)
+
+
+def test_train_config_from_yaml_names_bad_fields(tmp_path):
+    path = tmp_path / "train.yaml"
+    path.write_text("name: x\nenv_steps: 100\nsac:\n  batch_size: 32\n  gamma: 0.9\n")
+    config = load_train_config(path)
+    assert (config.env_steps, config.sac.batch_size, config.sac.gamma) == (100, 32, 0.9)
+    path.write_text("sac:\n  gama: 0.9\n")
+    with pytest.raises(ConfigError, match="gama"):
+        load_train_config(path)
+    path.write_text("sac:\n  gamma: 1.5\n")
+    with pytest.raises(ConfigError, match="gamma"):
+        load_train_config(path)
+    with pytest.raises(ConfigError, match="local backend"):
+        TrainConfig(backend="local", workers=2)
+
+
+def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
+    """All phases in one process; then a resumption of the finished run changes nothing; an
+    interrupted run (its checkpoint after the demonstrations) resumes where it stood."""
+    config = _config()
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    state = trainer.run()
+    assert state.phase == "done" and state.env_steps >= config.env_steps
+    assert state.demonstration_episodes == 1 and state.ou_episodes == 1 and state.pretrain_updates == 4
+    assert trainer.learner.updates >= 4 and len(trainer.demonstrations) > 0
+    assert state.evaluations  # at the end of pretraining and of the run
+    assert (tmp_path / "run" / "checkpoint.pt").is_file() and any((tmp_path / "run" / "tensorboard").iterdir())
+
+    again = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    assert again.state.phase == "done" and again.state.resumptions == 1
+    assert again.learner.updates == trainer.learner.updates
+    for key, value in trainer.learner.actor.state_dict().items():
+        torch.testing.assert_close(again.learner.actor.state_dict()[key], value, rtol=0, atol=0)
+    assert len(again.replay) == len(trainer.replay)
+
+    sidecar = export(again, tmp_path / "policies", "final")
+    assert sidecar["env_steps"] == state.env_steps and sidecar["seed"] == 3
+    assert {p.name for p in (tmp_path / "policies").iterdir()} == {"tiny.pt", "tiny.json", "tiny_curve.png"}
+    policy = load_policy(tmp_path / "policies" / "tiny.pt")
+    obs = torch.randn(3, again.learner.observation_size)
+    torch.testing.assert_close(policy(obs), again.learner.policy()(obs))
+
+    from ace_drake.config import RallyParams
+    from ace_drake.play import controllers
+
+    monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path / "policies")
+    assert "policy:tiny" in controllers.controller_names()
+    assert isinstance(controllers.make_controller("policy:tiny", RallyParams()), torch.nn.Module)
+    with pytest.raises(ConfigError, match="no shipped policy"):
+        controllers.make_controller("policy:nope", RallyParams())
+
+
+def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path):
+    config = _config(ou_episodes=2)
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    trainer._demonstration_phase()  # then "killed": only the checkpoint written on the way survives
+    steps = trainer.state.env_steps
+    resumed = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    assert (resumed.state.phase, resumed.state.env_steps, len(resumed.demonstrations)) == ("ou", steps, len(trainer.demonstrations))
+    state = resumed.run()
+    assert state.phase == "done" and state.ou_episodes == 2 and state.demonstration_episodes == 1
+    with pytest.raises(ConfigError, match="another config"):
+        Trainer(_config(seed=4), tmp_path / "run", progress=lambda line: None)
+
+
+def test_save_policy_round_trip(tmp_path):
+    learner = SacLearner(dataclasses.replace(SMALL, seed=9))
+    save_policy(tmp_path / "p.pt", learner)
+    obs = torch.randn(2, learner.observation_size)
+    torch.testing.assert_close(load_policy(tmp_path / "p.pt")(obs), learner.policy()(obs))
+    (tmp_path / "bad.pt").write_bytes(b"not a policy")
+    with pytest.raises(Exception):
+        load_policy(tmp_path / "bad.pt")
