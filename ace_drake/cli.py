@@ -274,7 +274,7 @@ def cmd_sysid(args) -> int:
 
 def cmd_bench(args) -> int:
     """Benchmarks by name; medians and ratios measured side by side."""
-    runners = {"ball": _bench_ball, "reach": _bench_reach, "control": _bench_control, "safety": _bench_safety, "perception": _bench_perception, "sim": _bench_sim}
+    runners = {"ball": _bench_ball, "reach": _bench_reach, "control": _bench_control, "safety": _bench_safety, "perception": _bench_perception, "sim": _bench_sim, "train": _bench_train}
     if args.name not in runners:
         raise ConfigError(f"bench: unknown benchmark {args.name!r}; available: {', '.join(runners)}")
     return runners[args.name](args)
@@ -367,6 +367,22 @@ def _bench_sim(args) -> int:
         emit_json(figures)
     else:
         print_sim_figures(figures)
+    return 0
+
+
+def _bench_train(args) -> int:
+    from ace_drake.analysis.train_bench import bench_train
+
+    if args.seconds <= 0 or args.steps < 1:
+        raise ConfigError(f"bench train: --seconds must be > 0 and --steps >= 1, got {args.seconds} and {args.steps}")
+    figures = bench_train(seconds=args.seconds, updates=args.steps, seed=args.seed, progress=log)
+    if args.json:
+        emit_json({**figures, **_provenance()})
+    else:
+        for workers, rate in figures["env_steps_per_s"].items():
+            print(f"env steps/s with {workers} worker(s): {rate:.1f}")
+        print(f"2 workers / 1 worker: {figures['worker_speedup']:.2f}")
+        print(f"learner updates/s: {figures['updates_per_s']:.1f}; updates per env step (2 workers): {figures['updates_per_env_step']:.2f}")
     return 0
 
 
@@ -546,14 +562,14 @@ def build_parser() -> argparse.ArgumentParser:
     sysid.set_defaults(run=cmd_sysid)
 
     bench = commands.add_parser("bench", help="benchmarks (medians, p99, ratios)")
-    bench.add_argument("name", help="which benchmark: ball, reach, control, safety, perception, sim")
+    bench.add_argument("name", help="which benchmark: ball, reach, control, safety, perception, sim, train")
     bench.add_argument("--repeats", type=int, default=5, help="ball: timed runs per case; sim: timed rally episodes per sensor path")
-    bench.add_argument("--seconds", type=float, default=1.0, help="sim: simulated seconds per rally episode")
+    bench.add_argument("--seconds", type=float, default=1.0, help="sim: simulated seconds per rally episode; train: wall seconds of collection per worker count")
     bench.add_argument("--data", help="reach: match-data CSV whose shot_p1 events are the contact points; perception: whose shot_p2 events are the incoming shots")
     bench.add_argument("--shots", type=int, default=50, help="perception: incoming shots")
     bench.add_argument("--scenario", help="reach: robot scenario YAML (default models/scenario.yaml)")
     bench.add_argument("--seed", type=int, default=0, help="reach: seed of the swing-speed search; control, safety: of the states and actions")
-    bench.add_argument("--steps", type=int, default=1000, help="control: timed control steps")
+    bench.add_argument("--steps", type=int, default=1000, help="control: timed control steps; train: timed learner updates")
     bench.add_argument("--states", choices=("rally", "random"), default="rally", help="control: rally strokes (default) or a uniformly random policy (stress)")
     bench.add_argument("--cases", type=int, default=1000, help="safety: random cases (start state + action sequence)")
     bench.add_argument("--workers", type=int, default=1, help="safety: processes (the figures do not depend on it)")

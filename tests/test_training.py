@@ -196,3 +196,26 @@ def test_save_policy_round_trip(tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not a policy")
     with pytest.raises(Exception):
         load_policy(tmp_path / "bad.pt")
+
+
+def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
+    """The Ray backend and the single-process mode run the same worker code on the same seeds."""
+    from ace_drake.learning.workers import WorkerPool
+
+    args = {"sac": SMALL, "seed": 21}
+    local = WorkerPool(1, args, "local")
+    local.submit(0, 2, "ou")
+    _, expected = local.wait()
+    pool = WorkerPool(2, args, "ray")
+    try:
+        pool.submit(0, 2, "ou")
+        pool.submit(1, 1, "ou")
+        results = dict(pool.wait() for _ in range(2))
+    finally:
+        pool.shutdown()
+    assert pool.in_flight == 0 and len(results[1]) == 1
+    for a, b in zip(results[0], expected):
+        for key in TRANSITION_KEYS:
+            np.testing.assert_array_equal(a.transitions[key], b.transitions[key])
+    with pytest.raises(ValueError, match="backend"):
+        WorkerPool(1, args, "threads")

@@ -109,3 +109,15 @@ def test_tutorial_05_rally_returns_the_ball_and_writes_its_files(tmp_path):
     assert png.is_file() and png.stat().st_size > 50_000
     html = tmp_path / "rally.html"
     assert html.is_file() and html.stat().st_size > EMPTY_MESHCAT_HTML and "animation" in html.read_text()
+
+
+def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):
+    run = subprocess.run(
+        [sys.executable, str(REPO_ROOT / "tutorials" / "06_training.py"), "--out", str(tmp_path), "--backend", "local", "--steps", "150"],
+        capture_output=True, text=True, timeout=600, cwd=REPO_ROOT,
+    )
+    assert run.returncode == 0, run.stderr
+    assert "after" in run.stdout and "playable shots" in run.stdout and run.stdout.rstrip().endswith("done")
+    for name in ("tutorial.pt", "tutorial.json", "tutorial_curve.png"):
+        assert (tmp_path / "policies" / name).is_file()
+    assert (tmp_path / "run" / "checkpoint.pt").is_file()

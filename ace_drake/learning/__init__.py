@@ -1,6 +1,7 @@
-"""Reinforcement learning: the rally environment, its observation and rewards, and the learner's
-parts (SAC with the auxiliary decoder loss, event tables, hindsight relabelling, mirroring); the
-rollout workers and the train command are still to come.
+"""Reinforcement learning: the rally environment, its observation and rewards, the learner (SAC
+with the auxiliary decoder loss and an optional cloning term, event tables, hindsight relabelling,
+mirroring), the rollout workers (``rollout``, ``workers``: Ray) and the training run
+(``trainer``: ``ace-drake train``).
 
 Importing this package does not import Drake's diagram builders; ``RallyEnv`` builds its
 training diagram when constructed.

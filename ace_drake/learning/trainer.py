@@ -293,7 +293,8 @@ class Trainer:
                     pool.submit(index, c.episodes_per_task, "policy")
             self._periodic(evaluate=True)
         self.state.phase = "done"
-        self._evaluate()
+        if not self.state.evaluations or self.state.evaluations[-1][0] != self.state.env_steps:
+            self._evaluate()
         self.checkpoint()
         self.log(f"train: done: {self.state.env_steps} steps, {self.learner.updates} updates, {self.state.wall_time + self._elapsed():.0f} s")
 

@@ -1,0 +1,85 @@
+"""``ace-drake bench train``: collection and learning throughput of the training machinery
+(issue 7), measured side by side in one run:
+
+- environment steps per second (32 ms steps of the training diagram, resets included) of the
+  rollout workers playing the freshly initialised actor (``mode="policy"``) on Ray, with 1 and
+  with 2 workers (each with one task of ``episodes`` episodes in flight until ``seconds`` of
+  collection have passed), and the speed-up of 2 over 1;
+- learner updates per second (``SacLearner.update`` on batches from an ``EventReplay`` filled
+  with the collected episodes, one torch thread), median over chunks of 20 updates;
+- the ratio of updates per second to environment steps per second with 2 workers: the update-
+  to-data ratio the learner can sustain (``TrainConfig.updates_per_step`` above it leaves the
+  workers waiting, below it the learner).
+
+On a 2-core machine the 2-worker figure shares the cores with the learner's process only while
+it waits, so it is the collection's upper bound.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def _collect(workers: int, seconds: float, episodes: int, seed: int, progress) -> tuple[float, list]:
+    """Steps per wall second of ``workers`` Ray workers over ``seconds``, and the episodes."""
+    from ace_drake.learning.workers import WorkerPool
+
+    pool = WorkerPool(workers, {"seed": seed}, "ray")
+    try:
+        for index in range(workers):  # warm-up: building the diagram, fitting the shot distribution
+            pool.submit(index, 1, "policy")
+        while pool.in_flight:
+            pool.wait()
+        collected, steps = [], 0
+        start = time.perf_counter()
+        for index in range(workers):
+            pool.submit(index, episodes, "policy")
+        while pool.in_flight:
+            index, batch = pool.wait()
+            collected += batch
+            steps += sum(episode.steps for episode in batch)
+            if time.perf_counter() - start < seconds:
+                pool.submit(index, episodes, "policy")
+        wall = time.perf_counter() - start
+    finally:
+        pool.shutdown()
+    progress(f"bench train: {workers} worker(s): {steps} steps in {wall:.1f} s")
+    return steps / wall, collected
+
+
+def bench_train(seconds: float = 60.0, episodes: int = 2, updates: int = 200, seed: int = 0, progress=print) -> dict:
+    """The figures of the module docstring (keys ``env_steps_per_s`` {1, 2}, ``worker_speedup``,
+    ``updates_per_s``, ``updates_per_env_step``)."""
+    import torch
+
+    from ace_drake.learning.replay import EventReplay
+    from ace_drake.learning.sac import SacConfig, SacLearner
+
+    rates, episodes_played = {}, []
+    for workers in (1, 2):
+        rates[workers], played = _collect(workers, seconds, episodes, seed, progress)
+        episodes_played += played
+    torch.set_num_threads(1)
+    learner = SacLearner(SacConfig(seed=seed))
+    replay = EventReplay(layout=learner.config.layout)
+    for episode in episodes_played:
+        replay.add_episode(episode.transitions, episode.summary)
+    chunk, times = 20, []
+    for _ in range(max(1, updates // chunk)):
+        start = time.perf_counter()
+        for _ in range(chunk):
+            learner.update(replay.sample(learner.config.batch_size))
+        times.append((time.perf_counter() - start) / chunk)
+    updates_per_s = 1.0 / float(np.median(times))
+    progress(f"bench train: {updates_per_s:.1f} updates/s (batch {learner.config.batch_size})")
+    return {
+        "env_steps_per_s": {str(k): round(v, 2) for k, v in rates.items()},
+        "worker_speedup": round(rates[2] / rates[1], 3),
+        "updates_per_s": round(updates_per_s, 2),
+        "updates_per_env_step": round(updates_per_s / rates[2], 3),
+        "batch_size": learner.config.batch_size,
+        "seconds_per_collection": seconds,
+        "episodes_collected": len(episodes_played),
+    }
