@@ -475,8 +475,13 @@ def cmd_train(args) -> int:
     config = load_train_config(args.config)
     run_dir = Path(args.run_dir or REPO_ROOT / "out" / "train" / config.name)
     log(f"train: {args.config} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
+    if args.export_only and not (run_dir / "checkpoint.pt").is_file():
+        raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
     trainer = Trainer(config, run_dir, progress=log)
-    trainer.run()
+    if args.export_only:
+        log(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
+    else:
+        trainer.run()
     evaluation = None
     if args.evaluate_data:
         from ace_drake.analysis.evaluation import evaluate
@@ -489,7 +494,7 @@ def cmd_train(args) -> int:
         log(f"train: evaluating the exported actor on the {len(shots)} human shots of {args.evaluate_data} (cameras)")
         figures = evaluate(load_policy(policy_path), RallyParams(), shots, serve, config.seed, progress=log)
         evaluation = {"data": args.evaluate_data, "data_sha256": _sha256(args.evaluate_data), "sensors": "cameras", **figures}
-    sidecar = export(trainer, args.export_dir, args.export, {**_provenance(), **evaluation} if evaluation else _provenance())
+    sidecar = export(trainer, args.export_dir, args.export, evaluation, _provenance())
     summary = {"policy": str(Path(args.export_dir) / f"{config.name}.pt"), **{k: sidecar[k] for k in ("env_steps", "episodes", "updates", "wall_time_s", "actor_at")}}
     if args.json:
         emit_json({**summary, "final_evaluation": evaluation})
@@ -535,6 +540,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
     train.add_argument("--evaluate-data", help="match-data CSV: evaluate the exported policy on its human shots (cameras) into the sidecar")
+    train.add_argument("--export-only", action="store_true", help="export the run's checkpoint as it stands (e.g. a run stopped early) without training")
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
 

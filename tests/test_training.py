@@ -219,3 +219,24 @@ def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
             np.testing.assert_array_equal(a.transitions[key], b.transitions[key])
     with pytest.raises(ValueError, match="backend"):
         WorkerPool(1, args, "threads")
+
+
+def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
+    import json
+
+    import yaml
+
+    from ace_drake.cli import main
+    from ace_drake.config import to_dict
+
+    config = tmp_path / "train.yaml"
+    config.write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(_config(name="cli", env_steps=40))))))
+    args = ["train", str(config), "--run-dir", str(tmp_path / "run"), "--export-dir", str(tmp_path / "policies"), "--export", "final"]
+    assert main(args + ["--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["env_steps"] >= 40 and printed["policy"].endswith("cli.pt")
+    sidecar = json.loads((tmp_path / "policies" / "cli.json").read_text())
+    assert sidecar["command"].startswith("ace-drake train") and sidecar["final_evaluation"] is None
+    assert main(args + ["--export-only"]) == 0  # resumes nothing, trains nothing
+    assert "exported" in capsys.readouterr().out
+    assert main(["train", str(config), "--run-dir", str(tmp_path / "empty"), "--export-only"]) == 2

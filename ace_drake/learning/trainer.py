@@ -428,11 +428,12 @@ def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
     return sample.states, sample.serve
 
 
-def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict | None = None) -> dict:
+def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict | None = None, provenance: dict | None = None) -> dict:
     """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (the sidecar: config, seed,
     steps, updates, wall time, the periodic evaluations and ``evaluation``, e.g. the human-shot
     figures) and ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best"
-    (the best evaluated actor) or "final". Returns the sidecar."""
+    (the best evaluated actor) or "final"; ``provenance``: e.g. the command line and date.
+    Returns the sidecar."""
     from ace_drake.learning.sac import save_policy
 
     if which not in ("best", "final"):
@@ -445,6 +446,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     chosen = max(s.evaluations, key=lambda e: (e[2]["rate"] or -1.0)) if actor is not None and s.evaluations else (s.evaluations[-1] if s.evaluations else None)
     sidecar = {
         "name": c.name,
+        **(provenance or {}),
         "seed": c.seed,
         "actor": "best evaluated" if actor is not None else "final",
         "actor_at": None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
