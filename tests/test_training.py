@@ -240,3 +240,32 @@ def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
     assert main(args + ["--export-only"]) == 0  # resumes nothing, trains nothing
     assert "exported" in capsys.readouterr().out
     assert main(["train", str(config), "--run-dir", str(tmp_path / "empty"), "--export-only"]) == 2
+
+
+def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):
+    first = Trainer(_config(env_steps=30), tmp_path / "first", progress=lambda line: None)
+    first.run()
+    config = _config(env_steps=first.state.env_steps + 20, initialize_from=str(tmp_path / "first" / "checkpoint.pt"), bc_weight_final=0.3,
+                     exploration=dataclasses.replace(_exploration(), policy_std_scale=0.1))
+    second = Trainer(config, tmp_path / "second", progress=lambda line: None)
+    assert second.state.phase == "learn" and second.learner.updates == first.learner.updates
+    assert len(second.replay) == len(first.replay) and second.state.evaluations == first.state.evaluations
+    state = second.run()
+    assert state.phase == "done" and state.env_steps >= config.env_steps and second.learner.updates > first.learner.updates
+    with pytest.raises(ConfigError, match="initialize_from"):
+        _config(initialize_from=str(tmp_path / "missing.pt"))
+
+
+def _exploration():
+    from ace_drake.learning.rollout import ExplorationParams
+
+    return ExplorationParams()
+
+
+def test_policy_std_scale_narrows_the_sampled_actions():
+    learner = SacLearner(dataclasses.replace(SMALL, seed=4))
+    obs = np.zeros((2000, learner.observation_size))
+    mean = learner.act(obs[:1], deterministic=True)
+    spread = {scale: np.std(learner.act(obs, std_scale=scale) - mean, axis=0).mean() for scale in (1.0, 0.1)}
+    assert spread[0.1] < 0.2 * spread[1.0]
+    np.testing.assert_allclose(learner.act(obs[:3], std_scale=0.0), np.repeat(mean, 3, axis=0), atol=1e-6)

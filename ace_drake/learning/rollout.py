@@ -47,16 +47,20 @@ class ExplorationParams:
     sampled every 32 ms (the paper's values are not public; these give a stationary std of
     sigma / sqrt(2 theta) = 0.5 and a correlation time of 1 / theta = 0.2 s, about a third of an
     incoming ball's flight). demo_noise: std of the Gaussian added to the returner's actions;
-    demo_noise_fraction: the share of its steps that get noise (DART).
+    demo_noise_fraction: the share of its steps that get noise (DART). policy_std_scale: the
+    ``policy`` mode samples the actor's Gaussian with its standard deviation times this (1: SAC's
+    own sampling; below 1 explores less around the mean, e.g. for an actor cloned from
+    demonstrations whose untrained spread would spoil every hit).
     """
 
     ou_theta: float = 5.0
     ou_sigma: float = 1.58
     demo_noise: float = 0.05
     demo_noise_fraction: float = 0.5
+    policy_std_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("ou_theta", "ou_sigma", "demo_noise"):
+        for name in ("ou_theta", "ou_sigma", "demo_noise", "policy_std_scale"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"ExplorationParams.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 <= self.demo_noise_fraction <= 1.0:
@@ -209,7 +213,7 @@ class RolloutWorker:
     def _action(self, mode: str, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """(the action to play, the demonstrator's label or None)."""
         if mode == "policy":
-            return self.learner.act(obs, generator=self.generator), None
+            return self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale), None
         if mode == "ou":
             return self.noise.sample(self.rng), None
         returner = self.returner

@@ -155,12 +155,18 @@ class SacLearner:
 
     # ------------------------------------------------------------------------------ acting
     @torch.no_grad()
-    def act(self, obs: np.ndarray, deterministic: bool = False, generator: torch.Generator | None = None) -> np.ndarray:
+    def act(self, obs: np.ndarray, deterministic: bool = False, generator: torch.Generator | None = None,
+            std_scale: float = 1.0) -> np.ndarray:
         """Actions (..., 16) in [-1, 1] for observations (..., layout.size); sampled with
-        ``generator`` (default: the learner's own) unless ``deterministic`` (tanh of the mean)."""
+        ``generator`` (default: the learner's own) unless ``deterministic`` (tanh of the mean).
+        ``std_scale`` multiplies the Gaussian's standard deviation (1: the policy itself)."""
         obs_t = torch.as_tensor(np.atleast_2d(obs), dtype=torch.float32)
-        action, _, mean_action, _ = self.actor.sample(self.actor_features(obs_t), generator or self.generator)
-        out = (mean_action if deterministic else action).numpy()
+        if deterministic:
+            out = self.actor.sample(self.actor_features(obs_t), generator or self.generator)[2].numpy()
+        else:
+            mean, log_std, _ = self.actor(self.actor_features(obs_t))
+            noise = torch.randn(mean.shape, generator=generator or self.generator, dtype=mean.dtype)
+            out = torch.tanh(mean + std_scale * log_std.exp() * noise).numpy()
         return out.reshape(*np.shape(obs)[:-1], ACTION_SIZE)
 
     def policy(self) -> DeterministicPolicy:

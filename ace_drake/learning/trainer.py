@@ -75,6 +75,9 @@ class TrainConfig:
     evaluation_episodes: int = 100
     evaluation_data: str = ""  # a match-data CSV (its shot_p2 shots); "" the synthetic distribution
     evaluation_sensors: str = "statistical"  # the rally diagram's position sensor for evaluations
+    # Another run's checkpoint to start from, in the learn phase (its learner, replay tables and
+    # demonstrations; e.g. a run stopped after its pretraining); "" starts afresh.
+    initialize_from: str = ""
     mirror: bool = False  # mirror augmentation; the shipped robot is not mirror-symmetric (mirror.py)
     torch_threads: int = 1
     log_every: float = 30.0  # s between progress lines
@@ -102,6 +105,8 @@ class TrainConfig:
             raise ConfigError(f"TrainConfig.evaluation_sensors must be 'cameras' or 'statistical', got {self.evaluation_sensors!r}")
         if self.evaluation_data and not Path(self.evaluation_data).is_file():
             raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
+        if self.initialize_from and not Path(self.initialize_from).is_file():
+            raise ConfigError(f"TrainConfig.initialize_from: no such file {self.initialize_from}")
         for path in self.demonstration_files:
             if not Path(path).is_file():
                 raise ConfigError(f"TrainConfig.demonstration_files: no such file {path}")
@@ -177,6 +182,8 @@ class Trainer:
         checkpoint = self.run_dir / CHECKPOINT
         if checkpoint.is_file():
             self._load(checkpoint)
+        elif config.initialize_from:
+            self._initialize_from(Path(config.initialize_from))
         self._save_config()
 
     # ------------------------------------------------------------------------------ the run
@@ -408,6 +415,22 @@ class Trainer:
         self.state.resumptions += 1
         self._recent.extend(payload["recent"])
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
+
+    def _initialize_from(self, path: Path) -> None:
+        """Starts the learn phase from another run's checkpoint (``initialize_from``): its learner
+        (the SacConfig must be the same), replay tables, demonstrations and counters."""
+        import torch
+
+        payload = torch.load(path, weights_only=False)
+        self.learner.load_state_dict(payload["learner"])
+        self.replay.load_state_dict(payload["replay"])
+        self.demonstrations.load_state_dict(payload["demonstrations"])
+        s = self.state = Progress(**payload["progress"])  # its counters, evaluations and best actor
+        c = self.config
+        s.phase, s.learn_start, s.resumptions = "learn", (s.env_steps, self.learner.updates), 0
+        s.next_checkpoint = s.env_steps + c.checkpoint_every
+        s.next_evaluation = s.env_steps + c.evaluate_every
+        self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; learn phase")
 
     def _save_config(self) -> None:
         import yaml
