@@ -88,7 +88,7 @@ def worker():
 
 
 def test_rollout_episodes_on_the_real_diagram(worker, tmp_path):
-    episodes = worker.collect(2, "ou") + worker.collect(1, "policy") + worker.collect(1, "demonstrator")
+    episodes = worker.collect(2, "ou") + worker.collect(1, "policy") + worker.collect(1, "dagger") + worker.collect(1, "demonstrator")
     for episode in episodes:
         t = episode.transitions
         n = episode.steps
@@ -101,7 +101,10 @@ def test_rollout_episodes_on_the_real_diagram(worker, tmp_path):
         assert episode.summary.closest_approach is not None and episode.summary.closest_approach >= 0.0
     demo = episodes[-1]
     assert demo.transitions["demo_action"].shape == (demo.steps, ACTION_SIZE)
-    assert "demo_action" not in episodes[0].transitions
+    assert "demo_action" not in episodes[0].transitions and "demo_action" not in episodes[2].transitions
+    dagger = episodes[3]  # the actor's actions, the returner's labels
+    assert dagger.transitions["demo_action"].shape == (dagger.steps, ACTION_SIZE)
+    assert not np.allclose(dagger.transitions["action"], dagger.transitions["demo_action"])
     path = tmp_path / "episodes.pkl"
     save_episodes(path, episodes)
     again = load_episodes(path)

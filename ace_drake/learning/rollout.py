@@ -15,6 +15,9 @@ plus the ``EpisodeSummary`` the event tables read):
   (``sac`` docstring). This is this project's addition, not the paper's (README, *Training*).
   When the returner has no action (no track yet, or after its hit), the label and the action are
   ``RallyEnv.hold_action``: continue the committed plan.
+- ``"dagger"``: the actor acts as in ``"policy"`` and the returner labels every state it visits
+  (DAgger, Ross et al. 2011: the cloning term then learns what to do in the states the actor's
+  own errors lead to, which the returner's demonstrations never visit).
 
 Every worker is seeded: worker ``index`` of a run with seed ``s`` draws its episodes from
 ``numpy.random.SeedSequence([s, index])``, so a run's episodes do not depend on how many workers
@@ -36,7 +39,7 @@ from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.learning.rally_env import RallyEnv, RallyEnvParams
 from ace_drake.learning.replay import TRANSITION_KEYS, EpisodeSummary
 
-MODES = ("policy", "ou", "demonstrator")
+MODES = ("policy", "ou", "demonstrator", "dagger")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,7 +191,7 @@ class RolloutWorker:
         obs, info = env.reset()
         if mode == "ou":
             self.noise.reset(self.rng)
-        if mode == "demonstrator":
+        if mode in ("demonstrator", "dagger"):
             self.returner.reset()
         rows = {key: [] for key in (*TRANSITION_KEYS, "demo_action")}
         closest = self._blade_distance(None)
@@ -202,7 +205,7 @@ class RolloutWorker:
                                ("demo_action", label)):
                 rows[key].append(value)
             obs, info = next_obs, next_info
-        if mode != "demonstrator":
+        if mode not in ("demonstrator", "dagger"):
             del rows["demo_action"]
         transitions = {key: np.asarray(value, dtype=np.float32) for key, value in rows.items()}
         self.episodes += 1
@@ -216,20 +219,28 @@ class RolloutWorker:
             return self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale), None
         if mode == "ou":
             return self.noise.sample(self.rng), None
+        if mode == "dagger":
+            return self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale), self._label(obs)
+        label = self._label(obs)
+        if self.rng.random() < self.exploration.demo_noise_fraction:
+            noisy = np.clip(label + self.rng.normal(0.0, self.exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
+            q0, v0, a0 = np.split(self.returner.layout.part(obs, "robot_state"), 3)
+            if self.returner.stack.propose(q0, v0, a0, noisy).safe:  # noise that would collide is not explored
+                return noisy, label
+        return label, label
+
+    def _label(self, obs: np.ndarray) -> np.ndarray:
+        """The returner's action for ``obs``; when it has none, continuing the plan or else heading
+        for the reset pose, whichever the stack accepts first (the plan if neither)."""
         returner = self.returner
-        robot = returner.layout.part(obs, "robot_state")
-        q0, v0, a0 = robot[:8], robot[8:16], robot[16:24]
+        q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
         label = returner(obs)
-        if label is None:  # continue the plan, else head for the reset pose, whichever is safe first
+        if label is None:
             label = returner._first_safe(q0, v0, a0, [self.env.hold_action,
                                                        lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
             if label is None:
                 label = self.env.hold_action()
-        if self.rng.random() < self.exploration.demo_noise_fraction:
-            noisy = np.clip(label + self.rng.normal(0.0, self.exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
-            if returner.stack.propose(q0, v0, a0, noisy).safe:  # noise that would collide is not explored
-                return noisy, label
-        return label, label
+        return label
 
     def _blade_distance(self, previous):
         """(closest approach so far (m), relative position now): module docstring."""

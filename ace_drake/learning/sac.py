@@ -286,6 +286,7 @@ def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> N
     from pathlib import Path
 
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
     torch.save({"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config),
                 "actor": actor_state or learner.actor.state_dict()}, temporary)

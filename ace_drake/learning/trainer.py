@@ -68,6 +68,9 @@ class TrainConfig:
     pretrain_updates: int = 0
     pretrain_bc_weight: float = 10.0
     bc_weight_final: float = 0.0
+    # The learn phase's collection: "policy" (SAC's) or "dagger" (the actor plays, the returner
+    # labels its states for the cloning term; this project's, rollout docstring).
+    learn_mode: str = "policy"
     updates_per_step: float = 0.25  # the learner's update-to-data ratio (not public)
     update_chunk: int = 50  # updates between looks at the workers and weight publications
     checkpoint_every: int = 10_000
@@ -97,6 +100,8 @@ class TrainConfig:
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.learn_mode not in ("policy", "dagger"):
+            raise ConfigError(f"TrainConfig.learn_mode must be 'policy' or 'dagger', got {self.learn_mode!r}")
         if self.backend not in ("ray", "local"):
             raise ConfigError(f"TrainConfig.backend must be 'ray' or 'local', got {self.backend!r}")
         if self.backend == "local" and self.workers != 1:
@@ -277,7 +282,7 @@ class Trainer:
         pool = self._workers()
         pool.publish(self.learner.actor.state_dict())
         for index in range(pool.count):
-            pool.submit(index, c.episodes_per_task, "policy")
+            pool.submit(index, c.episodes_per_task, c.learn_mode)
         learn_start, updates_start = self.state.learn_start
         while self.state.env_steps < c.env_steps:
             result = pool.wait(timeout=0.0 if self.config.backend == "ray" else None)
@@ -285,7 +290,7 @@ class Trainer:
                 index, episodes = result
                 for episode in episodes:
                     self._ingest(episode)
-                pool.submit(index, c.episodes_per_task, "policy")
+                pool.submit(index, c.episodes_per_task, c.learn_mode)
             learned = self.state.env_steps - learn_start
             if len(self.replay) >= c.sac.batch_size and self.learner.updates - updates_start < c.updates_per_step * learned:
                 progress = min(1.0, learned / max(1, c.env_steps - learn_start))
@@ -297,7 +302,7 @@ class Trainer:
                     index, episodes = result
                     for episode in episodes:
                         self._ingest(episode)
-                    pool.submit(index, c.episodes_per_task, "policy")
+                    pool.submit(index, c.episodes_per_task, c.learn_mode)
             self._periodic(evaluate=True)
         self.state.phase = "done"
         if not self.state.evaluations or self.state.evaluations[-1][0] != self.state.env_steps:
@@ -313,7 +318,7 @@ class Trainer:
             self.demonstrations.add(episode.transitions)
         self.state.env_steps += episode.steps
         self.state.episodes += 1
-        if episode.mode == "policy":
+        if episode.mode in ("policy", "dagger"):
             self._recent.append(episode.returned)
 
     def _update(self, count: int, bc_weight: float) -> None:

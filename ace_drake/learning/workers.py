@@ -68,11 +68,11 @@ class WorkerPool:
         the last published weights."""
         worker = self._workers[index]
         if self.backend == "ray":
-            if self._actor_ref is not None and mode == "policy":
+            if self._actor_ref is not None and mode in ("policy", "dagger"):
                 worker.set_actor.remote(self._actor_ref)  # actor tasks run in order: before the collect
             self._pending[worker.collect.remote(episodes, mode)] = index
         else:
-            self._queue.append((index, episodes, mode, self._actor_state if mode == "policy" else None))
+            self._queue.append((index, episodes, mode, self._actor_state if mode in ("policy", "dagger") else None))
 
     @property
     def in_flight(self) -> int:
