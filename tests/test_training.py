@@ -272,3 +272,16 @@ def test_policy_std_scale_narrows_the_sampled_actions():
     spread = {scale: np.std(learner.act(obs, std_scale=scale) - mean, axis=0).mean() for scale in (1.0, 0.1)}
     assert spread[0.1] < 0.2 * spread[1.0]
     np.testing.assert_allclose(learner.act(obs[:3], std_scale=0.0), np.repeat(mean, 3, axis=0), atol=1e-6)
+
+
+def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
+    from ace_drake.config import RallyParams
+    from ace_drake.learning.observation import ObservationLayout
+    from ace_drake.play import controllers
+
+    names = [name for name in controllers.controller_names() if name.startswith("policy:")]
+    assert names, "no policy ships in models/policies"
+    for name in names:
+        policy = controllers.make_controller(name, RallyParams())
+        action = policy(torch.zeros(1, ObservationLayout().size))
+        assert action.shape == (1, ACTION_SIZE) and torch.all(action.abs() <= 1.0)
