@@ -127,6 +127,13 @@ def _config(**overrides) -> TrainConfig:
     return TrainConfig(**fields)
 
 
+def test_the_shipped_training_config_loads():
+    from ace_drake.robot_model import MODELS_DIR
+
+    config = load_train_config(MODELS_DIR / "train_rally.yaml")
+    assert config.name == "rally_sac" and config.demonstrations > 0 and config.learn_mode == "dagger"
+
+
 def test_train_config_from_yaml_names_bad_fields(tmp_path):
     path = tmp_path / "train.yaml"
     path.write_text("name: x\nenv_steps: 100\nsac:\n  batch_size: 32\n  gamma: 0.9\n")

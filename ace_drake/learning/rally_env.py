@@ -344,6 +344,12 @@ class RallyEnv(gymnasium.Env):
         joints = self._joints.joint_state_port.Eval(self._joints.GetMyContextFromRoot(self.context))
         return np.concatenate([ball, joints, self._episode.skill]).astype(np.float32)
 
+    def ball_from_blade(self) -> np.ndarray:
+        """The true ball centre relative to the blade centre now (3,), m (world axes)."""
+        ball = self._ball.ball_state_port.Eval(self._ball.GetMyContextFromRoot(self.context))[:3]
+        X_WR = self._kinematics.racket_pose_port.Eval(self._kinematics.GetMyContextFromRoot(self.context))
+        return ball - X_WR.translation()
+
     def hold_action(self) -> np.ndarray:
         """The action (16,) that continues the committed plan through the next segment, as near as
         the action mapping reaches (eq. (12) inverted at the plan's state 32 ms after the segment

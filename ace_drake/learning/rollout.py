@@ -244,10 +244,7 @@ class RolloutWorker:
 
     def _blade_distance(self, previous):
         """(closest approach so far (m), relative position now): module docstring."""
-        env = self.env
-        ball = env._ball.ball_state_port.Eval(env._ball.GetMyContextFromRoot(env.context))[:3]
-        X_WR = env._kinematics.racket_pose_port.Eval(env._kinematics.GetMyContextFromRoot(env.context))
-        relative = ball - X_WR.translation()
+        relative = self.env.ball_from_blade()
         if previous is None:
             return float(np.linalg.norm(relative)), relative
         closest, before = previous
