@@ -485,14 +485,12 @@ def cmd_train(args) -> int:
     evaluation = None
     if args.evaluate_data:
         from ace_drake.analysis.evaluation import evaluate
-        from ace_drake.learning.sac import load_policy
+        from ace_drake.learning.trainer import chosen_policy
         from ace_drake.play.shots import human_shots
 
-        policy_path = Path(args.export_dir) / f"{config.name}.pt"
-        export(trainer, args.export_dir, args.export)  # the actor to evaluate
         shots, serve = human_shots(args.evaluate_data)
-        log(f"train: evaluating the exported actor on the {len(shots)} human shots of {args.evaluate_data} (cameras)")
-        figures = evaluate(load_policy(policy_path), RallyParams(), shots, serve, config.seed, progress=log)
+        log(f"train: evaluating the {args.export} actor on the {len(shots)} human shots of {args.evaluate_data} (cameras)")
+        figures = evaluate(chosen_policy(trainer, args.export), RallyParams(), shots, serve, config.seed, progress=log)
         evaluation = {"data": args.evaluate_data, "data_sha256": _sha256(args.evaluate_data), "sensors": "cameras", **figures}
     sidecar = export(trainer, args.export_dir, args.export, evaluation, _provenance())
     summary = {"policy": str(Path(args.export_dir) / f"{config.name}.pt"), **{k: sidecar[k] for k in ("env_steps", "episodes", "updates", "wall_time_s", "actor_at")}}

@@ -174,6 +174,11 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
     policy = load_policy(tmp_path / "policies" / "tiny.pt")
     obs = torch.randn(3, again.learner.observation_size)
     torch.testing.assert_close(policy(obs), again.learner.policy()(obs))
+    from ace_drake.learning.trainer import chosen_policy
+
+    torch.testing.assert_close(chosen_policy(again, "final")(obs), policy(obs))  # what --evaluate-data evaluates
+    export(again, tmp_path / "best", "best")
+    torch.testing.assert_close(chosen_policy(again, "best")(obs), load_policy(tmp_path / "best" / "tiny.pt")(obs))
 
     from ace_drake.config import RallyParams
     from ace_drake.play import controllers
@@ -204,8 +209,11 @@ def test_save_policy_round_trip(tmp_path):
     obs = torch.randn(2, learner.observation_size)
     torch.testing.assert_close(load_policy(tmp_path / "p.pt")(obs), learner.policy()(obs))
     (tmp_path / "bad.pt").write_bytes(b"not a policy")
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match="not a policy artefact"):
         load_policy(tmp_path / "bad.pt")
+    torch.save({"format": 99}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not a policy artefact"):
+        load_policy(tmp_path / "other.pt")
 
 
 def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():

@@ -509,7 +509,7 @@ class ModelBasedReturner:
         if flight.hit is not None and flight.hit.time - flight.clock < self.lead + self.lag + 0.5 * self.segment:
             if flight.hit.time - flight.clock > self.lead + self.lag - 0.5 * self.segment:
                 # The hit happens in the segment this action commands: follow through.
-                return self._first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
+                return self.first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
             flight.hit = None  # the hit time passed and the ball is still coming: replan
         prediction = self._predict(estimate)
         if prediction.times.size == 0:
@@ -528,7 +528,7 @@ class ModelBasedReturner:
             return None
         boundary = hit.time - flight.clock - self.lag  # when the command must be at (q_hit, v_hit), s after the observation
         q_target, v_target = hermite(q0, v0, hit.q, hit.v, boundary - self.lead, self.segment)
-        return self._first_safe(q0, v0, a0, [
+        return self.first_safe(q0, v0, a0, [
             lambda: self._action_to(q0, v0, a0, q_target, v_target),
             lambda: self.stack.action_towards(q0, v0, a0, hit.q),
         ])
@@ -557,7 +557,7 @@ class ModelBasedReturner:
             return None
         return np.clip(inverse_map_action(q_target, v_target, sets), -1.0, 1.0)
 
-    def _first_safe(self, q0, v0, a0, actions) -> np.ndarray | None:
+    def first_safe(self, q0, v0, a0, actions) -> np.ndarray | None:
         """The first of ``actions`` (callables returning an action or None, in order of
         preference) whose segment and reset the control stack accepts (``ControlStack.propose``:
         the supervisor's own test, so an action sent is an action executed), or None when none is

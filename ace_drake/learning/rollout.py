@@ -236,7 +236,7 @@ class RolloutWorker:
         q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
         label = returner(obs)
         if label is None:
-            label = returner._first_safe(q0, v0, a0, [self.env.hold_action,
+            label = returner.first_safe(q0, v0, a0, [self.env.hold_action,
                                                        lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
             if label is None:
                 label = self.env.hold_action()

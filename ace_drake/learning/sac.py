@@ -297,7 +297,10 @@ def load_policy(path) -> DeterministicPolicy:
     """The DeterministicPolicy of a ``save_policy`` artefact (what ``policy:<name>`` runs)."""
     from ace_drake.config import from_dict
 
-    payload = torch.load(path, weights_only=False)
+    try:
+        payload = torch.load(path, weights_only=False)
+    except Exception as error:  # torch raises several kinds for a file that is not its own
+        raise ValueError(f"{path}: not a policy artefact ({type(error).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != POLICY_FORMAT:
         raise ValueError(f"{path}: not a policy artefact (format {POLICY_FORMAT})")
     learner = SacLearner(from_dict(SacConfig, payload["sac_config"]))

@@ -238,6 +238,7 @@ class Trainer:
                 episodes = load_episodes(path)
                 for episode in episodes:
                     self._ingest(episode)
+                self.state.demonstration_episodes += len(episodes)
                 self.log(f"train: {len(episodes)} demonstration episodes from {path}")
         elif c.demonstrations:
             self._collect_phase("demonstrator", c.demonstrations, "demonstration_episodes")
@@ -286,23 +287,14 @@ class Trainer:
         learn_start, updates_start = self.state.learn_start
         while self.state.env_steps < c.env_steps:
             result = pool.wait(timeout=0.0 if self.config.backend == "ray" else None)
-            if result is not None:
-                index, episodes = result
-                for episode in episodes:
-                    self._ingest(episode)
-                pool.submit(index, c.episodes_per_task, c.learn_mode)
+            self._take(pool, result)
             learned = self.state.env_steps - learn_start
             if len(self.replay) >= c.sac.batch_size and self.learner.updates - updates_start < c.updates_per_step * learned:
                 progress = min(1.0, learned / max(1, c.env_steps - learn_start))
                 self._update(c.update_chunk, c.sac.bc_weight + progress * (c.bc_weight_final - c.sac.bc_weight))
                 pool.publish(self.learner.actor.state_dict())
-            elif result is None:
-                result = pool.wait()
-                if result is not None:
-                    index, episodes = result
-                    for episode in episodes:
-                        self._ingest(episode)
-                    pool.submit(index, c.episodes_per_task, c.learn_mode)
+            elif result is None:  # nothing to learn from yet: wait for the workers
+                self._take(pool, pool.wait())
             self._periodic(evaluate=True)
         self.state.phase = "done"
         if not self.state.evaluations or self.state.evaluations[-1][0] != self.state.env_steps:
@@ -311,6 +303,16 @@ class Trainer:
         self.log(f"train: done: {self.state.env_steps} steps, {self.learner.updates} updates, {self.state.wall_time + self._elapsed():.0f} s")
 
     # ------------------------------------------------------------------------------ pieces
+    def _take(self, pool, result) -> None:
+        """Ingests a finished task's episodes (``WorkerPool.wait``'s result, or None) and gives
+        its worker the next task."""
+        if result is None:
+            return
+        index, episodes = result
+        for episode in episodes:
+            self._ingest(episode)
+        pool.submit(index, self.config.episodes_per_task, self.config.learn_mode)
+
     def _ingest(self, episode: Episode) -> None:
         summary = episode.summary
         self.replay.add_episode(episode.transitions, summary)
@@ -464,19 +466,16 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     Returns the sidecar."""
     from ace_drake.learning.sac import save_policy
 
-    if which not in ("best", "final"):
-        raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
     s, c = trainer.state, trainer.config
-    actor = s.best_actor if which == "best" and s.best_actor is not None else None
+    actor, chosen = chosen_actor(trainer, which)
     policies_dir = Path(policies_dir)
     policies_dir.mkdir(parents=True, exist_ok=True)
     save_policy(policies_dir / f"{c.name}.pt", trainer.learner, actor)
-    chosen = max(s.evaluations, key=lambda e: (e[2]["rate"] or -1.0)) if actor is not None and s.evaluations else (s.evaluations[-1] if s.evaluations else None)
     sidecar = {
         "name": c.name,
         **(provenance or {}),
         "seed": c.seed,
-        "actor": "best evaluated" if actor is not None else "final",
+        "actor": "best evaluated" if which == "best" and s.best_actor is not None else "final",
         "actor_at": None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
         "env_steps": s.env_steps,
         "episodes": s.episodes,
@@ -489,6 +488,26 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     (policies_dir / f"{c.name}.json").write_text(json.dumps(sidecar, indent=2, default=float) + "\n")
     plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name)
     return sidecar
+
+
+def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
+    """The actor ``export`` writes: its state dict ("best": the best evaluated one, else the
+    final; "final": the learner's) and its evaluation entry (env_steps, updates, figures), None
+    when that actor was not evaluated."""
+    if which not in ("best", "final"):
+        raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
+    s = trainer.state
+    if which == "best" and s.best_actor is not None:
+        return s.best_actor, max(s.evaluations, key=lambda e: e[2]["rate"] if e[2]["rate"] is not None else -1.0)
+    last = s.evaluations[-1] if s.evaluations and s.evaluations[-1][0] == s.env_steps else None
+    return trainer.learner.actor.state_dict(), last
+
+
+def chosen_policy(trainer: Trainer, which: str):
+    """The DeterministicPolicy of ``chosen_actor`` (what the exported file holds)."""
+    learner = SacLearner(trainer.config.sac)
+    learner.actor.load_state_dict(chosen_actor(trainer, which)[0])
+    return learner.policy()
 
 
 def plot_learning_curve(state: Progress, path, title: str) -> None:
