@@ -94,17 +94,21 @@ def cmd_evaluate(args) -> int:
     if args.episodes is not None and args.episodes < 1:
         raise ConfigError(f"evaluate: --episodes must be >= 1, got {args.episodes}")
     params = _rally_params(args)
+    players = tuple(name.strip() for name in args.players.split(",") if name.strip()) if args.players else ()
+    if players and not args.data:
+        raise ConfigError("evaluate: --players selects shots of --data; give a match-data CSV")
     if args.data:
-        shots, serve = human_shots(args.data)
+        shots, serve = human_shots(args.data, players)
         shots, serve = shots[: args.episodes], serve[: args.episodes]
-        source = f"the {len(shots)} human shots (shot_p2) of {args.data}"
+        of = f" of {', '.join(players)}" if players else ""
+        source = f"the {len(shots)} human shots (shot_p2){of} of {args.data}"
     else:
         sample = make_distribution(ShotParams(seed=args.seed), params.physics).draw(np.random.default_rng(args.seed), args.episodes or 200)
         shots, serve = sample.states, sample.serve
         source = f"{len(shots)} shots from the built-in synthetic distribution"
     log(f"evaluate: '{args.controller}' on {source}, {args.sensors} sensors, seed {args.seed}")
     figures = evaluate(make_controller(args.controller, params), params, shots, serve, args.seed, progress=log)
-    figures = {"controller": args.controller, "data": args.data, "sensors": args.sensors, "seed": args.seed, **figures}
+    figures = {"controller": args.controller, "data": args.data, "players": list(players), "sensors": args.sensors, "seed": args.seed, **figures}
     if args.json:
         emit_json({**figures, **_provenance(), **({"data_sha256": _sha256(args.data)} if args.data else {})})
         return 0
@@ -486,12 +490,20 @@ def cmd_train(args) -> int:
     if args.evaluate_data:
         from ace_drake.analysis.evaluation import evaluate
         from ace_drake.learning.trainer import chosen_policy
-        from ace_drake.play.shots import human_shots
+        from ace_drake.play.shots import held_out_players, human_shots
 
-        shots, serve = human_shots(args.evaluate_data)
-        log(f"train: evaluating the {args.export} actor on the {len(shots)} human shots of {args.evaluate_data} (cameras)")
-        figures = evaluate(chosen_policy(trainer, args.export), RallyParams(), shots, serve, config.seed, progress=log)
-        evaluation = {"data": args.evaluate_data, "data_sha256": _sha256(args.evaluate_data), "sensors": "cameras", **figures}
+        policy = chosen_policy(trainer, args.export)
+
+        def human_evaluation(players: tuple[str, ...] = ()) -> dict:
+            shots, serve = human_shots(args.evaluate_data, players)
+            of = f" of {', '.join(players)}" if players else ""
+            log(f"train: evaluating the {args.export} actor on the {len(shots)} human shots{of} of {args.evaluate_data} (cameras)")
+            return evaluate(policy, RallyParams(), shots, serve, config.seed, progress=log)
+
+        evaluation = {"data": args.evaluate_data, "data_sha256": _sha256(args.evaluate_data), "sensors": "cameras", **human_evaluation()}
+        held_out = held_out_players(config.env.shots, args.evaluate_data)
+        if held_out:  # trained on some players' shots: the others' are reported on their own
+            evaluation["held_out"] = {"players": list(held_out), **human_evaluation(held_out)}
     sidecar = export(trainer, args.export_dir, args.export, evaluation, _provenance())
     summary = {"policy": str(Path(args.export_dir) / f"{config.name}.pt"), **{k: sidecar[k] for k in ("env_steps", "episodes", "updates", "wall_time_s", "actor_at")}}
     if args.json:
@@ -501,6 +513,10 @@ def cmd_train(args) -> int:
         if evaluation:
             rate = evaluation["return_rate"]
             print(f"return rate on {args.evaluate_data}: {rate['rate']:.1%} [{rate['ci95'][0]:.1%}, {rate['ci95'][1]:.1%}] of {rate['played']} playable shots")
+            if "held_out" in evaluation:
+                rate = evaluation["held_out"]["return_rate"]
+                print(f"  of the held-out players ({', '.join(evaluation['held_out']['players'])}): "
+                      f"{rate['rate']:.1%} [{rate['ci95'][0]:.1%}, {rate['ci95'][1]:.1%}] of {rate['played']}")
     return 0
 
 
@@ -529,6 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser("evaluate", help="return-rate evaluation of a controller (paper Fig. 3c-g)")
     add_rally_options(evaluate, DEFAULT_CONTROLLER)
     evaluate.add_argument("--data", help="match-data CSV: one episode per human shot (shot_p2); default: the synthetic distribution")
+    evaluate.add_argument("--players", help="with --data: only these players' shots, comma-separated player_id values (e.g. 'Elite D,Elite E')")
     evaluate.add_argument("--episodes", type=int, help="at most this many episodes (default: all shots of --data, or 200)")
     evaluate.set_defaults(run=cmd_evaluate)
 

@@ -45,6 +45,11 @@ def test_evaluate_counts_every_episode_with_its_interval(capsys):
 def test_evaluate_plays_the_human_shots_of_a_match_file(capsys):
     result = run_json(capsys, "evaluate", "--controller", "still", "--data", str(DATA), "--episodes", "2", "--sensors", "statistical", "--json")
     assert result["episodes"] == 2 and len(result["data_sha256"]) == 64 and result["command"].startswith("ace-drake evaluate")
+    result = run_json(capsys, "evaluate", "--controller", "still", "--data", str(DATA), "--players", "Elite E", "--episodes", "2",
+                      "--sensors", "statistical", "--json")
+    assert result["players"] == ["Elite E"] and result["episodes"] == 2
+    assert main(["evaluate", "--data", str(DATA), "--players", "Elite Z", "--episodes", "1"]) == 2
+    assert "Elite Z" in capsys.readouterr().err
 
 
 def test_the_main_job_runs_on_its_defaults_through_the_console_script():
@@ -108,6 +113,8 @@ def test_errors_are_clear_and_exit_2(capsys, tmp_path):
     assert "drag_coeff" in capsys.readouterr().err
     assert main(["evaluate", "--controller", "nobody", "--episodes", "1"]) == 2
     assert "unknown controller 'nobody'" in capsys.readouterr().err
+    assert main(["evaluate", "--players", "Elite A", "--episodes", "1"]) == 2
+    assert "--players selects shots of --data" in capsys.readouterr().err
     assert main(["bench", "nonsense"]) == 2
 
 

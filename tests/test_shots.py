@@ -141,6 +141,16 @@ def test_human_shots_label_first_shot_of_rally_as_serve(tmp_path):
     states, serve = shots.human_shots(path)
     np.testing.assert_array_equal(serve, [False, True, False, True])
     np.testing.assert_array_equal(states[:, 0], [1.8, 1.7, 1.9, 1.6])
+    states, serve = shots.human_shots(path, players=("Q",))  # one player's shots, still counted per rally
+    np.testing.assert_array_equal(serve, [True])
+    np.testing.assert_array_equal(states[:, 0], [1.6])
+    np.testing.assert_array_equal(shots.human_shots(path, players=("P",))[0][:, 0], [1.8, 1.7, 1.9])
+    with pytest.raises(MatchDataError, match=r"player\(s\) \['R'\]"):
+        shots.human_shots(path, players=("P", "R"))
+    # A distribution fitted to P's shots has not seen Q's; one fitted to all or elsewhere, everyone's.
+    assert shots.held_out_players(ShotParams(source=str(path), players=("P",)), path) == ("Q",)
+    assert shots.held_out_players(ShotParams(source=str(path)), path) == ()
+    assert shots.held_out_players(ShotParams(), path) == ()
 
 
 @needs_data
@@ -162,7 +172,7 @@ def test_make_distribution_reads_a_match_file_from_source(tmp_path):
 
 @pytest.mark.parametrize(
     "field, value",
-    [("source", ""), ("serve_fraction", 1.5), ("serve_fraction", -0.1), ("bandwidth", 0.0), ("bandwidth", float("nan")), ("seed", -1)],
+    [("source", ""), ("players", ("Elite A",)), ("serve_fraction", 1.5), ("serve_fraction", -0.1), ("bandwidth", 0.0), ("bandwidth", float("nan")), ("seed", -1)],
 )
 def test_bad_shot_params_name_the_field(field, value):
     with pytest.raises(ConfigError, match=field):

@@ -14,7 +14,7 @@ from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
-from ace_drake.learning.trainer import TrainConfig, Trainer, export, load_train_config
+from ace_drake.learning.trainer import TrainConfig, Trainer, chosen_actor, export, load_train_config
 
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
 
@@ -268,8 +268,12 @@ def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):
     second = Trainer(config, tmp_path / "second", progress=lambda line: None)
     assert second.state.phase == "learn" and second.learner.updates == first.learner.updates
     assert len(second.replay) == len(first.replay) and second.state.evaluations == first.state.evaluations
+    assert second.state.best_actor is None  # the first run's best was judged on its own evaluations
     state = second.run()
     assert state.phase == "done" and state.env_steps >= config.env_steps and second.learner.updates > first.learner.updates
+    own = state.evaluations[len(first.state.evaluations):]
+    assert len(own) >= 2 and own[0][0] < config.env_steps  # the starting actor is evaluated first
+    assert chosen_actor(second, "best")[1] in own
     with pytest.raises(ConfigError, match="initialize_from"):
         _config(initialize_from=str(tmp_path / "missing.pt"))
 

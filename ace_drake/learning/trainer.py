@@ -77,6 +77,7 @@ class TrainConfig:
     evaluate_every: int = 25_000
     evaluation_episodes: int = 100
     evaluation_data: str = ""  # a match-data CSV (its shot_p2 shots); "" the synthetic distribution
+    evaluation_players: tuple[str, ...] = ()  # with evaluation_data: these players' shots only; () all
     evaluation_sensors: str = "statistical"  # the rally diagram's position sensor for evaluations
     # Another run's checkpoint to start from, in the learn phase (its learner, replay tables and
     # demonstrations; e.g. a run stopped after its pretraining); "" starts afresh.
@@ -108,6 +109,8 @@ class TrainConfig:
             raise ConfigError("TrainConfig: the local backend runs one worker (workers: 1)")
         if self.evaluation_sensors not in ("cameras", "statistical"):
             raise ConfigError(f"TrainConfig.evaluation_sensors must be 'cameras' or 'statistical', got {self.evaluation_sensors!r}")
+        if self.evaluation_players and not self.evaluation_data:
+            raise ConfigError("TrainConfig.evaluation_players selects shots of evaluation_data; give a match-data CSV")
         if self.evaluation_data and not Path(self.evaluation_data).is_file():
             raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
         if self.initialize_from and not Path(self.initialize_from).is_file():
@@ -155,6 +158,7 @@ class Progress:
     learn_start: tuple = (0, 0)  # (env_steps, updates) when the learn phase began
     best_rate: float = -1.0
     best_actor: dict | None = None
+    best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
 
 
 class Trainer:
@@ -382,6 +386,7 @@ class Trainer:
             if rate["rate"] > s.best_rate:
                 s.best_rate = rate["rate"]
                 s.best_actor = {k: v.clone() for k, v in self.learner.actor.state_dict().items()}
+                s.best_evaluation = len(s.evaluations) - 1
         self.log(f"train: evaluation at {s.env_steps} steps: returned {rate['returned']} of {rate['played']} "
                  f"({(rate['rate'] or 0):.1%}), {time.perf_counter() - start:.0f} s")
 
@@ -425,18 +430,21 @@ class Trainer:
 
     def _initialize_from(self, path: Path) -> None:
         """Starts the learn phase from another run's checkpoint (``initialize_from``): its learner
-        (the SacConfig must be the same), replay tables, demonstrations and counters."""
+        (the SacConfig must be the same), replay tables, demonstrations and counters. Its best
+        actor is forgotten (its evaluations may be of other shots): this run evaluates its starting
+        actor first and chooses among its own evaluations."""
         import torch
 
         payload = torch.load(path, weights_only=False)
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])
         self.demonstrations.load_state_dict(payload["demonstrations"])
-        s = self.state = Progress(**payload["progress"])  # its counters, evaluations and best actor
+        s = self.state = Progress(**payload["progress"])  # its counters and history
         c = self.config
         s.phase, s.learn_start, s.resumptions = "learn", (s.env_steps, self.learner.updates), 0
+        s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
         s.next_checkpoint = s.env_steps + c.checkpoint_every
-        s.next_evaluation = s.env_steps + c.evaluate_every
+        s.next_evaluation = s.env_steps
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; learn phase")
 
     def _save_config(self) -> None:
@@ -451,7 +459,7 @@ def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
     from ace_drake.play.shots import human_shots, make_distribution
 
     if config.evaluation_data:
-        shots, serve = human_shots(config.evaluation_data)
+        shots, serve = human_shots(config.evaluation_data, config.evaluation_players)
         return shots[: config.evaluation_episodes], serve[: config.evaluation_episodes]
     sample = make_distribution(dataclasses.replace(config.env.shots, seed=config.seed), config.env.rally.physics).draw(
         np.random.default_rng(config.seed + 2), config.evaluation_episodes)
@@ -498,6 +506,9 @@ def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
         raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
     s = trainer.state
     if which == "best" and s.best_actor is not None:
+        if s.best_evaluation >= 0:
+            return s.best_actor, s.evaluations[s.best_evaluation]
+        # A checkpoint from before best_evaluation was recorded: the highest evaluation.
         return s.best_actor, max(s.evaluations, key=lambda e: e[2]["rate"] if e[2]["rate"] is not None else -1.0)
     last = s.evaluations[-1] if s.evaluations and s.evaluations[-1][0] == s.env_steps else None
     return trainer.learner.actor.state_dict(), last

@@ -26,12 +26,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
 
-from ace_drake.analysis.match_data import load_match_events
+from ace_drake.analysis.match_data import MatchDataError, load_match_events
 from ace_drake.config import BallPhysicsParams, ShotParams
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.propagate import DEFAULT_KINDS, ContactEvent, ContactKind, contact_gap, simulate
@@ -256,25 +257,42 @@ def synthetic_distribution(
 # ------------------------------------------------------------------------------ human shots
 
 
-def human_shots(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """The human's shots (``shot_p2`` events) of a match-data CSV, in file order.
+def human_shots(path: str | Path, players: Sequence[str] = ()) -> tuple[np.ndarray, np.ndarray]:
+    """The human's shots (``shot_p2`` events) of a match-data CSV, in file order, of the named
+    ``players`` only (``player_id`` values such as "Elite A"; empty: all of them), e.g. to fit a
+    distribution on some players and evaluate on the others.
 
     Returns states (n, 9), [p (m), v (m/s), w (rad/s)] just after the hit, and serve (n,) bool:
     the shot is a serve, the first shot of its rally (rallies are recorded from their first event,
-    in order; ``analysis.match_data``). Raises MatchDataError for a missing or malformed file.
+    in order; ``analysis.match_data``). Raises MatchDataError for a missing or malformed file or a
+    player the file does not contain.
     """
+    events = load_match_events(path)
+    absent = sorted(set(players) - {event.player for event in events})
+    if absent:
+        known = sorted({event.player for event in events})
+        raise MatchDataError(f"{path}: no events of player(s) {absent}; the file has {known}")
     states, serve = [], []
     rally = None
-    for event in load_match_events(path):
+    for event in events:
         if (event.player, event.rally) != rally:
             rally, shots_so_far = (event.player, event.rally), 0
         if event.kind != "shot":
             continue
-        if event.side == "p2":
+        if event.side == "p2" and (not players or event.player in players):
             states.append(event.state)
             serve.append(shots_so_far == 0)
         shots_so_far += 1
     return np.array(states, dtype=float).reshape(-1, 9), np.array(serve, dtype=bool)
+
+
+def held_out_players(params: ShotParams, path: str | Path) -> tuple[str, ...]:
+    """The players of the match-data CSV at ``path`` whose shots a distribution described by
+    ``params`` did not see: those not in ``params.players`` when it was fitted to that same file
+    with a players selection, else none (sorted ``player_id`` values)."""
+    if not params.players or params.source == "synthetic" or Path(params.source).resolve() != Path(path).resolve():
+        return ()
+    return tuple(sorted({event.player for event in load_match_events(path)} - set(params.players)))
 
 
 def distribution_from_match_data(
@@ -282,12 +300,13 @@ def distribution_from_match_data(
     serve_fraction: float = SERVE_FRACTION,
     bandwidth: float | None = None,
     physics: BallPhysicsParams | None = None,
+    players: Sequence[str] = (),
 ) -> ShotDistribution:
-    """KDEs fitted to the human's serves and returns in a match-data CSV (``human_shots``): the
-    paper's human KDE models. Only recorded shots that are valid under ``physics`` enter the fit,
-    as for the synthetic set (under the paper's model: 102 of the 115 serves and 310 of the 522
-    returns of ../shared/data/ace_match_events_elite.csv)."""
-    states, serve = human_shots(path)
+    """KDEs fitted to the human's serves and returns in a match-data CSV (``human_shots``, of
+    ``players`` only; empty: all): the paper's human KDE models. Only recorded shots that are
+    valid under ``physics`` enter the fit, as for the synthetic set (under the paper's model: 102
+    of the 115 serves and 310 of the 522 returns of ../shared/data/ace_match_events_elite.csv)."""
+    states, serve = human_shots(path, players)
     serves, returns = states[serve], states[~serve]
     serves = serves[valid_shots(serves, True, physics)]
     returns = returns[valid_shots(returns, False, physics)]
@@ -296,7 +315,7 @@ def distribution_from_match_data(
 
 def make_distribution(params: ShotParams, physics: BallPhysicsParams | None = None) -> ShotDistribution:
     """The distribution ``params`` describes: the synthetic set (seeded by ``params.seed``) or
-    the human shots of the match-data CSV at ``params.source``; validity judged by ``physics``."""
+    the human shots of the match-data CSV at ``params.source`` (of ``params.players``); validity judged by ``physics``."""
     if params.source == "synthetic":
         return synthetic_distribution(params.seed, params.serve_fraction, params.bandwidth, physics)
-    return distribution_from_match_data(params.source, params.serve_fraction, params.bandwidth, physics)
+    return distribution_from_match_data(params.source, params.serve_fraction, params.bandwidth, physics, params.players)
