@@ -8,6 +8,7 @@ from ace_drake.analysis.scripted_swing import INCOMING_BALL
 from ace_drake.config import BallPhysicsParams, RallyParams
 from ace_drake.control.action_mapping import map_action
 from ace_drake.control.feasible_set import feasible_sets
+import ace_drake.control.returner as returner_module
 from ace_drake.control.returner import (
     ModelBasedReturner,
     contact_frame,
@@ -82,6 +83,14 @@ def test_a_solved_return_lands_on_the_target_over_the_net():
     assert landing.time == pytest.approx(0.55, abs=2e-3)
     np.testing.assert_allclose(landing.state_pre[:2], target, atol=0.01)
     assert shot.net_clearance > 0.04
+
+
+def test_a_diverging_return_solve_gives_up_instead_of_raising(monkeypatch):
+    # A non-finite iterate (seen in training: a near-singular Jacobian) and a singular Jacobian.
+    assert solve_return(APEX_BALL, np.array([0.8, 0.0]), 0.55, PARAMS, v_guess=np.array([np.inf, 0.0, 1.0])) is None
+    flat = simulate(np.tile(APEX_BALL, (4, 1)), PARAMS, 0.55, kinds=())  # every perturbed ball lands alike
+    monkeypatch.setattr(returner_module, "simulate", lambda *args, **kwargs: flat)
+    assert solve_return(APEX_BALL, np.array([0.8, 0.0]), 0.55, PARAMS) is None
 
 
 def test_racket_plans_send_the_predicted_ball_to_the_target_through_the_contact_model():

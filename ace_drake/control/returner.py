@@ -220,7 +220,8 @@ def solve_return(
     1e-5 m of a 0.5 ms step), finite-difference Jacobians from one batch of four balls per
     iteration, and each ball's spin from the racket state that makes its v_out
     (``invert_racket_contact``, then ``racket_impact``: eqs (7)-(8)). None if it does not
-    converge to ``tolerance`` (m) or no racket state makes the velocity."""
+    converge to ``tolerance`` (m), an iterate leaves the finite numbers (a near-singular
+    Jacobian), or no racket state makes the velocity."""
     ball = np.asarray(ball, dtype=float)
     p_hit, v_in, w_in = ball[:3], ball[3:6], ball[6:9]
     radius = params.aero.ball_radius
@@ -239,13 +240,18 @@ def solve_return(
             return None
         _, spins = racket_impact(v_in, w_in, racket_velocities, contact_frame(normals), params.racket, radius)  # paper eqs (7)-(8)
         starts = np.hstack([np.broadcast_to(p_hit, (4, 3)), velocities, spins])
+        if not np.all(np.isfinite(starts)):
+            return None
         flight = simulate(starts, params, flight_time, dt=flight_time / steps, kinds=())
         ends = flight.final_state[:, :3]
         residual = ends[0] - goal
         if np.linalg.norm(residual) < tolerance:
             return ReturnShot(v_out, spins[0], normals[0], racket_velocities[0], ends[0, :2].copy(), flight_time, _net_clearance(flight.states[:, 0], params))
         jacobian = (ends[1:] - ends[0]).T / step
-        v_out = v_out - np.linalg.solve(jacobian, residual)
+        try:
+            v_out = v_out - np.linalg.solve(jacobian, residual)
+        except np.linalg.LinAlgError:
+            return None
     return None
 
 
