@@ -4,6 +4,7 @@ diagram, the trainer's phases, checkpoints and resumption, export and the policy
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -132,6 +133,22 @@ def test_the_shipped_training_config_loads():
 
     config = load_train_config(MODELS_DIR / "train_rally.yaml")
     assert config.name == "rally_sac" and config.demonstrations > 0 and config.learn_mode == "dagger"
+
+
+def test_the_shipped_second_stage_config_continues_the_first():
+    import yaml
+
+    from ace_drake.config import from_dict
+    from ace_drake.robot_model import MODELS_DIR
+
+    data = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
+    if not Path(data["evaluation_data"]).is_file():
+        pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
+    assert data.pop("initialize_from") == "out/train/rally_sac/checkpoint.pt"  # the first stage's default run dir
+    second, first = from_dict(TrainConfig, data), load_train_config(MODELS_DIR / "train_rally.yaml")
+    assert second.sac == first.sac  # initialize_from loads the first stage's learner
+    assert second.env.shots.players and not set(second.env.shots.players) & {"Elite D", "Elite E"}
+    assert second.evaluation_players == second.env.shots.players  # the exported actor is chosen on training players only
 
 
 def test_train_config_from_yaml_names_bad_fields(tmp_path):
@@ -304,3 +321,17 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
         policy = controllers.make_controller(name, RallyParams())
         action = policy(torch.zeros(1, ObservationLayout().size))
         assert action.shape == (1, ACTION_SIZE) and torch.all(action.abs() <= 1.0)
+
+
+def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
+    from ace_drake.learning.trainer import Progress, evaluation_description, plot_learning_curve
+
+    assert evaluation_description(TrainConfig(evaluation_episodes=60)) == "60 synthetic shots"
+    data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ace_match_events_elite.csv"
+    if data.is_file():
+        config = TrainConfig(evaluation_episodes=100, evaluation_data=str(data), evaluation_players=("Elite A", "Elite B"))
+        assert evaluation_description(config) == "first 100 human shots of Elite A, Elite B"
+    entry = {"rate": 0.5, "ci95": [0.3, 0.7]}
+    state = Progress(evaluations=[(100, 1, entry), (200, 2, entry)], rollout_curve=[(100, 1, 0.1), (200, 2, 0.2)])
+    plot_learning_curve(state, tmp_path / "curve.png", "run", "60 synthetic shots", started_at=150)
+    assert (tmp_path / "curve.png").stat().st_size > 1000

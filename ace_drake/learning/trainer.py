@@ -494,7 +494,8 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         "config": json.loads(json.dumps(to_dict(c))),
     }
     (policies_dir / f"{c.name}.json").write_text(json.dumps(sidecar, indent=2, default=float) + "\n")
-    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name)
+    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c),
+                        s.learn_start[0] if c.initialize_from else None)
     return sidecar
 
 
@@ -521,9 +522,19 @@ def chosen_policy(trainer: Trainer, which: str):
     return learner.policy()
 
 
-def plot_learning_curve(state: Progress, path, title: str) -> None:
+def evaluation_description(config: TrainConfig) -> str:
+    """What the periodic evaluation plays, in words (for the learning curve's legend)."""
+    if not config.evaluation_data:
+        return f"{config.evaluation_episodes} synthetic shots"
+    of = f" of {', '.join(config.evaluation_players)}" if config.evaluation_players else ""
+    return f"first {config.evaluation_episodes} human shots{of}"
+
+
+def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None) -> None:
     """Return rate against environment steps: the rollout policy's (last 100 episodes) and the
-    periodic evaluations' (with their 95 % intervals)."""
+    periodic evaluations' (with their 95 % intervals) on ``description``'s shots. A run started
+    from another's checkpoint at ``started_at`` steps (``initialize_from``) draws the earlier
+    run's evaluations, which may be of other shots, as a separate series."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -534,18 +545,25 @@ def plot_learning_curve(state: Progress, path, title: str) -> None:
         steps, _, rates = zip(*state.rollout_curve)
         axes.plot(steps, rates, color="0.6", label="rollouts (stochastic actor, last 100)")
     evaluated = [(e[0], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
-    if evaluated:
-        steps = [e[0] for e in evaluated]
-        rates = np.array([e[1]["rate"] for e in evaluated])
-        low = rates - np.array([e[1]["ci95"][0] for e in evaluated])
-        high = np.array([e[1]["ci95"][1] for e in evaluated]) - rates
-        axes.errorbar(steps, rates, yerr=[low, high], fmt="o-", color="C0", capsize=3, label="evaluation (deterministic actor)")
+    label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
+    series = [(evaluated, "C0", label)]
+    if started_at is not None:
+        series = [([e for e in evaluated if e[0] <= started_at], "C1", "evaluation of the run it started from (its own shots)"),
+                  ([e for e in evaluated if e[0] > started_at], "C0", label)]
+    for points, color, name in series:
+        if not points:
+            continue
+        steps = [e[0] for e in points]
+        rates = np.array([e[1]["rate"] for e in points])
+        low = rates - np.array([e[1]["ci95"][0] for e in points])
+        high = np.array([e[1]["ci95"][1] for e in points]) - rates
+        axes.errorbar(steps, rates, yerr=[low, high], fmt="o-", color=color, capsize=3, label=name)
     axes.set_xlabel("environment steps (32 ms)")
     axes.set_ylabel("return rate")
     axes.set_ylim(0.0, 1.0)
     axes.set_title(title)
     axes.grid(alpha=0.3)
-    axes.legend(loc="lower right", fontsize=8)
+    axes.legend(loc="upper left", fontsize=7)
     figure.tight_layout()
     figure.savefig(path)
     plt.close(figure)
