@@ -324,7 +324,7 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
 
 
 def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
-    from ace_drake.learning.trainer import Progress, evaluation_description, plot_learning_curve
+    from ace_drake.learning.trainer import Progress, evaluation_description, evaluation_series, plot_learning_curve
 
     assert evaluation_description(TrainConfig(evaluation_episodes=60)) == "60 synthetic shots"
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ace_match_events_elite.csv"
@@ -333,5 +333,10 @@ def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
         assert evaluation_description(config) == "first 100 human shots of Elite A, Elite B"
     entry = {"rate": 0.5, "ci95": [0.3, 0.7]}
     state = Progress(evaluations=[(100, 1, entry), (200, 2, entry)], rollout_curve=[(100, 1, 0.1), (200, 2, 0.2)])
+    (earlier, earlier_label), (own, label) = evaluation_series(state, "60 synthetic shots", started_at=100)
+    assert [e[0] for e in earlier] == [100] and [e[0] for e in own] == [200]  # the start's own evaluation is the earlier run's
+    assert label == "evaluation: 60 synthetic shots (deterministic actor)" and "started from" in earlier_label
+    ((points, _),) = evaluation_series(state)
+    assert [e[0] for e in points] == [100, 200]
     plot_learning_curve(state, tmp_path / "curve.png", "run", "60 synthetic shots", started_at=150)
     assert (tmp_path / "curve.png").stat().st_size > 1000

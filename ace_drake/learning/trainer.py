@@ -530,6 +530,18 @@ def evaluation_description(config: TrainConfig) -> str:
     return f"first {config.evaluation_episodes} human shots{of}"
 
 
+def evaluation_series(state: Progress, description: str = "", started_at: int | None = None) -> list[tuple[list, str]]:
+    """The learning curve's evaluation series, [(points, label)], points (env_steps, figures):
+    one series, or for a run started from another's checkpoint at ``started_at`` steps the
+    earlier run's evaluations (at or before it) and this run's (after it)."""
+    evaluated = [(e[0], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
+    label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
+    if started_at is None:
+        return [(evaluated, label)]
+    return [([e for e in evaluated if e[0] <= started_at], "evaluation of the run it started from (its own shots)"),
+            ([e for e in evaluated if e[0] > started_at], label)]
+
+
 def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None) -> None:
     """Return rate against environment steps: the rollout policy's (last 100 episodes) and the
     periodic evaluations' (with their 95 % intervals) on ``description``'s shots. A run started
@@ -544,13 +556,8 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     if state.rollout_curve:
         steps, _, rates = zip(*state.rollout_curve)
         axes.plot(steps, rates, color="0.6", label="rollouts (stochastic actor, last 100)")
-    evaluated = [(e[0], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
-    label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
-    series = [(evaluated, "C0", label)]
-    if started_at is not None:
-        series = [([e for e in evaluated if e[0] <= started_at], "C1", "evaluation of the run it started from (its own shots)"),
-                  ([e for e in evaluated if e[0] > started_at], "C0", label)]
-    for points, color, name in series:
+    series = evaluation_series(state, description, started_at)
+    for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
         if not points:
             continue
         steps = [e[0] for e in points]
