@@ -460,7 +460,12 @@ class EstimatorParams:
     authors' filter (notes.md) gives the initial position and velocity variances, the observation
     variances (1e-4 m^2, 1 (rad/s)^2) and the reset rules (0.2 s, 0.4 m); the rest is chosen."""
 
-    update_period: float = 0.001  # s, the estimator system's periodic update (1 kHz)
+    # s, the estimator system's periodic update, which stores the filter: the rally controller's
+    # observation instants (RallyParams: 32 ms segments, observed 5 ms before each starts), where
+    # the controller's evaluation has just fused it. Any period and offset give the same outputs
+    # (they fuse every measurement released by their time); these only make it cheapest.
+    update_period: float = 0.032
+    update_offset: float = 0.027
     initial_position_count: int = 3  # positions fitted to start a track (10 ms at 200 Hz)
     # The start's fit is refused (a bounce inside: wait for one more position) when its residuals,
     # normalised by the measurements' covariances, exceed this chi-square quantile.
@@ -503,7 +508,7 @@ class EstimatorParams:
             "max_integration_step", "finite_difference_step",
         )
         _require_non_negative(
-            self, "spin_fusion_lag", "spin_bias_magnitude_std", "spin_bias_axis_std", "acceleration_noise_density", "spin_noise_density", "bounce_velocity_std", "bounce_spin_std"
+            self, "update_offset", "spin_fusion_lag", "spin_bias_magnitude_std", "spin_bias_axis_std", "acceleration_noise_density", "spin_noise_density", "bounce_velocity_std", "bounce_spin_std"
         )
         if self.initial_position_count < 3:
             raise ConfigError(f"initial_position_count must be >= 3 (two to fit, one to check), got {self.initial_position_count}")

@@ -10,6 +10,7 @@ from scipy import stats
 from ace_drake.config import ConfigError, PositionSensorParams, SpinSensorParams, from_dict
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.sensor_models import (
+    rotate,
     PendingMeasurement,
     draw_spin_bias,
     first_spin_capture_time,
@@ -234,3 +235,14 @@ def test_spin_at_past_times_from_contact_events():
 def test_bad_sensor_config_names_the_field(cls, data, field):
     with pytest.raises(ConfigError, match=field):
         from_dict(cls, data)
+
+
+def test_rotate_is_rodrigues_formula_as_scipy_has_it():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    r, v = rng.normal(size=(40, 3)), rng.normal(size=(40, 3))
+    r[0] = 0.0  # no rotation
+    r[1] = [0.0, 0.0, np.pi]  # half a turn
+    np.testing.assert_allclose(rotate(r, v), Rotation.from_rotvec(r).apply(v), atol=1e-14)
+    np.testing.assert_array_equal(rotate(r[:1], v[:1]), v[:1])

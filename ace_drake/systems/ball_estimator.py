@@ -53,17 +53,23 @@ class BallEstimator(LeafSystem):
             track)].
     State:
         abstract EstimatorState: the filter (posterior, re-filtering history) and the sequence
-        numbers read so far.
+        numbers read so far, as of the last update.
     Events:
         initialization: clears the state (a new episode).
-        periodic unrestricted update every update_period (1 ms, offset 0): fuses the measurements
-        numbered above the last ones read (``MeasurementHistory.since``) and new racket contacts.
+        periodic unrestricted update every update_period, offset update_offset (by default the
+        rally controller's observation instants, 32 ms apart and 5 ms before each segment):
+        stores the filter at that time (``estimator_state``).
 
-    1 kHz bounds the wait between a measurement's release and its use by 1 ms, against 8-14 ms
-    of sensor latency; an update with nothing new costs two port reads and says it did nothing
-    (EventStatus.DidNothing), which spares the Simulator writing the state back. The outputs are
-    computed on demand (one prediction, cached per context time).
-    """
+    Every output reads the filter with every measurement released at or before the context's
+    time fused into it (``estimator_state``: the stored state plus what the inputs show numbered
+    above the last ones read, ``MeasurementHistory.since``, and new racket contacts; cached per
+    context time), so an estimate uses a measurement from its release on, with no polling wait,
+    and the update's timing changes only the cost, never a value: the filter processes
+    observations in capture order whatever batches they come in (``BallEkf.update``). The update
+    is there so that each evaluation fuses only what is new since the last; at the controller's
+    instants the fused filter the controller's evaluation computed is stored as it is (both read
+    one cache entry). The sensors' histories must hold what they release in one update period.
+        """
 
     def __init__(self, params: EstimatorParams | None = None, physics: BallPhysicsParams | None = None):
         """Args: params, the filter's settings; physics, the ball model the filter predicts with."""
@@ -76,11 +82,15 @@ class BallEstimator(LeafSystem):
         )
         self.spin_measurements_port = self.DeclareAbstractInputPort("spin_measurements", AbstractValue.Make(MeasurementHistory()))
         self.contact_events_port = self.DeclareAbstractInputPort("contact_events", AbstractValue.Make(()))
-        prerequisites = {self.time_ticket(), self.abstract_state_ticket(self._state_index)}
+        self._fused_cache = self.DeclareCacheEntry(
+            "the filter with everything released by the context's time",
+            ValueProducer(allocate=lambda: AbstractValue.Make(EstimatorState()), calc=self._CalcFused),
+            {self.time_ticket(), self.abstract_state_ticket(self._state_index), self.all_input_ports_ticket()},
+        )
         self._estimate_cache = self.DeclareCacheEntry(
             "estimate at the context's time",
             ValueProducer(allocate=lambda: AbstractValue.Make((None,)), calc=self._CalcEstimate),
-            prerequisites,
+            {self._fused_cache.ticket()},
         )
         estimate_ticket = {self._estimate_cache.ticket()}
         self.ball_state_estimate_port = self.DeclareVectorOutputPort(
@@ -93,12 +103,13 @@ class BallEstimator(LeafSystem):
             "estimate_status", STATUS_SIZE, self.CalcEstimateStatus, prerequisites_of_calc=estimate_ticket
         )
         self.DeclareInitializationUnrestrictedUpdateEvent(self.Clear)
-        self.DeclarePeriodicUnrestrictedUpdateEvent(self.params.update_period, 0.0, self.Update)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.params.update_period, self.params.update_offset, self.Update)
 
     # ------------------------------------------------------------------------------ access
     def estimator_state(self, context) -> EstimatorState:
-        """The EstimatorState in ``context`` (the filter's history, resets, discarded count)."""
-        return context.get_abstract_state(self._state_index).get_value()
+        """The EstimatorState at the context's time: the filter (history, resets, discarded
+        count) with every measurement released by then fused."""
+        return self._fused_cache.Eval(context)
 
     def estimate(self, context) -> BallEstimate | None:
         """The estimate at the context's time, or None without a track."""
@@ -109,8 +120,16 @@ class BallEstimator(LeafSystem):
         state.get_mutable_abstract_state(self._state_index).set_value(EstimatorState())
 
     def Update(self, context, state):
-        """Fuses what the sensors released since the last update."""
-        current = self.estimator_state(context)
+        """Stores the filter as of now (what the outputs computed here already read)."""
+        fused = self.estimator_state(context)
+        if fused is context.get_abstract_state(self._state_index).get_value():
+            return EventStatus.DidNothing()  # the Simulator skips writing the state back
+        state.get_mutable_abstract_state(self._state_index).set_value(fused)
+        return EventStatus.Succeeded()
+
+    def _CalcFused(self, context, value):
+        """The stored state with what the inputs released since fused (the same object if nothing)."""
+        current = context.get_abstract_state(self._state_index).get_value()
         positions_history = self.position_measurements_port.Eval(context)
         spins_history = self.spin_measurements_port.Eval(context)
         events = self.contact_events_port.Eval(context) if self.contact_events_port.HasValue(context) else ()
@@ -122,15 +141,16 @@ class BallEstimator(LeafSystem):
         spins = spins_history.since(last_spin)
         racket_times = [event.time for event in events[contacts_seen:] if event.kind == ContactKind.RACKET]
         if not (positions or spins or racket_times) and len(events) == contacts_seen:
-            return EventStatus.DidNothing()  # the Simulator skips writing the state back
-        updated = EstimatorState(
-            self.ekf.update(current.filter, positions, spins, racket_times),
-            positions_history.last_sequence,
-            spins_history.last_sequence,
-            len(events),
+            value.set_value(current)
+            return
+        value.set_value(
+            EstimatorState(
+                self.ekf.update(current.filter, positions, spins, racket_times),
+                positions_history.last_sequence,
+                spins_history.last_sequence,
+                len(events),
+            )
         )
-        state.get_mutable_abstract_state(self._state_index).set_value(updated)
-        return EventStatus.Succeeded()
 
     # ------------------------------------------------------------------------------ outputs
     def _CalcEstimate(self, context, value):
