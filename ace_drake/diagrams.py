@@ -26,7 +26,7 @@ from ace_drake.config import BallPhysicsParams, ControlParams, PerceptionParams,
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import ResidualModel
-from ace_drake.robot_model import MODELS_DIR, add_robot_to_plant, check_joint_order, load_scenario
+from ace_drake.robot_model import MODELS_DIR, add_robot_to_plant, check_joint_order, load_scenario, racket_reach_box
 from ace_drake.systems.action_mapper import ActionMapper
 from ace_drake.systems.aps_camera_array import ApsCameraArray
 from ace_drake.systems.ball_estimator import BallEstimator
@@ -78,9 +78,13 @@ def add_ball(
     perturb: bool = False,
     seed: int = 0,
     racket_residual: ResidualModel | None = None,
+    scenario: RobotScenario | None = None,
 ) -> BallPlant:
-    """Adds the BallPlant as ``ball``; the shared first step of every builder."""
-    return builder.AddNamedSystem("ball", BallPlant(params, perturb=perturb, seed=seed, racket_residual=racket_residual))
+    """Adds the BallPlant as ``ball``; the shared first step of every builder. With the
+    ``scenario`` of the robot whose racket it will meet, the ball knows the box the racket stays
+    in (``robot_model.racket_reach_box``), which spares the racket witness most pose reads."""
+    reach = None if scenario is None else racket_reach_box(scenario)
+    return builder.AddNamedSystem("ball", BallPlant(params, perturb=perturb, seed=seed, racket_residual=racket_residual, racket_reach=reach))
 
 
 def build_ball_diagram(
@@ -270,7 +274,7 @@ def build_swing_diagram(
     if command.rows() != 8 or command.cols() != 1:
         raise ValueError(f"build_swing_diagram: command must be an 8 x 1 trajectory, got {command.rows()} x {command.cols()}")
     builder = DiagramBuilder()
-    ball = add_ball(builder, params)
+    ball = add_ball(builder, params, scenario=scenario)
     robot = add_robot(builder, scenario, meshcat)
     source = builder.AddNamedSystem("command_source", TrajectorySource(command))
     builder.Connect(source.get_output_port(), robot.joint_plant.q_command_port)
@@ -401,7 +405,7 @@ def add_rally(builder: DiagramBuilder, params: RallyParams, policy, meshcat: Mes
     curtain is the diagram's input ``light_curtain``; ``meshcat`` draws the robot, the court and
     the ball."""
     scenario = load_scenario(MODELS_DIR / params.scenario)
-    ball = add_ball(builder, params.physics, perturb=params.perturb, seed=params.seed)
+    ball = add_ball(builder, params.physics, perturb=params.perturb, seed=params.seed, scenario=scenario)
     robot = add_robot(builder, scenario, meshcat)
     builder.Connect(robot.kinematics.racket_pose_port, ball.racket_pose_port)
     builder.Connect(robot.kinematics.racket_velocity_port, ball.racket_velocity_port)

@@ -74,6 +74,56 @@ def check_joint_order(plant: MultibodyPlant, robot: ModelInstanceIndex) -> None:
         raise ConfigError(f"robot model: expected the plant's positions to be {JOINT_NAMES} in order, got starts {starts}")
 
 
+def racket_reach_box(scenario: RobotScenario, models_dir: str | Path = MODELS_DIR) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned box (lower, upper corners (3,), m, world) that contains the racket frame's
+    origin in every configuration within the scenario's joint limits: a sound bound, not a tight
+    one, for whoever must know where the racket cannot be (the BallPlant's racket witness).
+
+    Walking from the racket frame towards the world, every joint is revolute or fixed until the
+    first prismatic one (the gantry). A revolute or fixed joint keeps the origins of its frames F
+    (on the parent P) and M (on the child C) together, so each moves the next body's origin by at
+    most |p_PF| + |p_CM|; the innermost revolute joint's F is fixed on the carriage (the body the
+    last prismatic joint moves), so the racket frame's origin lies within L = |p_BR| + the sum of
+    the others' of that point, the pivot. The carriage only translates, so the pivot is affine in
+    the prismatic joints' positions and spans the box of its positions at the corners of their
+    limits; the result is that box padded by L on every side. Raises ValueError for a robot not
+    built that way.
+    """
+    plant = MultibodyPlant(time_step=0.0)
+    robot = add_robot_to_plant(plant, scenario, models_dir)
+    plant.Finalize()
+    racket = plant.GetFrameByName(RACKET_FRAME, robot)
+    joint_of_child = {plant.get_joint(index).child_body().index(): plant.get_joint(index) for index in plant.GetJointIndices()}
+    reach = float(np.linalg.norm(racket.GetFixedPoseInBodyFrame().translation()))
+    body, pivot_frame = racket.body(), None
+    while body.index() in joint_of_child and joint_of_child[body.index()].type_name() != "prismatic":
+        joint = joint_of_child[body.index()]
+        if joint.type_name() not in ("revolute", "weld"):
+            raise ValueError(f"racket_reach_box: joint {joint.name()} is {joint.type_name()}; expected revolute, weld or prismatic")
+        if pivot_frame is not None:
+            reach += float(np.linalg.norm(pivot_frame.GetFixedPoseInBodyFrame().translation()))
+        reach += float(np.linalg.norm(joint.frame_on_child().GetFixedPoseInBodyFrame().translation()))
+        pivot_frame, body = joint.frame_on_parent(), joint.parent_body()
+    if pivot_frame is None:
+        raise ValueError("racket_reach_box: no revolute or fixed joint between the racket and the gantry")
+    prismatic, inboard = [], body
+    while inboard.index() in joint_of_child:
+        joint = joint_of_child[inboard.index()]
+        if joint.type_name() == "prismatic":
+            prismatic.append(joint)
+        elif joint.type_name() != "weld":
+            raise ValueError(f"racket_reach_box: joint {joint.name()} ({joint.type_name()}) lies inboard of the gantry")
+        inboard = joint.parent_body()
+    context = plant.CreateDefaultContext()
+    pivots = []
+    for corner in np.ndindex(*(2,) * len(prismatic)):
+        for joint, end in zip(prismatic, corner):
+            joint.set_translation(context, (joint.position_lower_limits() if end == 0 else joint.position_upper_limits())[0])
+        pivots.append(pivot_frame.CalcPoseInWorld(context).translation())
+    pivots = np.array(pivots)
+    return pivots.min(axis=0) - reach, pivots.max(axis=0) + reach
+
+
 class RobotModel:
     """The robot and court in a MultibodyPlant with its own SceneGraph, for analysis.
 

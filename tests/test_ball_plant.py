@@ -167,3 +167,27 @@ def test_a_fast_ball_does_not_tunnel_through_the_blade():
     _, events = run(build_ball_diagram(PARAMS, racket=StaticRacket(X_WR)), start, 0.05)
     racket_event = next(e for e in events if e.kind == ContactKind.RACKET)
     assert racket_event.state_pre[0] == pytest.approx(-1.2 + R + 0.5 * PARAMS.racket.blade_thickness, abs=1e-6)
+
+
+def test_racket_witness_bounds_by_the_reach_box_without_reading_the_racket():
+    # The blade's centre stays in the box: far from it the witness needs no racket pose (the
+    # input is left unset here, and reading it would raise); near it, the witness is as without.
+    X_WR = RigidTransform(RotationMatrix.MakeYRotation(np.pi / 2), [-1.2, 0.0, 0.2])
+    box = (np.array([-1.5, -0.3, 0.0]), np.array([-1.0, 0.3, 0.5]))
+    dut, reference = BallPlant(PARAMS, racket_reach=box), BallPlant(PARAMS)
+    unset, context, reference_context = dut.CreateDefaultContext(), dut.CreateDefaultContext(), reference.CreateDefaultContext()
+    dut.racket_pose_port.FixValue(context, X_WR)
+    reference.racket_pose_port.FixValue(reference_context, X_WR)
+    far = make_state([0.5, 0.0, 0.3], [-6.0, 0.0, 0.0])
+    dut.SetBallState(unset, far)
+    assert dut.CalcRacketGap(unset) == pytest.approx(1.5 - np.hypot(PARAMS.racket.blade_radius, 0.5 * PARAMS.racket.blade_thickness) - R)
+    rng = np.random.default_rng(1)
+    for p_W in np.r_[rng.uniform([-2, -1, -0.5], [0.5, 1, 1], (300, 3)), [X_WR.multiply([0.02, 0.0, 0.5 * PARAMS.racket.blade_thickness + R + 1e-8])]]:
+        dut.SetBallState(context, make_state(p_W, [-1.0, 0.0, 0.0]))
+        reference.SetBallState(reference_context, make_state(p_W, [-1.0, 0.0, 0.0]))
+        witness, gap = dut.CalcRacketGap(context), reference.CalcRacketGap(reference_context)
+        assert witness <= gap + 1e-15 and (witness > 0) == (gap > 0)
+        if gap <= 1e-9:
+            assert witness == gap
+    with pytest.raises(ValueError, match="racket_reach"):
+        BallPlant(PARAMS, racket_reach=(box[1], box[0]))

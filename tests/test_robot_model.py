@@ -7,7 +7,7 @@ import pytest
 from pydrake.geometry import Box, Role
 
 from ace_drake.config import JOINT_NAMES, BallPhysicsParams, ConfigError, JointLimits, RobotScenario, from_dict
-from ace_drake.robot_model import DEFAULT_SCENARIO, RobotModel, load_scenario
+from ace_drake.robot_model import DEFAULT_SCENARIO, RobotModel, load_scenario, racket_reach_box
 
 
 @pytest.fixture(scope="module")
@@ -132,3 +132,15 @@ def test_racket_pose_ik_puts_the_blade_where_asked(dut):
     X_WR = dut.racket_pose(result.q)
     np.testing.assert_allclose(X_WR.translation(), [-1.7, -0.2, 0.3], atol=1.01e-3)
     assert np.degrees(np.arccos(X_WR.rotation().matrix()[:, 2] @ normal)) <= 0.51
+
+
+def test_racket_reach_box_holds_every_configuration_and_stops_short_of_the_net(dut):
+    lower, upper = racket_reach_box(dut.scenario)
+    rng = np.random.default_rng(3)
+    for _ in range(2000):  # random configurations, half of the joints at one of their limits
+        q = rng.uniform(dut.lower, dut.upper)
+        at_limit = rng.random(8) < 0.5
+        q[at_limit] = np.where(rng.random(8) < 0.5, dut.lower, dut.upper)[at_limit]
+        p_WR = dut.racket_pose(q).translation()
+        assert np.all(lower <= p_WR) and np.all(p_WR <= upper)
+    assert upper[0] < 0.0  # never over the opponent's half: the ball's racket witness skips it there

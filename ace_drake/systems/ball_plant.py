@@ -56,7 +56,10 @@ class BallPlant(LeafSystem):
     so while a cheap lower bound on a gap exceeds WITNESS_BOUND_MARGIN a witness returns that bound
     (``physics.propagate.contact_gap_lower_bound``; for the racket, the distance between the ball's
     and the blade's centres less the ball's radius and the blade's half-diagonal), and otherwise
-    the exact gap: every sign, hence every contact time, is the exact gap's.
+    the exact gap: every sign, hence every contact time, is the exact gap's. Given the box the
+    blade's centre never leaves (``racket_reach``, from ``robot_model.racket_reach_box``), the
+    racket witness first bounds the gap by the ball's distance to that box, which needs no racket
+    pose (and so no joint propagation and kinematics): for most of a ball's flight on the far side.
     """
 
     def __init__(
@@ -65,14 +68,23 @@ class BallPlant(LeafSystem):
         perturb: bool = False,
         seed: int = 0,
         racket_residual: ResidualModel | None = None,
+        racket_reach: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         """Args: params, the ball model; perturb, apply the paper's post-table perturbations
         (seeded by the context's seed parameter, ``seed`` by default); racket_residual, an optional
-        correction model for racket contacts (see physics/racket_residual.py)."""
+        correction model for racket contacts (see physics/racket_residual.py); racket_reach, the
+        lower and upper corners (3,) (m, world) of a box that contains the racket frame's origin
+        at all times, or None (no such knowledge)."""
         super().__init__()
         self.params = params or BallPhysicsParams()
         self._perturb = perturb
         self._residual = racket_residual
+        self._reach = None
+        if racket_reach is not None:
+            lower, upper = (np.asarray(corner, dtype=float).reshape(-1) for corner in racket_reach)
+            if lower.shape != (3,) or upper.shape != (3,) or not np.all(np.isfinite(lower) & np.isfinite(upper) & (lower <= upper)):
+                raise ValueError(f"BallPlant: racket_reach must be two finite corners (3,) with lower <= upper, got {racket_reach}")
+            self._reach = (lower.tolist(), upper.tolist())
         racket = self.params.racket
         # Every point of the blade lies within this distance of its centre, m.
         self._blade_half_diagonal = math.hypot(racket.blade_radius, 0.5 * racket.blade_thickness)
@@ -141,9 +153,15 @@ class BallPlant(LeafSystem):
         """Distance from the ball's surface to the blade (a disc of radius R_b, thickness t), m;
         while the ball is clear of the blade's bounding sphere, a lower bound on it (the class
         docstring)."""
-        X_WR = self.racket_pose_port.Eval(context)
         p_WB = self._state(context)[:3]
         x, y, z = p_WB.tolist()
+        if self._reach is not None:  # the distance to the box the blade's centre stays in
+            (x_lo, y_lo, z_lo), (x_hi, y_hi, z_hi) = self._reach
+            dx, dy, dz = max(x_lo - x, 0.0, x - x_hi), max(y_lo - y, 0.0, y - y_hi), max(z_lo - z, 0.0, z - z_hi)
+            bound = math.sqrt(dx * dx + dy * dy + dz * dz) - self._blade_half_diagonal - self.params.aero.ball_radius
+            if bound > WITNESS_BOUND_MARGIN:
+                return bound
+        X_WR = self.racket_pose_port.Eval(context)
         x_R, y_R, z_R = X_WR.translation().tolist()
         bound = math.sqrt((x - x_R) ** 2 + (y - y_R) ** 2 + (z - z_R) ** 2) - self._blade_half_diagonal - self.params.aero.ball_radius
         if bound > WITNESS_BOUND_MARGIN:
