@@ -280,6 +280,7 @@ def test_the_spin_sensors_bias_bounds_the_spin_variance():
         ({"initial_position_count": 2}, "initial_position_count"),
         ({"position_observation_variance": 0.0}, "position_observation_variance"),
         ({"max_position_jump": -0.4}, "max_position_jump"),
+        ({"update_offset": -0.001}, "update_offset"),
     ],
 )
 def test_bad_estimator_config_names_the_field(data, field):
