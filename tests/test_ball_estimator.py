@@ -30,11 +30,11 @@ SPIN = dataclasses.replace(SpinSensorParams(), history_capacity=1000)
 class Rig:
     """The diagram and a simulator, with a racket standing at ``racket_pose`` if given."""
 
-    def __init__(self, racket_pose=None, connect_events=True, params=None):
+    def __init__(self, racket_pose=None, connect_events=True, params=None, spin=SPIN):
         builder = DiagramBuilder()
         self.ball = add_ball(builder, PHYSICS)
         self.positions = builder.AddNamedSystem("position_sensor", StatisticalPositionSensor(POSITION))
-        self.spins = builder.AddNamedSystem("spin_sensor", GazeSpinSensor(SPIN))
+        self.spins = builder.AddNamedSystem("spin_sensor", GazeSpinSensor(spin))
         self.dut = builder.AddNamedSystem("ball_estimator", BallEstimator(params))
         builder.Connect(self.ball.ball_state_port, self.positions.ball_state_port)
         builder.Connect(self.ball.ball_state_port, self.spins.ball_state_port)
@@ -192,3 +192,12 @@ def test_without_contact_events_the_estimator_still_runs():
     estimate, _, status = rig.at(0.1)
     assert status[0] == 1.0
     assert np.linalg.norm(estimate[:3] - rig.truth()[:3]) < 0.01
+
+
+def test_measurements_lost_between_updates_are_an_error_not_a_silent_gap():
+    # Stored every 0.5 s, the filter would need more than the spin sensor's default history (64).
+    rig = Rig(params=dataclasses.replace(EstimatorParams(), update_period=0.5, update_offset=0.0), spin=SpinSensorParams())
+    rig.start()
+    rig.at(0.08)  # about 40 spins released: all still in the history
+    with pytest.raises(RuntimeError, match="history_capacity"):
+        rig.at(0.2)

@@ -137,6 +137,14 @@ class BallEstimator(LeafSystem):
         last_position = current.last_position_sequence if positions_history.last_sequence >= current.last_position_sequence else 0
         last_spin = current.last_spin_sequence if spins_history.last_sequence >= current.last_spin_sequence else 0
         contacts_seen = current.contacts_seen if len(events) >= current.contacts_seen else 0
+        for kind, history, last in (("position", positions_history, last_position), ("spin", spins_history, last_spin)):
+            if history.measurements and history.measurements[0].sequence > last + 1:
+                raise RuntimeError(
+                    f"BallEstimator: at {context.get_time():.4f} s the {kind} sensor's history starts at measurement "
+                    f"{history.measurements[0].sequence}, but the filter has read only up to {last}: more were released "
+                    f"since its last update than the history holds ({history.capacity}). Raise the sensor's "
+                    "history_capacity or shorten EstimatorParams.update_period."
+                )
         positions = positions_history.since(last_position)
         spins = spins_history.since(last_spin)
         racket_times = [event.time for event in events[contacts_seen:] if event.kind == ContactKind.RACKET]
