@@ -86,7 +86,7 @@ class RallyBench:
         return time.perf_counter() - wall, time.process_time() - cpu
 
 
-def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 10, seed: int = 0, profile: bool = True, progress: Callable[[str], None] | None = None) -> dict:
+def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, seed: int = 0, profile: bool = True, progress: Callable[[str], None] | None = None) -> dict:
     """The figures of the module docstring. ``seconds``: simulated s per rally episode;
     ``episodes``: timed rally episodes per sensor path (after one warm-up); ``env_episodes``:
     RallyEnv episodes with random actions (after one warm-up); ``profile``: add the per-system
