@@ -151,6 +151,19 @@ def test_the_shipped_second_stage_config_continues_the_first():
     assert second.evaluation_players == second.env.shots.players  # the exported actor is chosen on training players only
 
 
+def test_the_shipped_stage_5_config_continues_stage_4():
+    import yaml
+
+    from ace_drake.robot_model import MODELS_DIR
+
+    fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
+    fourth = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
+    assert fifth.pop("initialize_from") == "out/train/rally_sac_human/checkpoint.pt"  # stage 4's run directory (README)
+    assert fifth.pop("seed") != fourth.pop("seed")
+    fourth.pop("initialize_from")
+    assert fifth == fourth  # the same recipe, the learner's config included
+
+
 def test_train_config_from_yaml_names_bad_fields(tmp_path):
     path = tmp_path / "train.yaml"
     path.write_text("name: x\nenv_steps: 100\nsac:\n  batch_size: 32\n  gamma: 0.9\n")
