@@ -68,8 +68,9 @@ class BallEstimator(LeafSystem):
     observations in capture order whatever batches they come in (``BallEkf.update``). The update
     is there so that each evaluation fuses only what is new since the last; at the controller's
     instants the fused filter the controller's evaluation computed is stored as it is (both read
-    one cache entry). The sensors' histories must hold what they release in one update period.
-        """
+    one cache entry). The sensors' histories must hold what they release in one update period
+    (checked: a gap is an error).
+    """
 
     def __init__(self, params: EstimatorParams | None = None, physics: BallPhysicsParams | None = None):
         """Args: params, the filter's settings; physics, the ball model the filter predicts with."""
