@@ -462,8 +462,9 @@ class EstimatorParams:
 
     # s, the estimator system's periodic update, which stores the filter: the rally controller's
     # observation instants (RallyParams: 32 ms segments, observed 5 ms before each starts), where
-    # the controller's evaluation has just fused it. Any period and offset give the same outputs
-    # (they fuse every measurement released by their time); these only make it cheapest.
+    # the controller's evaluation has just fused it. Fed the same measurements, any period and
+    # offset give the same outputs (they fuse every measurement released by their time); these
+    # only make it cheapest.
     update_period: float = 0.032
     update_offset: float = 0.027
     initial_position_count: int = 3  # positions fitted to start a track (10 ms at 200 Hz)
