@@ -572,6 +572,11 @@ class ReturnerParams:
     # The joints' lag behind the command (eq. (9) ramp-tracking lag plus half a command period of
     # zero-order hold); None: computed from the scenario's joint dynamics.
     joint_lag: float | None = None
+    # Whether the returner remembers the ball it is playing between calls (its hit time, the bounce,
+    # its last IK solution: ``control/returner.py``). False: every call plans from its observation
+    # alone, so that the action is a function of the observation (as a policy's is): the labels a
+    # learner imitates (``learning.rollout``, DAgger) are then learnable.
+    memory: bool = True
 
     def __post_init__(self) -> None:
         _require_positive(self, "target_x", "net_clearance", "hit_height_max", "prediction_step", "prediction_horizon", "candidates_tried", "ik_solves_per_call")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
-from ace_drake.config import BallPhysicsParams, RallyParams
+from ace_drake.config import BallPhysicsParams, RallyParams, ReturnerParams
 from ace_drake.control.action_mapping import map_action
 from ace_drake.control.feasible_set import feasible_sets
 import ace_drake.control.returner as returner_module
@@ -166,13 +166,48 @@ def test_an_action_the_supervisor_would_refuse_is_not_sent(returner, free):
     assert dut.last_plan is not None
 
 
-def test_an_easy_shot_is_returned_through_the_full_rally_diagram():
+@pytest.fixture(scope="module")
+def memoryless(returner):
+    return ModelBasedReturner(model=returner.model, stack=returner.stack, params=ReturnerParams(memory=False))
+
+
+def test_the_memoryless_returner_finds_a_bounce_behind_the_ball_from_its_flight(memoryless):
+    bounce = simulate(INCOMING_BALL, PARAMS, 1.0, stop_on=(ContactKind.TABLE,)).stop_events[0]
+    assert bounce.state_pre[0] < 0.0
+    # At the top of the bounce (0.68 s) the bounce lies behind; before it, none does.
+    assert memoryless._bounce_behind(APEX_BALL) == pytest.approx(bounce.time - 0.68, abs=2e-3)
+    for before in (0.1, bounce.time - 0.02):
+        assert memoryless._bounce_behind(simulate(INCOMING_BALL, PARAMS, before).final_state[0]) is None
+    # A ball that bounced on the opponent's half and rises over the net has not bounced on the robot's.
+    assert memoryless._bounce_behind(np.array([-0.2, 0.0, 0.25, -5.0, 0.0, 1.0, 0.0, 0.0, 0.0])) is None
+
+
+def test_the_memoryless_returner_acts_on_the_observation_alone(returner, memoryless):
+    # Just after the bounce, a returner that did not see the bounce coming has no hit; the
+    # memoryless one finds the bounce behind the ball and plans the hit after it.
+    bounce = simulate(INCOMING_BALL, PARAMS, 1.0, stop_on=(ContactKind.TABLE,)).stop_events[0]
+    rising = observation(returner.layout, simulate(INCOMING_BALL, PARAMS, bounce.time + 0.03).final_state[0])
+    returner.reset()
+    assert returner(rising) is None
+    memoryless.last_plan = None
+    action = memoryless(rising)
+    assert action is not None and memoryless.last_plan is not None and memoryless.last_plan.time > 0.0
+    assert memoryless.params.hit_height_min <= memoryless.last_plan.racket.ball_state[2] <= memoryless.params.hit_height_max
+    # Its action is a function of the observation: the same after another ball in between.
+    early = observation(memoryless.layout, simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0])
+    first = memoryless(early)
+    memoryless(observation(memoryless.layout, APEX_BALL))
+    np.testing.assert_array_equal(memoryless(early), first)
+
+
+@pytest.mark.parametrize("memory", [True, False])
+def test_an_easy_shot_is_returned_through_the_full_rally_diagram(memory):
     from ace_drake.diagrams import build_rally_diagram
     from ace_drake.play.episode import Outcome
     from ace_drake.play.runner import RallyRunner
 
     params = RallyParams()  # cameras, triangulation, EKF, perturbations: the full stack
-    dut = ModelBasedReturner.for_rally(params)
+    dut = ModelBasedReturner.for_rally(params, ReturnerParams(memory=memory))
     runner = RallyRunner(build_rally_diagram(params, dut), params)
     episode = runner.run(INCOMING_BALL, seed=0)
     assert episode.result.outcome == Outcome.RETURNED, episode.result.reason

@@ -164,6 +164,30 @@ def test_the_shipped_stage_5_config_continues_stage_4():
     assert fifth == fourth  # the same recipe, the learner's config included
 
 
+def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
+    import yaml
+
+    from ace_drake.robot_model import MODELS_DIR
+
+    sixth = yaml.safe_load((MODELS_DIR / "train_rally_human_memoryless.yaml").read_text())
+    fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
+    assert sixth.pop("initialize_from") == "out/train/rally_sac_human2/checkpoint.pt"  # stage 5's run directory (README)
+    assert sixth.pop("returner") == {"memory": False}
+    assert sixth.pop("seed") != fifth.pop("seed")
+    fifth.pop("initialize_from")
+    assert sixth == fifth
+
+
+def test_the_workers_label_with_the_configured_returner():
+    from ace_drake.config import ReturnerParams
+
+    dut = RolloutWorker(sac=SMALL, seed=5, index=0, returner=ReturnerParams(memory=False))
+    assert dut.returner.params.memory is False
+    episode = dut.collect(1, "dagger")[0]
+    assert episode.transitions["demo_action"].shape == (episode.steps, ACTION_SIZE)
+    assert np.all(np.abs(episode.transitions["demo_action"]) <= 1.0)
+
+
 def test_train_config_from_yaml_names_bad_fields(tmp_path):
     path = tmp_path / "train.yaml"
     path.write_text("name: x\nenv_steps: 100\nsac:\n  batch_size: 32\n  gamma: 0.9\n")

@@ -56,6 +56,13 @@ when no hit is possible (the ball does not bounce on the robot's half, or nothin
 It remembers the ball it is playing between calls (a clock advanced by T per call, the last
 prediction, the bounce time and the hit plan): the memory is dropped when the estimate stops
 matching the last prediction (> 0.3 m), i.e. for a new ball; ``reset`` drops it explicitly.
+
+With ``ReturnerParams.memory`` False it remembers nothing, so that its action is a function of
+the observation alone (the labels a learner imitates must be: ``learning.rollout``): each call
+finds whether the ball has bounced by following its flight back in time (``_bounce_behind``),
+takes the preferred hit of step 2 afresh (the same grid of hit instants every call, so the choice
+holds while the estimate does), follows through when that hit falls in the segment being
+commanded, and solves the full IK from the segment-start configuration.
 """
 
 from __future__ import annotations
@@ -75,6 +82,7 @@ from ace_drake.control.joint_model import ramp_tracking_lag
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import racket_impact, racket_restitution
+from ace_drake.physics.flight import rk4_step
 from ace_drake.physics.propagate import ContactKind, simulate
 from ace_drake.robot_model import MODELS_DIR, IkResult, RobotModel, load_scenario
 
@@ -525,6 +533,10 @@ class ModelBasedReturner:
         skill = layout.part(observation, "skill")
         target = np.array([self.params.target_x, np.clip(skill[0], -self.params.target_y_limit, self.params.target_y_limit)])
         candidates = self._candidates(flight, prediction)
+        if not self.params.memory and candidates and candidates[0] == 0:
+            # The preferred hit falls in the segment this action commands: follow through.
+            return self.first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
+        candidates = [index for index in candidates if index > 0]
         hit = self._plan_hit(flight, candidates, prediction, q0, v0, target)
         if hit is None and candidates and flight.hit is not None:
             hit = flight.hit  # nothing new works (e.g. no IK this time): keep going for the last plan
@@ -542,6 +554,10 @@ class ModelBasedReturner:
     def _advance(self, estimate: np.ndarray | None) -> _Flight:
         """The memory for this call: the clock advanced by one segment, or a fresh memory when the
         estimate is far from where the last prediction put the ball now (a new ball)."""
+        if not self.params.memory:
+            flight = _Flight()  # nothing carried over: the bounce, if behind, from the estimate alone
+            flight.bounce_time = self._bounce_behind(estimate) if estimate is not None else None
+            return flight
         flight = self._flight
         if flight is not None:
             flight.clock += self.segment
@@ -553,6 +569,25 @@ class ModelBasedReturner:
             flight = _Flight()
         self._flight = flight
         return flight
+
+    def _bounce_behind(self, estimate: np.ndarray, horizon: float = 1.0, dt: float = 0.02) -> float | None:
+        """When (s, < 0: before the observation) the ball of ``estimate`` (9,) bounced on the
+        robot's half, or None if it has not: its flight (eq. (1), RK4 steps of ``dt`` s) followed
+        back in time for up to ``horizon`` s meets the playing surface (ball centre one radius above
+        it) inside the robot's half before it crosses back over the net. The memoryless mode's
+        substitute for remembering a bounce it predicted (``ReturnerParams.memory``)."""
+        table, radius = self.physics.table, self.physics.aero.ball_radius
+        state = np.asarray(estimate, dtype=float)
+        for step in range(1, int(round(horizon / dt)) + 1):
+            before, state = state, rk4_step(state, -dt, self.physics.aero)
+            if state[0] > 0.0:
+                return None  # back over the net first: the ball is still to bounce
+            if state[2] < radius:
+                fraction = (before[2] - radius) / (before[2] - state[2])
+                x, y = before[:2] + fraction * (state[:2] - before[:2])
+                on_table = -0.5 * table.length <= x <= 0.0 and abs(y) <= 0.5 * table.width
+                return -(step - 1 + fraction) * dt if on_table else None
+        return None
 
     def _action_to(self, q0, v0, a0, q_target, v_target) -> np.ndarray | None:
         """The action (16,) whose eq. (12) image from the segment start (q0, v0, a0) is (q_target,
@@ -669,7 +704,10 @@ class ModelBasedReturner:
             return []  # no bounce on the robot's half ahead: an invalid shot, not to be touched
         end = after[0][0] if after else np.inf
         times, states = prediction.times, prediction.states
-        index = np.arange(self._samples_per_segment, len(times), self._samples_per_segment)
+        # Hits at a segment boundary after the next (k >= 1); the memoryless mode includes the one in
+        # the segment being commanded (k = 0: where it follows through when that one is preferred).
+        first = self._samples_per_segment if self.params.memory else 0
+        index = np.arange(first, len(times), self._samples_per_segment)
         index = index[(times[index] > bounce) & (times[index] < end)]
         z, x = states[index, 2], states[index, 0]
         index = index[(z >= params.hit_height_min) & (z <= params.hit_height_max) & (x >= params.hit_x_min) & (states[index, 3] < 0.0)]

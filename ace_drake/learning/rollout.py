@@ -142,11 +142,12 @@ class RolloutWorker:
 
     Args: env_params (default RallyEnvParams()); sac (a ``sac.SacConfig``: the actor's shape and
     observation parts; default SacConfig()); seed, index: the run's seed and this worker's
-    number; exploration: the noise parameters; distribution: a shared ``ShotDistribution``.
+    number; exploration: the noise parameters; distribution: a shared ``ShotDistribution``;
+    returner: the demonstrating and labelling returner's ``ReturnerParams`` (default ones).
     """
 
     def __init__(self, env_params: RallyEnvParams | None = None, sac=None, seed: int = 0, index: int = 0,
-                 exploration: ExplorationParams | None = None, distribution=None):
+                 exploration: ExplorationParams | None = None, distribution=None, returner=None):
         import torch
 
         from ace_drake.learning.sac import SacConfig, SacLearner
@@ -163,6 +164,7 @@ class RolloutWorker:
         self.generator = torch.Generator().manual_seed(int(torch_seed) % 2**63)
         self.noise = OrnsteinUhlenbeck(self.exploration.ou_theta, self.exploration.ou_sigma, self.env.period)
         self._returner = None
+        self._returner_params = returner
         self.episodes = 0
         self.steps = 0
 
@@ -175,7 +177,7 @@ class RolloutWorker:
         if self._returner is None:
             from ace_drake.control.returner import ModelBasedReturner
 
-            self._returner = ModelBasedReturner.for_rally(self.env.params.rally)
+            self._returner = ModelBasedReturner.for_rally(self.env.params.rally, self._returner_params)
         return self._returner
 
     def collect(self, episodes: int, mode: str = "policy") -> list[Episode]:

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import ConfigError, PerceptionParams, RallyParams, from_dict, to_dict
+from ace_drake.config import ConfigError, PerceptionParams, RallyParams, ReturnerParams, from_dict, to_dict
 from ace_drake.learning.rally_env import RallyEnvParams
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
 from ace_drake.learning.rollout import Episode, ExplorationParams, load_episodes
@@ -89,6 +89,9 @@ class TrainConfig:
     replay: ReplayConfig = dataclasses.field(default_factory=ReplayConfig)
     env: RallyEnvParams = dataclasses.field(default_factory=RallyEnvParams)
     exploration: ExplorationParams = dataclasses.field(default_factory=ExplorationParams)
+    # The model-based returner that demonstrates and labels (``learning.rollout``); ``memory: false``
+    # makes its labels a function of the observation alone (``control.returner`` docstring).
+    returner: ReturnerParams = dataclasses.field(default_factory=ReturnerParams)
 
     def __post_init__(self) -> None:
         for name in ("env_steps", "workers", "episodes_per_task", "update_chunk", "checkpoint_every",
@@ -230,7 +233,8 @@ class Trainer:
             from ace_drake.learning.workers import WorkerPool
 
             c = self.config
-            args = {"env_params": c.env, "sac": c.sac, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration}
+            args = {"env_params": c.env, "sac": c.sac, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
+                    "returner": c.returner}
             self._pool = WorkerPool(c.workers, args, c.backend, c.address or None)
             self._pool.publish(self.learner.actor.state_dict())
         return self._pool

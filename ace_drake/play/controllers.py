@@ -1,4 +1,5 @@
-"""The rally controllers a command line can name: ``still``, ``returner``, ``policy:<name>``.
+"""The rally controllers a command line can name: ``still``, ``returner``, ``returner:memoryless``
+(``ReturnerParams.memory`` off), ``policy:<name>``.
 
 Every controller has a policy's interface (a callable observation -> action (16,) | None, or a
 torch module), so that the PolicyController runs any of them in the same rally diagram.
@@ -6,7 +7,7 @@ torch module), so that the PolicyController runs any of them in the same rally d
 
 from __future__ import annotations
 
-from ace_drake.config import ConfigError, RallyParams
+from ace_drake.config import ConfigError, RallyParams, ReturnerParams
 from ace_drake.robot_model import MODELS_DIR
 
 DEFAULT_CONTROLLER = "returner"  # the best shipped controller: what ``ace-drake rally`` plays with
@@ -21,7 +22,7 @@ def still(observation):
 def controller_names() -> list[str]:
     """The names ``make_controller`` accepts, shipped policies included."""
     policies = sorted(path.stem for path in POLICIES_DIR.glob("*.pt")) if POLICIES_DIR.is_dir() else []
-    return ["still", "returner", *(f"policy:{name}" for name in policies)]
+    return ["still", "returner", "returner:memoryless", *(f"policy:{name}" for name in policies)]
 
 
 def make_controller(name: str, params: RallyParams):
@@ -29,10 +30,10 @@ def make_controller(name: str, params: RallyParams):
     naming the choices for an unknown name."""
     if name == "still":
         return still
-    if name == "returner":
+    if name in ("returner", "returner:memoryless"):
         from ace_drake.control.returner import ModelBasedReturner
 
-        return ModelBasedReturner.for_rally(params)
+        return ModelBasedReturner.for_rally(params, ReturnerParams(memory=name == "returner"))
     if name.startswith("policy:"):
         path = POLICIES_DIR / f"{name.removeprefix('policy:')}.pt"
         if not path.is_file():
