@@ -188,6 +188,13 @@ def test_the_workers_label_with_the_configured_returner():
     assert np.all(np.abs(episode.transitions["demo_action"]) <= 1.0)
 
 
+def test_the_trainer_hands_its_returner_config_to_the_workers(tmp_path):
+    from ace_drake.config import ReturnerParams
+
+    trainer = Trainer(_config(returner=ReturnerParams(memory=False)), tmp_path / "run", progress=lambda line: None)
+    assert trainer._workers()._workers[0].returner.params.memory is False
+
+
 def test_train_config_from_yaml_names_bad_fields(tmp_path):
     path = tmp_path / "train.yaml"
     path.write_text("name: x\nenv_steps: 100\nsac:\n  batch_size: 32\n  gamma: 0.9\n")
