@@ -23,6 +23,7 @@ from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 from pydrake.trajectories import PiecewisePolynomial, Trajectory
 
 from ace_drake.config import BallPhysicsParams, ControlParams, PerceptionParams, RallyParams, RobotScenario
+from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import ResidualModel
@@ -412,7 +413,8 @@ def add_rally(builder: DiagramBuilder, params: RallyParams, policy, meshcat: Mes
     perception = add_perception(builder, ball, params.perception, params.physics, scene_graph=robot.scene_graph)
     layout = ObservationLayout(params.position_history, params.spin_history)
     control = add_control_stack(builder, robot, make_control_stack(scenario, params.control), policy, layout.size)
-    observation = builder.AddNamedSystem("observation_builder", ObservationBuilder(layout))
+    predictor = HitPredictor.for_robot(scenario, params.control, params.physics)
+    observation = builder.AddNamedSystem("observation_builder", ObservationBuilder(layout, predictor=predictor))
     joints = robot.joint_plant.q_port.size()
     # [q, v] of the planned [q, v, a] (a selection matrix: Drake's C++ MatrixGain).
     select = builder.AddNamedSystem("planned_joint_state", MatrixGain(np.eye(2 * joints, 3 * joints)))

@@ -184,4 +184,9 @@ def test_the_environment_is_mirror_symmetric_with_a_symmetric_robot_and_quiet_se
     estimate, estimate_m = env.layout.part(mirror.observation(obs), "estimate"), env.layout.part(obs_m, "estimate")
     for part, atol in ((slice(0, 3), 2e-4), (slice(3, 6), 0.01), (slice(6, 9), 0.03)):  # EKF p, v, w
         np.testing.assert_allclose(estimate[part], estimate_m[part], atol=atol, rtol=1e-5, err_msg="estimate")
+    # The hit predicted from the estimate: the same hit instant, the mirrored ball state there.
+    hit, hit_m = env.layout.part(mirror.observation(obs), "hit_prediction"), env.layout.part(obs_m, "hit_prediction")
+    assert hit[0] == hit_m[0] == 1.0 and hit[1] == pytest.approx(hit_m[1], abs=1e-9)
+    for part, atol in ((slice(2, 5), 2e-3), (slice(5, 8), 0.02), (slice(8, 11), 0.05)):  # p, v, w
+        np.testing.assert_allclose(hit[part], hit_m[part], atol=atol, rtol=1e-4, err_msg="hit_prediction")
     np.testing.assert_allclose(mirror.privileged(info["privileged"]), info_m["privileged"], rtol=1e-6, atol=1e-6)

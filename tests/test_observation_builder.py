@@ -4,18 +4,23 @@ import numpy as np
 import pytest
 from pydrake.common.value import AbstractValue
 
+from ace_drake.analysis.scripted_swing import INCOMING_BALL
+from ace_drake.config import BallPhysicsParams, ControlParams
+from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.perception.measurements import Measurement, MeasurementHistory
+from ace_drake.physics.propagate import simulate
+from ace_drake.robot_model import MODELS_DIR, load_scenario
 from ace_drake.systems.observation_builder import ObservationBuilder
 
 
 def test_layout_parts_tile_the_vector():
     layout = ObservationLayout(position_history=3, spin_history=2)
-    names = ["positions", "spins", "robot_state", "end_effector", "skill", "estimate", "estimate_status"]
+    names = ["positions", "spins", "robot_state", "end_effector", "skill", "estimate", "estimate_status", "hit_prediction"]
     covered = np.zeros(layout.size, dtype=int)
     for name in names:
         covered[layout.slice(name)] += 1
-    assert np.all(covered == 1) and layout.size == 12 + 8 + 24 + 13 + 3 + 9 + 3
+    assert np.all(covered == 1) and layout.size == 12 + 8 + 24 + 13 + 3 + 9 + 3 + 11
     with pytest.raises(KeyError, match="parts are"):
         layout.slice("velocity")
     with pytest.raises(ValueError, match=">= 1"):
@@ -27,6 +32,7 @@ def test_assemble_and_part_round_trip_and_size_errors():
     parts = dict(
         positions=np.arange(8.0).reshape(2, 4), spins=-np.arange(8.0).reshape(2, 4), robot_state=np.full(24, 2.0),
         end_effector=np.full(13, 3.0), skill=[0.2, 1.0, -0.5], estimate=np.full(9, 4.0), estimate_status=[1.0, 0.0, 0.01],
+        hit_prediction=np.full(11, 6.0),
     )
     observation = layout.assemble(**parts)
     for name, value in parts.items():
@@ -59,3 +65,30 @@ def test_builder_reads_histories_with_ages_and_the_episode_skill():
     np.testing.assert_array_equal(layout.part(observation, "robot_state"), np.arange(24.0))
     with pytest.raises(ValueError, match="w_p must be in"):
         builder.SetSkill(context, [0.0, 1.5, 0.0])
+
+
+def test_builder_fills_the_hit_prediction_from_the_estimate():
+    scenario = load_scenario(MODELS_DIR / "scenario.yaml")
+    predictor = HitPredictor.for_robot(scenario, ControlParams(), BallPhysicsParams())
+    estimate = simulate(INCOMING_BALL, BallPhysicsParams(), 0.1).final_state[0]
+    assert predictor.features(estimate, True)[0] == 1.0  # the scripted swing's ball has a hit
+    for dut, expected in ((ObservationBuilder(ObservationLayout(2, 2), predictor=predictor), predictor.features(estimate, True)),
+                          (ObservationBuilder(ObservationLayout(2, 2)), np.zeros(11))):
+        context = dut.CreateDefaultContext()
+        dut.position_measurements_port.FixValue(context, AbstractValue.Make(MeasurementHistory()))
+        dut.spin_measurements_port.FixValue(context, AbstractValue.Make(MeasurementHistory()))
+        dut.robot_state_port.FixValue(context, np.zeros(24))
+        dut.end_effector_state_port.FixValue(context, np.zeros(13))
+        dut.ball_state_estimate_port.FixValue(context, estimate)
+        dut.estimate_status_port.FixValue(context, [1.0, 1.0, 0.0])
+        hit = dut.layout.part(dut.observation_port.Eval(context), "hit_prediction")
+        np.testing.assert_array_equal(hit, expected)
+    # Without a track the part is zeros, whatever the estimate holds.
+    dut = ObservationBuilder(ObservationLayout(2, 2), predictor=predictor)
+    context = dut.CreateDefaultContext()
+    for port, value in ((dut.robot_state_port, np.zeros(24)), (dut.end_effector_state_port, np.zeros(13)),
+                        (dut.ball_state_estimate_port, estimate), (dut.estimate_status_port, [0.0, 0.0, -1.0])):
+        port.FixValue(context, value)
+    for port in (dut.position_measurements_port, dut.spin_measurements_port):
+        port.FixValue(context, AbstractValue.Make(MeasurementHistory()))
+    np.testing.assert_array_equal(dut.layout.part(dut.observation_port.Eval(context), "hit_prediction"), np.zeros(11))

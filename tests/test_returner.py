@@ -175,11 +175,11 @@ def test_the_memoryless_returner_finds_a_bounce_behind_the_ball_from_its_flight(
     bounce = simulate(INCOMING_BALL, PARAMS, 1.0, stop_on=(ContactKind.TABLE,)).stop_events[0]
     assert bounce.state_pre[0] < 0.0
     # At the top of the bounce (0.68 s) the bounce lies behind; before it, none does.
-    assert memoryless._bounce_behind(APEX_BALL) == pytest.approx(bounce.time - 0.68, abs=2e-3)
+    assert memoryless.predictor.bounce_behind(APEX_BALL) == pytest.approx(bounce.time - 0.68, abs=2e-3)
     for before in (0.1, bounce.time - 0.02):
-        assert memoryless._bounce_behind(simulate(INCOMING_BALL, PARAMS, before).final_state[0]) is None
+        assert memoryless.predictor.bounce_behind(simulate(INCOMING_BALL, PARAMS, before).final_state[0]) is None
     # A ball that bounced on the opponent's half and rises over the net has not bounced on the robot's.
-    assert memoryless._bounce_behind(np.array([-0.2, 0.0, 0.25, -5.0, 0.0, 1.0, 0.0, 0.0, 0.0])) is None
+    assert memoryless.predictor.bounce_behind(np.array([-0.2, 0.0, 0.25, -5.0, 0.0, 1.0, 0.0, 0.0, 0.0])) is None
 
 
 def test_the_memoryless_returner_acts_on_the_observation_alone(returner, memoryless):

@@ -59,7 +59,7 @@ matching the last prediction (> 0.3 m), i.e. for a new ball; ``reset`` drops it 
 
 With ``ReturnerParams.memory`` False it remembers nothing, so that its action is a function of
 the observation alone (the labels a learner imitates must be: ``learning.rollout``): each call
-finds whether the ball has bounced by following its flight back in time (``_bounce_behind``),
+finds whether the ball has bounced by following its flight back in time (``bounce_behind``),
 takes the preferred hit of step 2 afresh (the same grid of hit instants every call, so the choice
 holds while the estimate does), follows through when that hit falls in the segment being
 commanded, and solves the full IK from the segment-start configuration.
@@ -78,12 +78,11 @@ from pydrake.solvers import SnoptSolver, Solve
 from ace_drake.config import BallPhysicsParams, ControlParams, RacketParams, RallyParams, ReturnerParams, RobotScenario
 from ace_drake.control.action_mapping import inverse_map_action
 from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
-from ace_drake.control.joint_model import ramp_tracking_lag
+from ace_drake.control.hit_prediction import Flight, HitPredictor, Prediction, joint_lag
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import racket_impact, racket_restitution
-from ace_drake.physics.flight import rk4_step
-from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.physics.propagate import simulate
 from ace_drake.robot_model import MODELS_DIR, IkResult, RobotModel, load_scenario
 
 _UP = np.array([0.0, 0.0, 1.0])
@@ -91,7 +90,6 @@ SAME_BALL_DISTANCE = 0.3  # m: an estimate this far from the last prediction is 
 # SNOPT's major iterations per IK solve: a solve that converges takes 10-50; a few wander for a
 # second before converging, and 100 bounds them to ~60 ms (measured) at no loss of success.
 IK_MAJOR_ITERATIONS = 100
-IMMINENT_MARGIN = 0.01  # s: a bounce predicted within one segment + this is remembered as happening
 
 
 # ---------------------------------------------------------------------------------------------
@@ -413,29 +411,6 @@ class HitPlan:
     v: np.ndarray
 
 
-@dataclasses.dataclass(frozen=True)
-class Prediction:
-    """The incoming ball from an estimate: sample times (J,; s after the observation), states
-    (J, 9) and contacts [(time, kind, state just before)] in order."""
-
-    times: np.ndarray
-    states: np.ndarray
-    contacts: list[tuple[float, ContactKind, np.ndarray]]
-
-
-@dataclasses.dataclass
-class _Flight:
-    """What the returner remembers about the ball it is playing: its clock (s since its first call
-    for this ball; calls are one segment apart), the last prediction on that clock, the time of
-    the ball's bounce on the robot's half (or None), and the hit plan (or None)."""
-
-    clock: float = 0.0
-    prediction_times: np.ndarray | None = None
-    prediction_positions: np.ndarray | None = None
-    bounce_time: float | None = None
-    hit: HitPlan | None = None
-
-
 class ModelBasedReturner:
     """The model-based returner (module docstring): ``returner(observation) -> action | None``.
 
@@ -473,14 +448,10 @@ class ModelBasedReturner:
         self.layout = layout or ObservationLayout()
         self.segment = self.stack.segment_duration
         self.lead = self.stack.control.observation_lead
-        dynamics = self.model.scenario.dynamics
-        if self.params.joint_lag is None:
-            self.lag = max(ramp_tracking_lag(joint) for joint in dynamics.joints) + 0.5 * dynamics.command_period
-        else:
-            self.lag = self.params.joint_lag
-        self._samples_per_segment = max(1, round(self.segment / self.params.prediction_step))
-        self._step = self.segment / self._samples_per_segment
-        self._flight: _Flight | None = None
+        self.lag = joint_lag(self.model.scenario) if self.params.joint_lag is None else self.params.joint_lag
+        # Steps 1-2 (the prediction and the ranking of hits): the observation's hit_prediction too.
+        self.predictor = HitPredictor(self.physics, self.params, self.segment, self.lead, self.lag)
+        self._flight: Flight | None = None
         self.call_seconds: list[float] = []
         self.last_plan: HitPlan | None = None
         self.last_choice = -1
@@ -525,14 +496,14 @@ class ModelBasedReturner:
                 # The hit happens in the segment this action commands: follow through.
                 return self.first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
             flight.hit = None  # the hit time passed and the ball is still coming: replan
-        prediction = self._predict(estimate)
+        prediction = self.predictor.predict(estimate)
         if prediction.times.size == 0:
             return None  # the ball reaches the floor before the next segment starts
         flight.prediction_times = flight.clock + prediction.times
         flight.prediction_positions = prediction.states[:, :3]
         skill = layout.part(observation, "skill")
         target = np.array([self.params.target_x, np.clip(skill[0], -self.params.target_y_limit, self.params.target_y_limit)])
-        candidates = self._candidates(flight, prediction)
+        candidates = self.predictor.candidates(flight, prediction, include_current=not self.params.memory)
         if not self.params.memory and candidates and candidates[0] == 0:
             # The preferred hit falls in the segment this action commands: follow through.
             return self.first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
@@ -551,13 +522,12 @@ class ModelBasedReturner:
             lambda: self.stack.action_towards(q0, v0, a0, hit.q),
         ])
 
-    def _advance(self, estimate: np.ndarray | None) -> _Flight:
+    def _advance(self, estimate: np.ndarray | None) -> Flight:
         """The memory for this call: the clock advanced by one segment, or a fresh memory when the
         estimate is far from where the last prediction put the ball now (a new ball)."""
         if not self.params.memory:
-            flight = _Flight()  # nothing carried over: the bounce, if behind, from the estimate alone
-            flight.bounce_time = self._bounce_behind(estimate) if estimate is not None else None
-            return flight
+            # Nothing carried over: the bounce, if behind, from the estimate alone.
+            return Flight(bounce_time=self.predictor.bounce_behind(estimate) if estimate is not None else None)
         flight = self._flight
         if flight is not None:
             flight.clock += self.segment
@@ -566,28 +536,9 @@ class ModelBasedReturner:
                 if np.linalg.norm(expected - estimate[:3]) > SAME_BALL_DISTANCE or flight.clock > flight.prediction_times[-1] + self.segment:
                     flight = None
         if flight is None:
-            flight = _Flight()
+            flight = Flight()
         self._flight = flight
         return flight
-
-    def _bounce_behind(self, estimate: np.ndarray, horizon: float = 1.0, dt: float = 0.02) -> float | None:
-        """When (s, < 0: before the observation) the ball of ``estimate`` (9,) bounced on the
-        robot's half, or None if it has not: its flight (eq. (1), RK4 steps of ``dt`` s) followed
-        back in time for up to ``horizon`` s meets the playing surface (ball centre one radius above
-        it) inside the robot's half before it crosses back over the net. The memoryless mode's
-        substitute for remembering a bounce it predicted (``ReturnerParams.memory``)."""
-        table, radius = self.physics.table, self.physics.aero.ball_radius
-        state = np.asarray(estimate, dtype=float)
-        for step in range(1, int(round(horizon / dt)) + 1):
-            before, state = state, rk4_step(state, -dt, self.physics.aero)
-            if state[0] > 0.0:
-                return None  # back over the net first: the ball is still to bounce
-            if state[2] < radius:
-                fraction = (before[2] - radius) / (before[2] - state[2])
-                x, y = before[:2] + fraction * (state[:2] - before[:2])
-                on_table = -0.5 * table.length <= x <= 0.0 and abs(y) <= 0.5 * table.width
-                return -(step - 1 + fraction) * dt if on_table else None
-        return None
 
     def _action_to(self, q0, v0, a0, q_target, v_target) -> np.ndarray | None:
         """The action (16,) whose eq. (12) image from the segment start (q0, v0, a0) is (q_target,
@@ -618,111 +569,8 @@ class ModelBasedReturner:
         return None
 
     # ------------------------------------------------------------------------------ prediction
-    def _predict(self, estimate: np.ndarray) -> Prediction:
-        """The incoming ball from the estimate (at the observation time), sampled at lead + lag +
-        j dt (dt = T / samples_per_segment), until it is out of reach (behind ``hit_x_min``, on
-        the floor, bounced twice on the robot's half, or falling below ``hit_height_min`` after
-        its bounce) or the horizon.
-
-        The table is found as a crossing of its plane (``ContactKind.TABLE_PLANE``), kept as a
-        bounce when it lies on the table: with steps this long (10 m/s x 32 ms = 0.32 m) the
-        table's own guard misses a bounce within a step's travel of the table's end, where the
-        step leaves the table's footprint."""
-        params, table = self.params, self.physics.table
-        kinds = (ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR)
-        stops = (ContactKind.TABLE_PLANE, ContactKind.FLOOR)
-        first_sample = self.lead + self.lag
-        times: list[float] = []
-        states: list[np.ndarray] = []
-        contacts: list[tuple[float, ContactKind, np.ndarray]] = []
-        now, state = 0.0, np.asarray(estimate, dtype=float)
-        while True:
-            # One leg: to the next sample time, then on in steps of dt, up to a stopping contact.
-            upcoming = first_sample + self._step * len(times)
-            lead_in = upcoming - now
-            duration = lead_in + 8 * self.segment
-            leg = simulate(state, self.physics, lead_in, dt=lead_in, kinds=kinds, stop_on=stops) if lead_in > 1e-9 else None
-            if leg is None or leg.stop_events[0] is None:
-                if leg is not None:
-                    state, now = leg.final_state[0], upcoming
-                    contacts += [(now - lead_in + e.time, e.kind, e.state_pre) for e in leg.events[0]]
-                    times.append(now)
-                    states.append(state)
-                leg = simulate(state, self.physics, duration - lead_in, dt=self._step, kinds=kinds, stop_on=stops)
-                offset = now
-                stopped = leg.stop_events[0]
-                kept = leg.times[1:] if stopped is None else leg.times[1:][leg.times[1:] < stopped.time]
-                times.extend(offset + kept)
-                states.extend(leg.states[1 : 1 + kept.size, 0])
-            else:
-                offset, stopped = now, leg.stop_events[0]
-            contacts += [(offset + e.time, e.kind, e.state_pre) for e in leg.events[0] if e is not stopped]
-            if stopped is not None:
-                now = offset + stopped.time
-                on_table = abs(stopped.state_pre[0]) <= 0.5 * table.length and abs(stopped.state_pre[1]) <= 0.5 * table.width
-                if stopped.kind == ContactKind.TABLE_PLANE and on_table:
-                    contacts.append((now, ContactKind.TABLE, stopped.state_pre))
-                    state = stopped.state_post  # the table's impact map, eqs (2)-(6)
-                elif stopped.kind == ContactKind.TABLE_PLANE:
-                    kinds, stops = (ContactKind.NET, ContactKind.FLOOR), (ContactKind.FLOOR,)  # past the table
-                    state = stopped.state_pre
-                else:
-                    contacts.append((now, stopped.kind, stopped.state_pre))
-                    break  # the floor
-            else:
-                now, state = times[-1], states[-1]
-            robot_bounces = sum(kind == ContactKind.TABLE and pre[0] < 0.0 for _, kind, pre in contacts)
-            falling_out = robot_bounces >= 1 and state[5] < 0.0 and state[2] < params.hit_height_min
-            if robot_bounces >= 2 or state[0] < params.hit_x_min or falling_out or now - first_sample > params.prediction_horizon:
-                break
-        return Prediction(np.asarray(times), np.asarray(states).reshape(-1, 9), contacts)
-
-    # ------------------------------------------------------------------------------ the hit
-    def _candidates(self, flight: _Flight, prediction: Prediction) -> list[int]:
-        """Indices of the prediction's samples where the robot may hit (module docstring, step 2),
-        most preferred first."""
-        params = self.params
-        table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
-        first_is_bounce = bool(table_contacts) and table_contacts[0][1] == ContactKind.TABLE and table_contacts[0][2][0] < 0.0
-        if flight.bounce_time is not None:
-            # The bounce was imminent at an earlier call: it is this prediction's first contact if
-            # that lies within the margin of it (the same bounce, re-timed), else behind us.
-            remembered = flight.bounce_time - flight.clock
-            if first_is_bounce and abs(table_contacts[0][0] - remembered) < IMMINENT_MARGIN:
-                bounce, after = table_contacts[0][0], table_contacts[1:]
-            elif remembered <= IMMINENT_MARGIN:
-                bounce, after = remembered, table_contacts
-            else:
-                return []
-        elif first_is_bounce:
-            bounce, after = table_contacts[0][0], table_contacts[1:]
-            # Remembered only when it happens before the next call: a prediction that short is
-            # reliable, and the next call's estimate will be past it.
-            if bounce < self.segment + IMMINENT_MARGIN:
-                flight.bounce_time = flight.clock + bounce
-        else:
-            return []  # no bounce on the robot's half ahead: an invalid shot, not to be touched
-        end = after[0][0] if after else np.inf
-        times, states = prediction.times, prediction.states
-        # Hits at a segment boundary after the next (k >= 1); the memoryless mode includes the one in
-        # the segment being commanded (k = 0: where it follows through when that one is preferred).
-        first = self._samples_per_segment if self.params.memory else 0
-        index = np.arange(first, len(times), self._samples_per_segment)
-        index = index[(times[index] > bounce) & (times[index] < end)]
-        z, x = states[index, 2], states[index, 0]
-        index = index[(z >= params.hit_height_min) & (z <= params.hit_height_max) & (x >= params.hit_x_min) & (states[index, 3] < 0.0)]
-        if index.size == 0:
-            return []
-        after_bounce = np.flatnonzero((times > bounce) & (times < end))
-        apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
-        order = sorted(index, key=lambda i: abs(times[i] - apex))
-        if flight.hit is not None:  # keep the previous hit time while it is a candidate
-            kept = [i for i in order if abs(flight.clock + times[i] - flight.hit.time) < 1e-6]
-            order = kept + [i for i in order if i not in kept]
-        return order
-
-    def _plan_hit(self, flight: _Flight, candidates: list[int], prediction: Prediction, q0: np.ndarray, v0: np.ndarray, target: np.ndarray) -> HitPlan | None:
-        """The most preferred candidate hit (``_candidates``) with a racket state the joints can
+    def _plan_hit(self, flight: Flight, candidates: list[int], prediction: Prediction, q0: np.ndarray, v0: np.ndarray, target: np.ndarray) -> HitPlan | None:
+        """The most preferred candidate hit (``HitPredictor.candidates``) with a racket state the joints can
         make and reach in time (the cubic from the segment start within the acceleration limits);
         if none is in time, the previous plan's hit time if it is still possible (a late switch
         costs more than a late arrival), else the one that needs the least acceleration."""

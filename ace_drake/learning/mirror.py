@@ -132,6 +132,7 @@ class Mirror:
         sign[self.layout.slice("skill")] = [-1.0, 1.0, 1.0]
         sign[self.layout.slice("estimate")] = BALL_STATE
         sign[self.layout.slice("estimate_status")] = 1.0
+        sign[self.layout.slice("hit_prediction")] = np.r_[1.0, 1.0, BALL_STATE]  # [valid, time, ball state]
         self.observation_sign = sign
         privileged = np.ones(28)
         privileged[privileged_slice("ball_state")] = BALL_STATE

@@ -36,7 +36,8 @@ BALL_STATE_SCALE = np.array([1.0] * 3 + [10.0] * 3 + [100.0] * 3)
 def observation_scale(layout: ObservationLayout) -> np.ndarray:
     """Divisors (layout.size,) for the actor observation: positions m and ages s by 1, spins by
     100 rad/s, joint velocities by 10 and accelerations by 100 (per s, per s^2), end-effector
-    velocities by 10, the estimate as a ball state, everything else by 1."""
+    velocities by 10, the estimate and the predicted hit's ball state as ball states, everything
+    else by 1."""
     scale = np.ones(layout.size)
     spins = scale[layout.slice("spins")].reshape(-1, HISTORY_COLUMNS)
     spins[:, :3] = 100.0
@@ -44,6 +45,7 @@ def observation_scale(layout: ObservationLayout) -> np.ndarray:
     scale[layout.slice("robot_state")] = np.repeat([1.0, 10.0, 100.0], 8)
     scale[layout.slice("end_effector")] = np.r_[np.ones(7), np.full(6, 10.0)]
     scale[layout.slice("estimate")] = BALL_STATE_SCALE
+    scale[layout.slice("hit_prediction")] = np.r_[1.0, 1.0, BALL_STATE_SCALE]
     return scale
 
 

@@ -5,8 +5,11 @@ spins with their time stamps, the robot's joint state (q, v, a) and end-effector
 twist) at the end of the segment being executed (where the next segment starts, 5 ms after the
 observation), and the skill state (y_desired, w_reward = [w_p, w_s]). The vector also carries the
 ball estimator's output (state and status), which the paper's actor does not read but classical
-controllers (the model-based returner) do; a learner picks its features by ``ObservationLayout``
-slices, so every controller shares one observation port.
+controllers (the model-based returner) do, and the preferred hit predicted from that estimate
+(``control.hit_prediction``: the memoryless returner's choice of where to meet the ball), which a
+learned actor may read in place of learning the ball's flight and bounce itself (this project's
+addition; README *Training*); a learner picks its features by ``ObservationLayout`` slices, so
+every controller shares one observation port.
 
 Layout (all SI units; ages in s, -1 where the history has fewer entries):
 
@@ -17,6 +20,8 @@ Layout (all SI units; ages in s, -1 where the history has fewer entries):
     skill       (3,)      [y_desired (m), w_p, w_s]
     estimate    (9,)      the EKF's [p, v, w] at the observation time (zeros without a track)
     estimate_status (3,)  [valid, spin valid, age of newest measurement used (s)]
+    hit_prediction (11,)  [valid, time from the observation to the preferred hit (s), the predicted
+                          ball state there: p (m), v (m/s), w (rad/s)] (zeros without one)
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ END_EFFECTOR_SIZE = 13
 SKILL_SIZE = 3
 ESTIMATE_SIZE = 9
 ESTIMATE_STATUS_SIZE = 3
+HIT_PREDICTION_SIZE = 11  # [valid, time (s), ball state (9)]: control.hit_prediction
 HISTORY_COLUMNS = 4  # value (3) + age (1)
 
 
@@ -54,6 +60,7 @@ class ObservationLayout:
             "skill": SKILL_SIZE,
             "estimate": ESTIMATE_SIZE,
             "estimate_status": ESTIMATE_STATUS_SIZE,
+            "hit_prediction": HIT_PREDICTION_SIZE,
         }
 
     @property
@@ -75,11 +82,13 @@ class ObservationLayout:
         values = np.asarray(observation)[self.slice(name)]
         return values.reshape(-1, HISTORY_COLUMNS) if name in ("positions", "spins") else values
 
-    def assemble(self, positions, spins, robot_state, end_effector, skill, estimate, estimate_status) -> np.ndarray:
-        """The observation vector from its parts (shapes as in the module docstring)."""
+    def assemble(self, positions, spins, robot_state, end_effector, skill, estimate, estimate_status, hit_prediction=None) -> np.ndarray:
+        """The observation vector from its parts (shapes as in the module docstring);
+        ``hit_prediction`` None: zeros (no prediction)."""
         parts = dict(
             positions=positions, spins=spins, robot_state=robot_state, end_effector=end_effector,
             skill=skill, estimate=estimate, estimate_status=estimate_status,
+            hit_prediction=np.zeros(HIT_PREDICTION_SIZE) if hit_prediction is None else hit_prediction,
         )
         vectors = []
         for name, size in self._sizes.items():

@@ -14,6 +14,7 @@ from ace_drake.learning.observation import (
     SKILL_SIZE,
     ObservationLayout,
 )
+from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.perception.measurements import MeasurementHistory
 
 DEFAULT_SKILL = (0.0, 1.0, 0.0)  # y_desired 0 m (the centre line), w_p = 1, w_s = 0
@@ -32,16 +33,19 @@ class ObservationBuilder(LeafSystem):
         ball_state_estimate (9,), estimate_status (3,): the BallEstimator's outputs.
     Output ports:
         observation (layout.size,): the vector of ``ObservationLayout``; history ages are
-            measured from the context's time.
+            measured from the context's time; the ``hit_prediction`` part from the estimate by
+            ``predictor`` (zeros without one).
     Parameters:
         numeric skill (3,): [y_desired (m), w_p, w_s], fixed for an episode (paper eq. (11)).
     State: none.
     """
 
-    def __init__(self, layout: ObservationLayout | None = None, skill=DEFAULT_SKILL):
-        """Args: layout, the history lengths; skill, the default skill parameter."""
+    def __init__(self, layout: ObservationLayout | None = None, skill=DEFAULT_SKILL, predictor: HitPredictor | None = None):
+        """Args: layout, the history lengths; skill, the default skill parameter; predictor, the
+        HitPredictor of the observation's ``hit_prediction`` part (None: zeros there)."""
         super().__init__()
         self.layout = layout or ObservationLayout()
+        self.predictor = predictor
         self.position_measurements_port = self.DeclareAbstractInputPort("position_measurements", AbstractValue.Make(MeasurementHistory()))
         self.spin_measurements_port = self.DeclareAbstractInputPort("spin_measurements", AbstractValue.Make(MeasurementHistory()))
         self.robot_state_port = self.DeclareVectorInputPort("robot_state", ROBOT_STATE_SIZE)
@@ -64,6 +68,9 @@ class ObservationBuilder(LeafSystem):
 
     def CalcObservation(self, context, output: BasicVector) -> None:
         now = context.get_time()
+        estimate = self.ball_state_estimate_port.Eval(context)
+        status = self.estimate_status_port.Eval(context)
+        hit = None if self.predictor is None else self.predictor.features(estimate, valid=status[0] > 0.5)
         output.SetFromVector(
             self.layout.assemble(
                 positions=self.position_measurements_port.Eval(context).as_array(self.layout.position_history, now),
@@ -71,7 +78,8 @@ class ObservationBuilder(LeafSystem):
                 robot_state=self.robot_state_port.Eval(context),
                 end_effector=self.end_effector_state_port.Eval(context),
                 skill=context.get_numeric_parameter(self._skill_index).get_value(),
-                estimate=self.ball_state_estimate_port.Eval(context),
-                estimate_status=self.estimate_status_port.Eval(context),
+                estimate=estimate,
+                estimate_status=status,
+                hit_prediction=hit,
             )
         )
