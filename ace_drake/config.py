@@ -626,8 +626,11 @@ class RallyParams:
     paper's post-table perturbations when ``perturb``), the robot (``scenario``: a scenario YAML in
     models/), its perception (``perception``) and control stack (``control``), and the policy's
     observation histories (paper, *States*: the last N positions and spins; the paper does not
-    give N, 10 is 50 ms of positions at 200 Hz). ``time_limit``: s after the opponent's hit at
-    which an unresolved episode ends. ``seed``: the default of every seed parameter."""
+    give N, 10 is 50 ms of positions at 200 Hz). ``hit_prediction``: whether the observation's
+    ``hit_prediction`` part is computed (``control.hit_prediction``, ~5 ms of CPU per observation,
+    every 32 ms; False: zeros there, for controllers that do not read it). ``time_limit``: s after
+    the opponent's hit at which an unresolved episode ends. ``seed``: the default of every seed
+    parameter."""
 
     physics: BallPhysicsParams = dataclasses.field(default_factory=BallPhysicsParams)
     perturb: bool = True
@@ -636,6 +639,7 @@ class RallyParams:
     perception: PerceptionParams = dataclasses.field(default_factory=PerceptionParams)
     position_history: int = 10
     spin_history: int = 10
+    hit_prediction: bool = True
     time_limit: float = 2.0
     seed: int = 0
 

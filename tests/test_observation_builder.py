@@ -92,3 +92,13 @@ def test_builder_fills_the_hit_prediction_from_the_estimate():
     for port in (dut.position_measurements_port, dut.spin_measurements_port):
         port.FixValue(context, AbstractValue.Make(MeasurementHistory()))
     np.testing.assert_array_equal(dut.layout.part(dut.observation_port.Eval(context), "hit_prediction"), np.zeros(11))
+
+
+def test_the_rally_diagram_predicts_the_hit_unless_told_not_to():
+    from ace_drake.config import RallyParams
+    from ace_drake.diagrams import build_rally_diagram
+
+    for on in (True, False):
+        diagram = build_rally_diagram(RallyParams(hit_prediction=on))
+        builder = diagram.GetSubsystemByName("observation_builder")
+        assert (builder.predictor is not None) == on

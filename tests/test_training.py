@@ -264,6 +264,21 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path):
         Trainer(_config(seed=4), tmp_path / "run", progress=lambda line: None)
 
 
+def test_a_checkpoint_from_before_a_config_field_existed_resumes_at_its_default(tmp_path):
+    config = _config(ou_episodes=1)
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    trainer._demonstration_phase()
+    path = tmp_path / "run" / "checkpoint.pt"
+    payload = torch.load(path, weights_only=False)
+    del payload["config"]["env"]["rally"]["hit_prediction"]  # as written before the field existed
+    torch.save(payload, path)
+    assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.phase == "ou"
+    # A run configured away from the default the checkpoint ran with is another config.
+    other = dataclasses.replace(config, env=dataclasses.replace(config.env, rally=dataclasses.replace(config.env.rally, hit_prediction=False)))
+    with pytest.raises(ConfigError, match=r"another config \(differs in \['env'\]\)"):
+        Trainer(other, tmp_path / "run", progress=lambda line: None)
+
+
 def test_save_policy_round_trip(tmp_path):
     learner = SacLearner(dataclasses.replace(SMALL, seed=9))
     save_policy(tmp_path / "p.pt", learner)

@@ -163,6 +163,12 @@ class RingBuffer:
     def get(self, rows: np.ndarray) -> dict[str, np.ndarray]:
         return {key: self._data[key][rows] for key in self.keys}
 
+    def oldest_first(self) -> np.ndarray:
+        """The stored rows' indices in the order they were added (a full ring's oldest row is at
+        its write position)."""
+        start = self._next if self.size == self.capacity else 0
+        return (start + np.arange(self.size)) % self.capacity
+
     def state_dict(self) -> dict:
         """The stored rows (only the filled ones) and the write position."""
         data = None if self._data is None else {key: value[: self.size].copy() for key, value in self._data.items()}

@@ -421,8 +421,11 @@ class Trainer:
         import torch
 
         payload = torch.load(path, weights_only=False)
-        if payload["config"] != to_dict(self.config):
-            differing = sorted(k for k, v in to_dict(self.config).items() if payload["config"].get(k) != v)
+        # Read back through the config classes, so that a field added since the checkpoint was
+        # written compares at its default (a new field's default keeps the old behaviour).
+        saved = to_dict(from_dict(TrainConfig, payload["config"]))
+        if saved != to_dict(self.config):
+            differing = sorted(k for k, v in to_dict(self.config).items() if saved.get(k) != v)
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])

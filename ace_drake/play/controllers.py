@@ -43,6 +43,8 @@ def make_controller(name: str, params: RallyParams):
         policy = load_policy(path)
         if policy.index.numel() and int(policy.index.max()) >= _observation_size(params):
             raise ConfigError(f"policy {name} reads a longer observation than the rally diagram of these params builds")
+        if reads_hit_prediction(policy, params) and not params.hit_prediction:
+            raise ConfigError(f"policy {name} reads the observation's hit_prediction part: build its diagram with RallyParams.hit_prediction true")
         return policy
     raise ConfigError(f"unknown controller {name!r}; choose one of {', '.join(controller_names())}")
 
@@ -51,3 +53,13 @@ def _observation_size(params: RallyParams) -> int:
     from ace_drake.learning.observation import ObservationLayout
 
     return ObservationLayout(params.position_history, params.spin_history).size
+
+
+def reads_hit_prediction(policy, params: RallyParams) -> bool:
+    """Whether a loaded policy (``sac.load_policy``) reads the ``hit_prediction`` part of the
+    observation of ``params``' rally diagram."""
+    from ace_drake.learning.observation import ObservationLayout
+
+    part = ObservationLayout(params.position_history, params.spin_history).slice("hit_prediction")
+    index = policy.index.numpy()
+    return bool(((index >= part.start) & (index < part.stop)).any())
