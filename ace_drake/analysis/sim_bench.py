@@ -5,9 +5,11 @@ Measured side by side in one process on one core (issue 6 aims at >= 20 x real t
 - the real-time factor (simulated s per wall s) of the full rally diagram
   (``diagrams.build_rally_diagram``: ball, robot, perception, estimator, observation, control stack
   with collision checking, loggers) with (a) the nine analytic cameras and the triangulator and
-  (b) the training path's statistical position sensor, under a ready-pose controller (every 32 ms
-  the control stack steers towards the ready pose: ``ControlStack.action_towards``), over the same
-  incoming shots; median over episodes of ``seconds`` simulated seconds each;
+  (b) the training path's statistical position sensor, and (c) the same without the observation's
+  hit prediction (``RallyParams.hit_prediction`` off: what the prediction costs), under a
+  ready-pose controller (every 32 ms the control stack steers towards the ready pose:
+  ``ControlStack.action_towards``), over the same incoming shots; median over episodes of
+  ``seconds`` simulated seconds each;
 - RallyEnv (the training diagram) environment steps per second with uniformly random actions,
   resets included, and how long its episodes last;
 - a profile of one episode per sensor path attributing wall time to the diagram's systems: a
@@ -37,6 +39,8 @@ from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.feasible_set import InfeasibleStartError
 
 SENSOR_PATHS = {"cameras": "analytic cameras + triangulator", "statistical": "statistical position sensor"}
+# The rally rows: (key, position sensor, hit prediction on).
+RALLY_CASES = (("cameras", "cameras", True), ("statistical", "statistical", True), ("statistical_no_hit_prediction", "statistical", False))
 SYSTEMS_DIR = str(Path(__file__).resolve().parents[1] / "systems")
 OUTSIDE_SYSTEMS = "(Drake C++ and non-system Python)"
 
@@ -64,14 +68,14 @@ class RallyBench:
     runner: object
 
     @staticmethod
-    def build(positions: str) -> "RallyBench":
+    def build(positions: str, hit_prediction: bool = True) -> "RallyBench":
         from ace_drake.control.stack import ControlStack
         from ace_drake.diagrams import build_rally_diagram
         from ace_drake.learning.observation import ObservationLayout
         from ace_drake.play.runner import RallyRunner
         from ace_drake.robot_model import MODELS_DIR, load_scenario
 
-        params = RallyParams(perception=PerceptionParams(positions=positions))
+        params = RallyParams(perception=PerceptionParams(positions=positions), hit_prediction=hit_prediction)
         # The policy's own stack: action_towards needs the limits and mapping, not collision checks.
         stack = ControlStack(load_scenario(MODELS_DIR / params.scenario), params.control)
         policy = ReadyPosePolicy(stack, ObservationLayout(params.position_history, params.spin_history))
@@ -102,9 +106,12 @@ def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, s
     shots = distribution.sample(np.random.default_rng(seed), episodes + 1)
     figures: dict = {"simulated_seconds_per_episode": seconds, "episodes": episodes, "controller": "ready pose (ControlStack.action_towards)"}
     benches = {}
-    for positions, label in SENSOR_PATHS.items():
+    for key, positions, hit_prediction in RALLY_CASES:
+        label = SENSOR_PATHS[positions] + ("" if hit_prediction else ", no hit prediction")
         say(f"rally diagram, {label}: building")
-        bench = benches[positions] = RallyBench.build(positions)
+        bench = RallyBench.build(positions, hit_prediction)
+        if hit_prediction:
+            benches[positions] = bench
         walls, cpus = [], []
         for index, shot in enumerate(shots):
             wall, cpu = bench.episode(shot, seed + index, seconds)
@@ -113,7 +120,7 @@ def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, s
                 cpus.append(cpu)
                 say(f"  episode {index}: {seconds / wall:.2f} x real time ({seconds / cpu:.2f} per CPU second)")
         rtf = seconds / np.array(walls)
-        figures[f"rally_{positions}"] = {
+        figures[f"rally_{key}"] = {
             "sensors": label,
             "real_time_factor_median": float(np.median(rtf)),
             "real_time_factor_min": float(np.min(rtf)),
@@ -121,7 +128,9 @@ def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, s
             "cpu_real_time_factor_median": float(np.median(seconds / np.array(cpus))),
             "wall_seconds_median": float(np.median(walls)),
         }
-    figures["ratio_statistical_to_cameras"] = figures["rally_statistical"]["real_time_factor_median"] / figures["rally_cameras"]["real_time_factor_median"]
+    rate = {key: figures[f"rally_{key}"]["real_time_factor_median"] for key, _, _ in RALLY_CASES}
+    figures["ratio_statistical_to_cameras"] = rate["statistical"] / rate["cameras"]
+    figures["ratio_no_hit_prediction_to_statistical"] = rate["statistical_no_hit_prediction"] / rate["statistical"]
 
     say("RallyEnv (training diagram, statistical sensors), random actions")
     env = RallyEnv(distribution=distribution)
@@ -248,13 +257,14 @@ def print_sim_figures(figures: dict, systems_shown: int = 8) -> None:
     """The human-readable report of ``bench_sim``'s figures (stdout)."""
     seconds = figures["simulated_seconds_per_episode"]
     print(f"rally diagram, {figures['controller']} controller, {figures['episodes']} episodes of {seconds:g} simulated s, one core:")
-    for positions in SENSOR_PATHS:
-        row = figures[f"rally_{positions}"]
+    for key, _, _ in RALLY_CASES:
+        row = figures[f"rally_{key}"]
         print(
-            f"  {row['sensors']:<34} {row['real_time_factor_median']:6.2f} x real time (median; min {row['real_time_factor_min']:.2f}; "
+            f"  {row['sensors']:<54} {row['real_time_factor_median']:6.2f} x real time (median; min {row['real_time_factor_min']:.2f}; "
             f"{row['cpu_real_time_factor_median']:.2f} per CPU second)"
         )
-    print(f"  statistical / cameras: {figures['ratio_statistical_to_cameras']:.2f}")
+    print(f"  statistical / cameras: {figures['ratio_statistical_to_cameras']:.2f}; "
+          f"without / with the hit prediction: {figures['ratio_no_hit_prediction_to_statistical']:.2f}")
     env = figures["env"]
     print(
         f"RallyEnv, {env['actions']}: {env['steps_per_second']:.1f} steps/s with resets ({env['steps_per_cpu_second']:.1f} per CPU s; "
