@@ -1,5 +1,6 @@
 """The tutorials run from start to end and write their files."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -118,6 +119,7 @@ def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):
     )
     assert run.returncode == 0, run.stderr
     assert "after" in run.stdout and "playable shots" in run.stdout and run.stdout.rstrip().endswith("done")
+    assert "hit_prediction 11" in run.stdout and re.search(r"step \d+: hit predicted 0\.\d{3} s ahead", run.stdout)
     for name in ("tutorial.pt", "tutorial.json", "tutorial_curve.png"):
         assert (tmp_path / "policies" / name).is_file()
     assert (tmp_path / "run" / "checkpoint.pt").is_file()

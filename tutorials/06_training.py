@@ -37,7 +37,7 @@ from ace_drake.learning.rollout import RolloutWorker
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy
 from ace_drake.learning.trainer import TrainConfig, Trainer, export
 
-PARTS = ("positions", "spins", "robot_state", "end_effector", "skill", "estimate", "estimate_status")
+PARTS = ("positions", "spins", "robot_state", "end_effector", "skill", "estimate", "estimate_status", "hit_prediction")
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # A small learner, so that the tutorial's updates take milliseconds.
 SMALL = SacConfig(batch_size=64, actor_hidden=(64, 64), embedding_size=64, decoder_hidden=(32,), critic_hidden=(64, 64), bc_weight=1.0)
@@ -64,6 +64,15 @@ def main() -> None:
     print(f"   {episode.steps} steps of 32 ms; ended by '{episode.end}' with outcome '{episode.outcome}', reward {t['reward'][-1]:+.2f}")
     print(f"   actor observation: {t['obs'].shape[1]} numbers ({', '.join(f'{p} {layout.slice(p).stop - layout.slice(p).start}' for p in PARTS)})")
     print(f"   critic's privileged observation: {t['privileged'].shape[1]} numbers (true ball state, joint state, skill)")
+    # The hit predicted from the EKF's estimate (control.hit_prediction): where the memoryless
+    # returner would meet the ball. An actor may read it instead of learning the flight itself.
+    predicted = [layout.part(obs, "hit_prediction") for obs in t["obs"]]
+    first = next((k for k, hit in enumerate(predicted) if hit[0] > 0.5), None)
+    if first is None:
+        print("   no hit was predicted in this episode (the ball never had a bounce on the robot's half ahead)")
+    else:
+        hit = predicted[first]
+        print(f"   step {first}: hit predicted {hit[1]:.3f} s ahead, ball at ({hit[2]:.2f}, {hit[3]:.2f}, {hit[4]:.2f}) m moving {np.linalg.norm(hit[5:8]):.1f} m/s")
     print(f"   closest approach of the ball to the blade centre: {episode.summary.closest_approach:.2f} m")
 
     # ------------------------------------------------------------------ 2. the learner
