@@ -37,7 +37,6 @@ class Prediction:
     contacts: list[tuple[float, ContactKind, np.ndarray]]
 
 
-
 @dataclasses.dataclass
 class Flight:
     """What the returner remembers about the ball it is playing: its clock (s since its first call
@@ -127,7 +126,6 @@ class HitPredictor:
                 on_table = -0.5 * table.length <= x <= 0.0 and abs(y) <= 0.5 * table.width
                 return -(step - 1 + fraction) * dt if on_table else None
         return None
-
 
     def predict(self, estimate: np.ndarray) -> Prediction:
         """The incoming ball from the estimate (at the observation time), sampled at lead + lag +

@@ -78,7 +78,7 @@ from pydrake.solvers import SnoptSolver, Solve
 from ace_drake.config import BallPhysicsParams, ControlParams, RacketParams, RallyParams, ReturnerParams, RobotScenario
 from ace_drake.control.action_mapping import inverse_map_action
 from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
-from ace_drake.control.hit_prediction import Flight, HitPredictor, Prediction, joint_lag
+from ace_drake.control.hit_prediction import Flight, HitPredictor, Prediction
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import racket_impact, racket_restitution
@@ -448,9 +448,9 @@ class ModelBasedReturner:
         self.layout = layout or ObservationLayout()
         self.segment = self.stack.segment_duration
         self.lead = self.stack.control.observation_lead
-        self.lag = joint_lag(self.model.scenario) if self.params.joint_lag is None else self.params.joint_lag
         # Steps 1-2 (the prediction and the ranking of hits): the observation's hit_prediction too.
-        self.predictor = HitPredictor(self.physics, self.params, self.segment, self.lead, self.lag)
+        self.predictor = HitPredictor.for_robot(self.model.scenario, self.stack.control, self.physics, self.params)
+        self.lag = self.predictor.lag
         self._flight: Flight | None = None
         self.call_seconds: list[float] = []
         self.last_plan: HitPlan | None = None
