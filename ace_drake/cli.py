@@ -88,7 +88,7 @@ def cmd_evaluate(args) -> int:
     """Return-rate evaluation of a controller (``analysis.evaluation``)."""
     from ace_drake.analysis.evaluation import evaluate
     from ace_drake.config import ShotParams
-    from ace_drake.play.controllers import make_controller
+    from ace_drake.play.controllers import NoisyActions, make_controller
     from ace_drake.play.shots import human_shots, make_distribution
 
     if args.episodes is not None and args.episodes < 1:
@@ -106,9 +106,14 @@ def cmd_evaluate(args) -> int:
         sample = make_distribution(ShotParams(seed=args.seed), params.physics).draw(np.random.default_rng(args.seed), args.episodes or 200)
         shots, serve = sample.states, sample.serve
         source = f"{len(shots)} shots from the built-in synthetic distribution"
-    log(f"evaluate: '{args.controller}' on {source}, {args.sensors} sensors, seed {args.seed}")
-    figures = evaluate(make_controller(args.controller, params), params, shots, serve, args.seed, progress=log)
-    figures = {"controller": args.controller, "data": args.data, "players": list(players), "sensors": args.sensors, "seed": args.seed, **figures}
+    controller = make_controller(args.controller, params)
+    noise = f", Gaussian action noise {args.action_noise:g}" if args.action_noise else ""
+    if args.action_noise:
+        controller = NoisyActions(controller, args.action_noise, seed=args.seed)
+    log(f"evaluate: '{args.controller}'{noise} on {source}, {args.sensors} sensors, seed {args.seed}")
+    figures = evaluate(controller, params, shots, serve, args.seed, progress=log)
+    figures = {"controller": args.controller, "action_noise": args.action_noise, "data": args.data, "players": list(players),
+               "sensors": args.sensors, "seed": args.seed, **figures}
     if args.json:
         emit_json({**figures, **_provenance(), **({"data_sha256": _sha256(args.data)} if args.data else {})})
         return 0
@@ -123,7 +128,8 @@ def _print_evaluation(figures: dict) -> None:
         low, high = entry["ci95"]
         return f"{entry['rate']:.1%} [{low:.1%}, {high:.1%}] of {entry['played']}"
 
-    print(f"controller {figures['controller']}: return rate {rate(figures['return_rate'])} (95% Wilson interval); {figures['invalid_shots']} unplayable shots left out")
+    noise = f" with action noise {figures['action_noise']:g}" if figures.get("action_noise") else ""
+    print(f"controller {figures['controller']}{noise}: return rate {rate(figures['return_rate'])} (95% Wilson interval); {figures['invalid_shots']} unplayable shots left out")
     for key, unit in (("by_incoming_speed", "m/s"), ("by_incoming_spin", "rad/s")):
         print(f"  {key.replace('_', ' ')}:")
         for row in figures[key]:
@@ -584,6 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--data", help="match-data CSV: one episode per human shot (shot_p2); default: the synthetic distribution")
     evaluate.add_argument("--players", help="with --data: only these players' shots, comma-separated player_id values (e.g. 'Elite D,Elite E')")
     evaluate.add_argument("--episodes", type=int, help="at most this many episodes (default: all shots of --data, or 200)")
+    evaluate.add_argument("--action-noise", type=float, default=0.0, help="add Gaussian noise of this std (action units) to every action, seeded (default: none)")
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")

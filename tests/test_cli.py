@@ -39,6 +39,10 @@ def test_evaluate_counts_every_episode_with_its_interval(capsys):
     assert rate["returned"] == 0 and rate["rate"] == 0.0 and rate["ci95"][0] == 0.0 and 0.4 < rate["ci95"][1] < 0.8
     assert sum(result["not_returned_by_reason"].values()) == rate["played"]
     assert sum(row["played"] for row in result["by_incoming_speed"]) == rate["played"]
+    assert result["action_noise"] == 0.0
+    noisy = run_json(capsys, "evaluate", "--controller", "still", "--episodes", "1", "--sensors", "statistical", "--action-noise", "0.1", "--json")
+    assert noisy["action_noise"] == 0.1 and noisy["episodes"] == 1
+    assert main(["evaluate", "--controller", "still", "--episodes", "1", "--action-noise", "-1"]) == 2
 
 
 @needs_data

@@ -113,3 +113,28 @@ def test_with_a_policy_there_is_no_request_port():
     dut = PolicyController(lambda observation: None, 3)
     assert not dut.external and dut.action_request_port is None
     assert dut.num_input_ports() == 1
+
+
+def test_noisy_actions_add_seeded_gaussian_noise_in_the_box():
+    from ace_drake.config import ConfigError
+    from ace_drake.play.controllers import NoisyActions
+
+    resets = []
+
+    class Fixed:
+        def reset(self):
+            resets.append(1)
+
+        def __call__(self, observation):
+            return None if observation[0] > 0 else np.full(16, 0.5)
+
+    dut = NoisyActions(Fixed(), 0.1, seed=3)
+    actions = np.array([dut(np.zeros(4)) for _ in range(2000)])
+    assert np.std(actions - 0.5) == pytest.approx(0.1, rel=0.05) and abs(np.mean(actions - 0.5)) < 0.01
+    assert dut(np.ones(4)) is None  # no action stays no action
+    np.testing.assert_array_equal(NoisyActions(Fixed(), 0.1, seed=3)(np.zeros(4)), actions[0])  # seeded
+    assert np.all(np.abs(NoisyActions(Fixed(), 5.0)(np.zeros(4))) <= 1.0)  # clipped into the box
+    dut.reset()
+    assert resets == [1]
+    with pytest.raises(ConfigError, match=">= 0"):
+        NoisyActions(Fixed(), -0.1)

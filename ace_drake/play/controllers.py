@@ -7,6 +7,8 @@ torch module), so that the PolicyController runs any of them in the same rally d
 
 from __future__ import annotations
 
+import numpy as np
+
 from ace_drake.config import ConfigError, RallyParams, ReturnerParams
 from ace_drake.robot_model import MODELS_DIR
 
@@ -17,6 +19,32 @@ POLICIES_DIR = MODELS_DIR / "policies"
 def still(observation):
     """A controller that never moves the robot (the supervisor holds its reset pose): a baseline."""
     return None
+
+
+class NoisyActions:
+    """A controller whose every action gets independent Gaussian noise of standard deviation
+    ``sigma`` per component (action units), clipped into the box; None stays None. How precise a
+    controller's actions must be (README, *Training*): a learned actor's imitation error is such a
+    noise, though not an independent one. Seeded; ``reset`` restarts the wrapped controller's memory."""
+
+    def __init__(self, controller, sigma: float, seed: int = 0):
+        if not sigma >= 0.0:
+            raise ConfigError(f"action noise must be >= 0, got {sigma}")
+        from ace_drake.systems.policy_controller import as_policy
+
+        self.controller, self._call, self.sigma = controller, as_policy(controller), sigma
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self) -> None:
+        reset = getattr(self.controller, "reset", None)
+        if callable(reset):
+            reset()
+
+    def __call__(self, observation):
+        action = self._call(observation)
+        if action is None:
+            return None
+        return np.clip(np.asarray(action, dtype=float) + self.rng.normal(0.0, self.sigma, np.shape(action)), -1.0, 1.0)
 
 
 def controller_names() -> list[str]:
