@@ -399,3 +399,18 @@ def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
     assert [e[0] for e in points] == [100, 200]
     plot_learning_curve(state, tmp_path / "curve.png", "run", "60 synthetic shots", started_at=150)
     assert (tmp_path / "curve.png").stat().st_size > 1000
+
+
+def test_a_policy_reading_the_hit_prediction_needs_a_diagram_that_computes_it(tmp_path, monkeypatch):
+    from ace_drake.config import RallyParams
+    from ace_drake.play import controllers
+
+    parts = (*SMALL.actor_observation_parts, "hit_prediction")
+    save_policy(tmp_path / "hit.pt", SacLearner(dataclasses.replace(SMALL, actor_observation_parts=parts)))
+    save_policy(tmp_path / "paper.pt", SacLearner(SMALL))
+    monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path)
+    assert controllers.reads_hit_prediction(controllers.make_controller("policy:hit", RallyParams()), RallyParams())
+    assert not controllers.reads_hit_prediction(controllers.make_controller("policy:paper", RallyParams()), RallyParams())
+    controllers.make_controller("policy:paper", RallyParams(hit_prediction=False))  # reads no prediction: fine
+    with pytest.raises(ConfigError, match="hit_prediction part"):
+        controllers.make_controller("policy:hit", RallyParams(hit_prediction=False))
