@@ -531,6 +531,9 @@ def cmd_imitation(args) -> int:
     from ace_drake.analysis.imitation import demonstration_arrays, imitation_report, label_sensitivity
     from ace_drake.learning.observation import ObservationLayout
 
+    import torch
+
+    torch.set_num_threads(1)  # small batches: one thread is as fast, and does not fight other jobs for the cores
     observations, actions = demonstration_arrays(args.checkpoint)
     layout = ObservationLayout()
     if observations.shape[1] != layout.size:
