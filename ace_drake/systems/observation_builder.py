@@ -6,6 +6,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.learning.observation import (
     END_EFFECTOR_SIZE,
     ESTIMATE_SIZE,
@@ -14,7 +15,6 @@ from ace_drake.learning.observation import (
     SKILL_SIZE,
     ObservationLayout,
 )
-from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.perception.measurements import MeasurementHistory
 
 DEFAULT_SKILL = (0.0, 1.0, 0.0)  # y_desired 0 m (the centre line), w_p = 1, w_s = 0
