@@ -251,6 +251,16 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
         controllers.make_controller("policy:nope", RallyParams())
 
 
+def test_the_evaluation_after_pretraining_counts_as_the_periodic_one(tmp_path):
+    # Pretraining ends with an evaluation; the learn phase's first periodic one is then due
+    # evaluate_every steps later, not at once (it used to evaluate the same actor twice).
+    state = Trainer(_config(evaluate_every=20, env_steps=70), tmp_path / "run", progress=lambda line: None).run()
+    steps = [entry[0] for entry in state.evaluations]
+    periodic = steps[:-1]  # the last is the run's final evaluation, at its end
+    assert steps[-1] == state.env_steps and len(periodic) >= 2
+    assert all(a // 20 < b // 20 for a, b in zip(periodic, periodic[1:])), steps
+
+
 def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path):
     config = _config(ou_episodes=2)
     trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)

@@ -344,7 +344,6 @@ class Trainer:
         s, c = self.state, self.config
         self._log_line()
         if evaluate and s.env_steps >= s.next_evaluation:
-            s.next_evaluation += c.evaluate_every * (1 + (s.env_steps - s.next_evaluation) // c.evaluate_every)
             self._evaluate()
         if s.env_steps >= s.next_checkpoint:
             s.next_checkpoint += c.checkpoint_every * (1 + (s.env_steps - s.next_checkpoint) // c.checkpoint_every)
@@ -377,6 +376,8 @@ class Trainer:
         from ace_drake.analysis.evaluation import evaluate
 
         c, s = self.config, self.state
+        if s.env_steps >= s.next_evaluation:  # the next periodic one is due evaluate_every from here
+            s.next_evaluation += c.evaluate_every * (1 + (s.env_steps - s.next_evaluation) // c.evaluate_every)
         shots, serve = evaluation_shots(c)
         params = RallyParams(perception=PerceptionParams(positions=c.evaluation_sensors))
         start = time.perf_counter()
