@@ -528,16 +528,12 @@ def cmd_train(args) -> int:
 
 def cmd_imitation(args) -> int:
     """Offline imitation fits on a training checkpoint's demonstrations (``analysis.imitation``)."""
-    from ace_drake.analysis.imitation import demonstration_arrays, imitation_report, label_sensitivity
-    from ace_drake.learning.observation import ObservationLayout
-
     import torch
 
+    from ace_drake.analysis.imitation import demonstration_arrays, imitation_report, label_sensitivity
+
     torch.set_num_threads(1)  # small batches: one thread is as fast, and does not fight other jobs for the cores
-    observations, actions = demonstration_arrays(args.checkpoint)
-    layout = ObservationLayout()
-    if observations.shape[1] != layout.size:
-        raise ValueError(f"imitation: the checkpoint's observations have {observations.shape[1]} values, the layout {layout.size}")
+    observations, actions, layout = demonstration_arrays(args.checkpoint)
     log(f"imitation: {len(observations)} demonstrated steps of {args.checkpoint}")
     fits = imitation_report(observations, actions, layout, steps=args.steps, seed=args.seed, progress=log)
     sensitivity = None

@@ -49,9 +49,14 @@ def test_demonstrations_come_from_a_checkpoint_in_collection_order(tmp_path):
         buffer.add({"obs": np.repeat(rows[:, None], LAYOUT.size, 1), "privileged": np.zeros((3, 28)),
                     "demo_action": np.repeat(rows[:, None], 16, 1)})
     torch.save({"demonstrations": buffer.state_dict()}, tmp_path / "checkpoint.pt")
-    observations, actions = demonstration_arrays(tmp_path / "checkpoint.pt")
+    observations, actions, layout = demonstration_arrays(tmp_path / "checkpoint.pt")
     np.testing.assert_array_equal(observations[:, 0], [1, 2, 3, 4, 5])
     np.testing.assert_array_equal(actions[:, 0], [1, 2, 3, 4, 5])
+    assert layout == LAYOUT  # no config saved: the default histories
+    # A run whose learner read shorter histories has another layout than these observations.
+    torch.save({"demonstrations": buffer.state_dict(), "config": {"sac": {"position_history": 3, "spin_history": 3}}}, tmp_path / "short.pt")
+    with pytest.raises(ValueError, match="its layout"):
+        demonstration_arrays(tmp_path / "short.pt")
     torch.save({"learner": {}}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="not a training checkpoint"):
         demonstration_arrays(tmp_path / "other.pt")

@@ -21,6 +21,8 @@ def test_layout_parts_tile_the_vector():
     for name in names:
         covered[layout.slice(name)] += 1
     assert np.all(covered == 1) and layout.size == 12 + 8 + 24 + 13 + 3 + 9 + 3 + 11
+    np.testing.assert_array_equal(layout.indices(["skill", "positions"]), np.r_[12 + 8 + 24 + 13 + np.arange(3), np.arange(12)])
+    assert layout.indices([]).size == 0
     with pytest.raises(KeyError, match="parts are"):
         layout.slice("velocity")
     with pytest.raises(ValueError, match=">= 1"):

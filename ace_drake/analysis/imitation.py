@@ -48,9 +48,16 @@ class ImitationFit:
     label_variance: float  # the held-out labels' variance summed over the components
 
 
-def demonstration_arrays(checkpoint) -> tuple[np.ndarray, np.ndarray]:
-    """(observations (N, n), the returner's actions (N, 16)) of a training checkpoint's
-    demonstration buffer, in collection order. Raises ValueError when it holds none."""
+def in_swing(observations: np.ndarray, layout: ObservationLayout) -> np.ndarray:
+    """Whether observations (..., n) have a predicted hit less than SWING_TIME ahead."""
+    hit = np.asarray(observations)[..., layout.slice("hit_prediction")]
+    return (hit[..., 0] > 0.5) & (hit[..., 1] < SWING_TIME)
+
+
+def demonstration_arrays(checkpoint) -> tuple[np.ndarray, np.ndarray, ObservationLayout]:
+    """(observations (N, n), the returner's actions (N, 16), the observation layout of the run's
+    learner) of a training checkpoint's demonstration buffer, in collection order. Raises
+    ValueError when it holds none."""
     import torch
 
     from ace_drake.learning.replay import DemonstrationBuffer
@@ -63,7 +70,12 @@ def demonstration_arrays(checkpoint) -> tuple[np.ndarray, np.ndarray]:
     if len(buffer) == 0:
         raise ValueError(f"imitation: {checkpoint} holds no demonstrations")
     rows = buffer.buffer.get(buffer.buffer.oldest_first())
-    return rows["obs"].astype(np.float32), rows["demo_action"].astype(np.float32)
+    sac = payload.get("config", {}).get("sac", {})
+    layout = ObservationLayout(sac.get("position_history", 10), sac.get("spin_history", 10))
+    if rows["obs"].shape[1] != layout.size:
+        raise ValueError(f"imitation: {checkpoint}'s observations have {rows['obs'].shape[1]} values, its layout {layout.size} "
+                         "(written before an observation part was added?)")
+    return rows["obs"].astype(np.float32), rows["demo_action"].astype(np.float32), layout
 
 
 def fit_imitation(
@@ -93,7 +105,7 @@ def fit_imitation(
     fit_rows = int(fit_fraction * split)
     if not 0.0 < held_out < 1.0 or fit_rows < batch_size or split == len(observations):
         raise ValueError(f"fit_imitation: {len(observations)} rows are too few to fit {fit_rows} and hold out {held_out:.0%}")
-    columns = np.concatenate([np.arange(layout.size)[layout.slice(part)] for part in parts])
+    columns = layout.indices(parts)
     scale = observation_scale(layout).astype(np.float32)[columns]
     x, y = torch.as_tensor(observations[:, columns] / scale), torch.as_tensor(actions)
     generator = torch.Generator().manual_seed(seed)
@@ -109,8 +121,7 @@ def fit_imitation(
     with torch.no_grad():
         test = ((torch.tanh(net(x[split:])) - y[split:]) ** 2).sum(-1).numpy()
         train = float(((torch.tanh(net(x[:fit_rows])) - y[:fit_rows]) ** 2).sum(-1).mean())
-    hit = observations[split:, layout.slice("hit_prediction")]
-    swing = (hit[:, 0] > 0.5) & (hit[:, 1] < SWING_TIME)
+    swing = in_swing(observations[split:], layout)
     return ImitationFit(
         parts=tuple(parts), fit_rows=fit_rows, held_out=float(test.mean()),
         held_out_swing=float(test[swing].mean()) if swing.any() else float("nan"),
@@ -150,8 +161,7 @@ def label_sensitivity(observations: np.ndarray, returner, layout: ObservationLay
             skipped += 1
             continue
         changes.append(float(np.sum((second - first) ** 2)))
-        hit = observation[layout.slice("hit_prediction")]
-        swing.append(bool(hit[0] > 0.5 and hit[1] < SWING_TIME))
+        swing.append(bool(in_swing(observation, layout)))
     changes, swing = np.asarray(changes), np.asarray(swing, dtype=bool)
     if changes.size == 0:
         raise ValueError("label_sensitivity: the returner gave no action on any chosen observation")

@@ -77,6 +77,11 @@ class ObservationLayout:
             start += size
         raise KeyError(f"ObservationLayout: no part {part!r}; parts are {list(self._sizes)}")
 
+    def indices(self, parts) -> np.ndarray:
+        """The vector's indices (int array) of the named parts, in the order given: what an actor
+        reading those parts selects."""
+        return np.concatenate([np.arange(self.size)[self.slice(name)] for name in parts]) if parts else np.zeros(0, dtype=int)
+
     def part(self, observation: np.ndarray, name: str) -> np.ndarray:
         """The part ``name`` of ``observation``, histories as (N, 4) arrays."""
         values = np.asarray(observation)[self.slice(name)]

@@ -122,11 +122,8 @@ class SacLearner:
         layout = c.layout
         self.generator = torch.Generator().manual_seed(c.seed)
         obs_scale = observation_scale(layout)
-        self._actor_index = torch.as_tensor(np.concatenate([np.arange(layout.size)[layout.slice(p)] for p in c.actor_observation_parts]))
-        self._critic_obs_index = torch.as_tensor(
-            np.concatenate([np.arange(layout.size)[layout.slice(p)] for p in c.critic_observation_parts])
-            if c.critic_observation_parts else np.zeros(0, dtype=int)
-        )
+        self._actor_index = torch.as_tensor(layout.indices(c.actor_observation_parts))
+        self._critic_obs_index = torch.as_tensor(layout.indices(c.critic_observation_parts))
         self._actor_scale = torch.as_tensor(obs_scale, dtype=torch.float32)[self._actor_index]
         self._critic_scale = torch.cat([
             torch.as_tensor(privileged_scale(), dtype=torch.float32),

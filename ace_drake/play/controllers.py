@@ -88,6 +88,5 @@ def reads_hit_prediction(policy, params: RallyParams) -> bool:
     observation of ``params``' rally diagram."""
     from ace_drake.learning.observation import ObservationLayout
 
-    part = ObservationLayout(params.position_history, params.spin_history).slice("hit_prediction")
-    index = policy.index.numpy()
-    return bool(((index >= part.start) & (index < part.stop)).any())
+    part = ObservationLayout(params.position_history, params.spin_history).indices(["hit_prediction"])
+    return bool(np.isin(policy.index.numpy(), part).any())
