@@ -214,3 +214,19 @@ def test_an_easy_shot_is_returned_through_the_full_rally_diagram(memory):
     assert episode.segments[1] == 0  # no refused segment
     landing = episode.result.landing.state_pre
     assert 0.0 < landing[0] < 1.37 and abs(landing[1]) < 0.7625
+
+
+def test_the_returner_plays_the_same_episode_without_the_observations_hit_prediction():
+    # It predicts the ball itself, so the CLI builds its diagram without the part (faster):
+    # play.controllers.diagram_params_for. The episode must not change.
+    from ace_drake.config import PerceptionParams
+    from ace_drake.diagrams import build_rally_diagram
+    from ace_drake.play.runner import RallyRunner
+
+    results = []
+    for on in (True, False):
+        params = RallyParams(perception=PerceptionParams(positions="statistical"), hit_prediction=on)
+        dut = ModelBasedReturner.for_rally(params, ReturnerParams(memory=False))
+        episode = RallyRunner(build_rally_diagram(params, dut), params).run(INCOMING_BALL, seed=3)
+        results.append((episode.result.outcome, episode.result.landing.state_pre.tolist(), episode.segments))
+    assert results[0] == results[1]

@@ -424,3 +424,20 @@ def test_a_policy_reading_the_hit_prediction_needs_a_diagram_that_computes_it(tm
     controllers.make_controller("policy:paper", RallyParams(hit_prediction=False))  # reads no prediction: fine
     with pytest.raises(ConfigError, match="hit_prediction part"):
         controllers.make_controller("policy:hit", RallyParams(hit_prediction=False))
+
+
+def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_it(tmp_path, monkeypatch):
+    from ace_drake.config import RallyParams
+    from ace_drake.play import controllers
+
+    parts = (*SMALL.actor_observation_parts, "hit_prediction")
+    save_policy(tmp_path / "hit.pt", SacLearner(dataclasses.replace(SMALL, actor_observation_parts=parts)))
+    save_policy(tmp_path / "paper.pt", SacLearner(SMALL))
+    monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path)
+    params = RallyParams()
+    on = {name: controllers.diagram_params_for(controllers.make_controller(name, params), params).hit_prediction
+          for name in ("still", "returner", "returner:memoryless", "policy:paper", "policy:hit")}
+    assert on == {"still": False, "returner": False, "returner:memoryless": False, "policy:paper": False, "policy:hit": True}
+    noisy = controllers.NoisyActions(controllers.make_controller("policy:hit", params), 0.1)
+    assert controllers.diagram_params_for(noisy, params).hit_prediction
+    assert not controllers.diagram_params_for(controllers.make_controller("policy:hit", params), RallyParams(hit_prediction=False)).hit_prediction

@@ -83,6 +83,21 @@ def _observation_size(params: RallyParams) -> int:
     return ObservationLayout(params.position_history, params.spin_history).size
 
 
+def diagram_params_for(controller, params: RallyParams) -> RallyParams:
+    """``params`` with the observation's hit prediction (``RallyParams.hit_prediction``) on only
+    if ``controller`` (of ``make_controller``, possibly inside ``NoisyActions``) reads it: a
+    shipped policy whose actor reads the part keeps it; ``still`` and the returners (which predict
+    the ball themselves) get a diagram without it, whose observation has zeros there and which
+    runs ~1.4 x faster (``ace-drake bench sim``) with the same episodes."""
+    import dataclasses
+
+    from ace_drake.control.returner import ModelBasedReturner
+
+    inner = controller.controller if isinstance(controller, NoisyActions) else controller
+    reads = not (inner is still or isinstance(inner, ModelBasedReturner)) and reads_hit_prediction(inner, params)
+    return dataclasses.replace(params, hit_prediction=params.hit_prediction and reads)
+
+
 def reads_hit_prediction(policy, params: RallyParams) -> bool:
     """Whether a loaded policy (``sac.load_policy``) reads the ``hit_prediction`` part of the
     observation of ``params``' rally diagram."""
