@@ -87,8 +87,9 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
     """``params`` with the observation's hit prediction (``RallyParams.hit_prediction``) on only
     if ``controller`` (of ``make_controller``, possibly inside ``NoisyActions``) reads it: a
     shipped policy whose actor reads the part keeps it; ``still`` and the returners (which predict
-    the ball themselves) get a diagram without it, whose observation has zeros there and which
-    runs ~1.4 x faster (``ace-drake bench sim``) with the same episodes."""
+    the ball themselves) get a diagram without it, whose observation has zeros there: the same
+    episodes, simulated ~1.4 x faster on the statistical path (``ace-drake bench sim``; the
+    returner's own planning then dominates: its evaluation is ~1.1 x faster, README *Speed*)."""
     import dataclasses
 
     from ace_drake.control.returner import ModelBasedReturner
