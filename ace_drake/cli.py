@@ -53,12 +53,11 @@ def cmd_rally(args) -> int:
     from pydrake.geometry import Meshcat
 
     from ace_drake.config import ShotParams
-    from ace_drake.play.controllers import diagram_params_for, make_controller
+    from ace_drake.play.controllers import make_controller
     from ace_drake.play.rallies import play_rallies, rally_rows
 
     params = _rally_params(args)
     controller = make_controller(args.controller, params)
-    params = diagram_params_for(controller, params)
     meshcat = Meshcat() if args.html else None
     log(f"rally: {args.rallies} rallies of '{args.controller}' against the launcher ({args.sensors} sensors, seed {args.seed})")
     played = play_rallies(controller, params, ShotParams(seed=args.seed), args.rallies, args.seed, meshcat, progress=log)
@@ -89,7 +88,7 @@ def cmd_evaluate(args) -> int:
     """Return-rate evaluation of a controller (``analysis.evaluation``)."""
     from ace_drake.analysis.evaluation import evaluate
     from ace_drake.config import ShotParams
-    from ace_drake.play.controllers import NoisyActions, diagram_params_for, make_controller
+    from ace_drake.play.controllers import NoisyActions, make_controller
     from ace_drake.play.shots import human_shots, make_distribution
 
     if args.episodes is not None and args.episodes < 1:
@@ -108,7 +107,6 @@ def cmd_evaluate(args) -> int:
         shots, serve = sample.states, sample.serve
         source = f"{len(shots)} shots from the built-in synthetic distribution"
     controller = make_controller(args.controller, params)
-    params = diagram_params_for(controller, params)
     noise = f", Gaussian action noise {args.action_noise:g}" if args.action_noise else ""
     if args.action_noise:
         controller = NoisyActions(controller, args.action_noise, seed=args.seed)

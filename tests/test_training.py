@@ -441,3 +441,6 @@ def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_
     noisy = controllers.NoisyActions(controllers.make_controller("policy:hit", params), 0.1)
     assert controllers.diagram_params_for(noisy, params).hit_prediction
     assert not controllers.diagram_params_for(controllers.make_controller("policy:hit", params), RallyParams(hit_prediction=False)).hit_prediction
+    # The learner's own policy (what the trainer evaluates) too; a callable it does not know keeps the part.
+    assert not controllers.diagram_params_for(SacLearner(SMALL).policy(), params).hit_prediction
+    assert controllers.diagram_params_for(lambda observation: None, params) is params

@@ -100,9 +100,13 @@ def run_episodes(
 
 def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarray, seed: int = 0, progress=None) -> dict:
     """Evaluates ``controller`` (a policy callable or torch module) on ``shots`` with the rally
-    diagram of ``params``: the figures of ``summarize`` plus the wall time."""
+    diagram of ``params`` (without the observation's hit prediction when the controller does not
+    read it: ``play.controllers.diagram_params_for``): the figures of ``summarize`` plus the wall
+    time."""
     from ace_drake.diagrams import build_rally_diagram
+    from ace_drake.play.controllers import diagram_params_for
 
+    params = diagram_params_for(controller, params)
     start = time.perf_counter()
     runner = RallyRunner(build_rally_diagram(params, controller), params)
     episodes = run_episodes(runner, shots, serve, seed, progress)

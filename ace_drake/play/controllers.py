@@ -84,18 +84,26 @@ def _observation_size(params: RallyParams) -> int:
 
 
 def diagram_params_for(controller, params: RallyParams) -> RallyParams:
-    """``params`` with the observation's hit prediction (``RallyParams.hit_prediction``) on only
-    if ``controller`` (of ``make_controller``, possibly inside ``NoisyActions``) reads it: a
-    shipped policy whose actor reads the part keeps it; ``still`` and the returners (which predict
-    the ball themselves) get a diagram without it, whose observation has zeros there: the same
-    episodes, simulated ~1.4 x faster on the statistical path (``ace-drake bench sim``; the
-    returner's own planning then dominates: its evaluation is ~1.1 x faster, README *Speed*)."""
+    """``params`` for the rally diagram of ``controller`` (possibly inside ``NoisyActions``):
+    the observation's hit prediction (``RallyParams.hit_prediction``) off for the controllers
+    known not to read it: ``still``, the returners (which predict the ball themselves) and loaded
+    policies (``sac.load_policy``, ``SacLearner.policy``) whose actor does not read the part.
+    Their observation then has zeros there: the same episodes, simulated ~1.4 x faster on the
+    statistical path (``ace-drake bench sim``; a returner's own planning dominates its
+    evaluation, ~1.1 x faster, README *Speed*). Any other callable keeps ``params`` as given."""
     import dataclasses
 
     from ace_drake.control.returner import ModelBasedReturner
 
     inner = controller.controller if isinstance(controller, NoisyActions) else controller
-    reads = not (inner is still or isinstance(inner, ModelBasedReturner)) and reads_hit_prediction(inner, params)
+    from ace_drake.learning.networks import DeterministicPolicy
+
+    if inner is still or isinstance(inner, ModelBasedReturner):
+        reads = False
+    elif isinstance(inner, DeterministicPolicy):
+        reads = reads_hit_prediction(inner, params)
+    else:
+        return params
     return dataclasses.replace(params, hit_prediction=params.hit_prediction and reads)
 
 

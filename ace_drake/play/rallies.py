@@ -33,10 +33,15 @@ def play_rallies(
     """Plays ``count`` rallies of ``controller`` against the launcher (shots drawn from
     ``shots`` with ``seed``) and returns each episode with whether its shot was a serve. With
     ``meshcat``, the robot, court and ball are drawn and recorded (publish the recording and
-    take ``meshcat.StaticHtml()`` for a self-contained replay)."""
+    take ``meshcat.StaticHtml()`` for a self-contained replay). The diagram computes the
+    observation's hit prediction only if the controller reads it
+    (``play.controllers.diagram_params_for``)."""
     from ace_drake.diagrams import build_rally_diagram
+    from ace_drake.play.controllers import diagram_params_for
     from ace_drake.play.opponent import Launcher
     from ace_drake.play.shots import make_distribution
+
+    params = diagram_params_for(controller, params)
 
     if count < 1:
         raise ValueError(f"play_rallies: count must be >= 1, got {count}")
