@@ -12,11 +12,11 @@ import ace_drake.control.returner as returner_module
 from ace_drake.control.returner import (
     ModelBasedReturner,
     contact_frame,
-    hermite,
     invert_racket_contact,
     racket_plans,
     solve_return,
 )
+from ace_drake.control.hit_state import hermite
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import racket_impact, racket_restitution

@@ -120,6 +120,8 @@ def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):
     assert run.returncode == 0, run.stderr
     assert "after" in run.stdout and "playable shots" in run.stdout and run.stdout.rstrip().endswith("done")
     assert "hit_prediction 11" in run.stdout and re.search(r"step \d+: hit predicted 0\.\d{3} s ahead", run.stdout)
+    assert re.search(r"a demonstration: \d+ steps, outcome '\w+'; [1-9]\d* steps carry", run.stdout)
+    assert re.search(r"cloning loss on them \(task space \+ joints \+ consistency\): \d+\.\d", run.stdout)
     for name in ("tutorial.pt", "tutorial.json", "tutorial_curve.png"):
         assert (tmp_path / "policies" / name).is_file()
     assert (tmp_path / "run" / "checkpoint.pt").is_file()

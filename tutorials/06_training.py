@@ -12,7 +12,10 @@ Actor-Critic (Methods *Algorithm*); this tutorial runs the same machinery as
      asynchronous SAC with Ray workers (``--backend local`` runs everything in this process),
      checkpointed in ``--out``; run the tutorial again and it resumes from the checkpoint;
   4. evaluation and export: the trained actor in the rally diagram, the policy artefact, its
-     sidecar and the learning curve.
+     sidecar and the learning curve;
+  5. the hit-state action (this project's; README *Training: the hit-state actor*): an actor that
+     outputs the joints' state at the predicted hit, the fixed layer that turns it into the
+     eq. (12) action, a demonstration episode through that layer, and the cloning loss.
 
 A policy trained for a few hundred steps does not return balls; the numbers printed are what it
 does. Run it from the repository root:
@@ -28,11 +31,12 @@ It writes run/ (checkpoint, TensorBoard logs: ``tensorboard --logdir DIR/run``) 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import RallyParams
+from ace_drake.config import RallyParams, ReturnerParams
 from ace_drake.learning.rollout import RolloutWorker
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy
 from ace_drake.learning.trainer import TrainConfig, Trainer, export
@@ -103,6 +107,29 @@ def main() -> None:
           f"tutorial.json and tutorial_curve.png; the sidecar records {sidecar['env_steps']} steps, seed {sidecar['seed']}")
     print("   in a rally: ace-drake evaluate --controller policy:<name> runs a policy in models/policies/")
     assert RallyParams().position_history == SMALL.position_history  # the diagram builds what the actor reads
+
+    # ------------------------------------------------------------------ 5. the hit-state action
+    print("5. the hit-state action: the actor names the joints' state at the hit, a fixed layer drives there")
+    hit_config = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=PARTS)
+    # The demonstrator: the memoryless returner's planned hit state, played through the layer.
+    worker = RolloutWorker(sac=hit_config, seed=1, returner=ReturnerParams(memory=False))
+    (episode,) = worker.collect(1, "demonstrator")
+    t = episode.transitions
+    labelled = np.all(np.isfinite(t["demo_action"]), axis=-1)
+    print(f"   a demonstration: {episode.steps} steps, outcome '{episode.outcome}'; {labelled.sum()} steps carry the "
+          f"returner's planned hit state as a label (the rest: no plan at the predicted hit)")
+    first = int(np.argmax(labelled)) if labelled.any() else None
+    if first is not None:
+        layer = worker.layer
+        q0 = layout.part(t["obs"][first], "robot_state")[:8]
+        q_hit, v_hit = layer.parameterisation.hit_state(t["demo_action"][first].astype(float), q0)
+        steps = int(layer.steps_to_hit(layout.part(t["obs"][first], "hit_prediction")[1]))
+        print(f"   step {first}: hit {steps} segments ahead; the planned hit moves the joints by up to "
+              f"{np.max(np.abs(q_hit - q0)):.2f} (rad or m), the fastest joint at {np.max(np.abs(v_hit)):.2f} at the hit")
+        learner = SacLearner(hit_config)
+        rows = {"obs": t["obs"][labelled], "demo_action": t["demo_action"][labelled]}
+        print(f"   the untrained actor's cloning loss on them (task space + joints + consistency): "
+              f"{learner.behaviour_cloning_loss(rows).item():.1f}")
     print("done")
 
 

@@ -104,8 +104,9 @@ def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarr
     read it: ``play.controllers.diagram_params_for``): the figures of ``summarize`` plus the wall
     time."""
     from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.play.controllers import diagram_params_for
+    from ace_drake.play.controllers import diagram_params_for, hit_state_controller
 
+    controller = hit_state_controller(controller, params)
     params = diagram_params_for(controller, params)
     start = time.perf_counter()
     runner = RallyRunner(build_rally_diagram(params, controller), params)

@@ -36,7 +36,7 @@ latest estimate (the estimate improves as the ball flies):
    (``refine_hit_ik``: continuity, and 0.3 ms instead of 2-60 ms); the **joint velocities** for
    the racket velocity by least squares weighted by the joints' speed limits
    (``racket_joint_velocities``).
-5. **Drive the joints** from the segment-start state (q0, v0) towards (q_hit, v_hit) at the hit's
+5. **Drive the joints** (``control.hit_state.HitDriver``, shared with the hit-state actor) from the segment-start state (q0, v0) towards (q_hit, v_hit) at the hit's
    boundary along the cubic Hermite between them, evaluated one segment ahead: that terminal
    (q_T, v_T) becomes the action through the inverse of the eq. (12) mapping, clipped to the box
    (a target outside the feasible set maps onto its boundary). When the hit falls in the segment
@@ -76,9 +76,9 @@ from pydrake.multibody.inverse_kinematics import InverseKinematics
 from pydrake.solvers import SnoptSolver, Solve
 
 from ace_drake.config import BallPhysicsParams, ControlParams, RacketParams, RallyParams, ReturnerParams, RobotScenario
-from ace_drake.control.action_mapping import inverse_map_action
-from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
+from ace_drake.control.feasible_set import in_invariant_set
 from ace_drake.control.hit_prediction import Flight, HitPredictor, Prediction
+from ace_drake.control.hit_state import HitDriver, hermite_peak_acceleration
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.contact import racket_impact, racket_restitution
@@ -415,8 +415,9 @@ class ModelBasedReturner:
     """The model-based returner (module docstring): ``returner(observation) -> action | None``.
 
     Attributes for analysis: ``call_seconds`` (wall time of every call, s), ``last_plan`` (the
-    latest HitPlan or None) and ``last_choice`` (which action of step 6 the last call sent: 0 the
-    planned one, 1 the fallback, -1 none).
+    latest HitPlan or None; None after a call that followed through or had no hit) and
+    ``driver.last_choice`` (which action of step 6 the last call sent: 0 the planned one, 1 the
+    fallback, -1 none).
     """
 
     def __init__(
@@ -443,6 +444,7 @@ class ModelBasedReturner:
 
             stack = make_control_stack(self.model.scenario, control or ControlParams())
         self.stack = stack or ControlStack(self.model.scenario, control, None)
+        self.driver = HitDriver(self.stack)  # step 5 and the check of step 6
         self.physics = physics or BallPhysicsParams()
         self.params = params or ReturnerParams()
         self.layout = layout or ObservationLayout()
@@ -454,7 +456,6 @@ class ModelBasedReturner:
         self._flight: Flight | None = None
         self.call_seconds: list[float] = []
         self.last_plan: HitPlan | None = None
-        self.last_choice = -1
         self._ik_budget = self.params.ik_solves_per_call
 
     @classmethod
@@ -482,6 +483,7 @@ class ModelBasedReturner:
     def _act(self, observation: np.ndarray) -> np.ndarray | None:
         layout = self.layout
         self._ik_budget = self.params.ik_solves_per_call
+        self.last_plan = None
         estimate = layout.part(observation, "estimate")
         valid = layout.part(observation, "estimate_status")[0] > 0.5
         robot = layout.part(observation, "robot_state")
@@ -493,8 +495,7 @@ class ModelBasedReturner:
             return None
         if flight.hit is not None and flight.hit.time - flight.clock < self.lead + self.lag + 0.5 * self.segment:
             if flight.hit.time - flight.clock > self.lead + self.lag - 0.5 * self.segment:
-                # The hit happens in the segment this action commands: follow through.
-                return self.first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
+                return self.driver.follow_through(q0, v0, a0)  # the hit happens in the segment this action commands
             flight.hit = None  # the hit time passed and the ball is still coming: replan
         prediction = self.predictor.predict(estimate)
         if prediction.times.size == 0:
@@ -505,8 +506,7 @@ class ModelBasedReturner:
         target = np.array([self.params.target_x, np.clip(skill[0], -self.params.target_y_limit, self.params.target_y_limit)])
         candidates = self.predictor.candidates(flight, prediction, include_current=not self.params.memory)
         if not self.params.memory and candidates and candidates[0] == 0:
-            # The preferred hit falls in the segment this action commands: follow through.
-            return self.first_safe(q0, v0, a0, [lambda: self._action_to(q0, v0, a0, q0 + v0 * self.segment, v0)])
+            return self.driver.follow_through(q0, v0, a0)  # the preferred hit falls in the segment this action commands
         candidates = [index for index in candidates if index > 0]
         hit = self._plan_hit(flight, candidates, prediction, q0, v0, target)
         if hit is None and candidates and flight.hit is not None:
@@ -516,11 +516,7 @@ class ModelBasedReturner:
         if hit is None:
             return None
         boundary = hit.time - flight.clock - self.lag  # when the command must be at (q_hit, v_hit), s after the observation
-        q_target, v_target = hermite(q0, v0, hit.q, hit.v, boundary - self.lead, self.segment)
-        return self.first_safe(q0, v0, a0, [
-            lambda: self._action_to(q0, v0, a0, q_target, v_target),
-            lambda: self.stack.action_towards(q0, v0, a0, hit.q),
-        ])
+        return self.driver.drive(q0, v0, a0, hit.q, hit.v, boundary - self.lead)
 
     def _advance(self, estimate: np.ndarray | None) -> Flight:
         """The memory for this call: the clock advanced by one segment, or a fresh memory when the
@@ -539,34 +535,6 @@ class ModelBasedReturner:
             flight = Flight()
         self._flight = flight
         return flight
-
-    def _action_to(self, q0, v0, a0, q_target, v_target) -> np.ndarray | None:
-        """The action (16,) whose eq. (12) image from the segment start (q0, v0, a0) is (q_target,
-        v_target), or the boundary point on its ray when outside the feasible set."""
-        try:
-            sets = feasible_sets(q0, v0, a0, self.stack.limits, self.stack.control, self.stack.period)
-        except InfeasibleStartError:
-            return None
-        return np.clip(inverse_map_action(q_target, v_target, sets), -1.0, 1.0)
-
-    def first_safe(self, q0, v0, a0, actions) -> np.ndarray | None:
-        """The first of ``actions`` (callables returning an action or None, in order of
-        preference) whose segment and reset the control stack accepts (``ControlStack.propose``:
-        the supervisor's own test, so an action sent is an action executed), or None when none is
-        (the supervisor then keeps its plan, as it would on a refusal). Without a collision check
-        in the stack, the first action."""
-        self.last_choice = -1
-        for choice, make in enumerate(actions):
-            try:
-                action = make()
-            except InfeasibleStartError:
-                action = None
-            if action is None:
-                continue
-            if self.stack.collision_check is None or self.stack.propose(q0, v0, a0, action).safe:
-                self.last_choice = choice
-                return action
-        return None
 
     # ------------------------------------------------------------------------------ prediction
     def _plan_hit(self, flight: Flight, candidates: list[int], prediction: Prediction, q0: np.ndarray, v0: np.ndarray, target: np.ndarray) -> HitPlan | None:
@@ -617,28 +585,3 @@ class ModelBasedReturner:
             if ik.success:
                 return ik.q
         return None
-
-
-def hermite(q0: np.ndarray, v0: np.ndarray, q1: np.ndarray, v1: np.ndarray, duration: float, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """Position and velocity at time t (s) of the cubic Hermite from (q0, v0) at 0 to (q1, v1) at
-    ``duration`` (s), per joint; at and after ``duration`` the straight continuation
-    (q1 + v1 (t - duration), v1)."""
-    if t >= duration:
-        return q1 + v1 * (t - duration), np.array(v1, dtype=float)
-    s = t / duration
-    h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
-    d00, d10, d01, d11 = 6 * s**2 - 6 * s, 3 * s**2 - 4 * s + 1, -6 * s**2 + 6 * s, 3 * s**2 - 2 * s
-    q = h00 * q0 + h10 * duration * v0 + h01 * q1 + h11 * duration * v1
-    v = (d00 * q0 + d01 * q1) / duration + d10 * v0 + d11 * v1
-    return q, v
-
-
-def hermite_peak_acceleration(q0, v0, q1, v1, duration: float) -> np.ndarray:
-    """The largest |acceleration| (8,) of the cubic Hermite of ``hermite`` (linear in time: the
-    larger of its two ends)."""
-    if duration <= 0.0:
-        return np.full(np.shape(q0), np.inf)
-    delta = np.asarray(q1) - np.asarray(q0)
-    start = (6.0 * delta - (4.0 * np.asarray(v0) + 2.0 * np.asarray(v1)) * duration) / duration**2
-    end = (-6.0 * delta + (2.0 * np.asarray(v0) + 4.0 * np.asarray(v1)) * duration) / duration**2
-    return np.maximum(np.abs(start), np.abs(end))

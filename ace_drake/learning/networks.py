@@ -136,11 +136,15 @@ class TwinCritic(nn.Module):
 class DeterministicPolicy(nn.Module):
     """The trained actor as the PolicyController runs it (``systems.policy_controller.as_policy``):
     full observation vectors (B, layout.size) -> tanh of the Gaussian's mean (B, 16), the actor's
-    part selection and input scaling included, so that it can be saved and loaded alone."""
+    part selection and input scaling included, so that it can be saved and loaded alone.
+    ``action``: what the output is (``sac.SacConfig.action``); for "hit_state", ``hit_state`` is
+    its ``control.hit_state.HitStateAction`` and the policy plays through
+    ``play.controllers.hit_state_controller``."""
 
-    def __init__(self, actor: Actor, index: torch.Tensor, scale: torch.Tensor):
+    def __init__(self, actor: Actor, index: torch.Tensor, scale: torch.Tensor, action: str = "terminal", hit_state=None):
         super().__init__()
         self.actor = actor
+        self.action, self.hit_state = action, hit_state
         self.register_buffer("index", index.clone())
         self.register_buffer("scale", scale.clone())
 

@@ -287,8 +287,11 @@ class DemonstrationBuffer:
         self.rng = np.random.default_rng(seed)
 
     def add(self, transitions: dict[str, np.ndarray]) -> None:
-        """Stores an episode's rows (keys ``KEYS``; the rest ignored)."""
-        self.buffer.add({key: transitions[key] for key in self.KEYS})
+        """Stores an episode's rows (keys ``KEYS``; the rest ignored) that have a label (a
+        hit-state label is NaN where the returner planned no hit: ``rollout``)."""
+        labelled = np.all(np.isfinite(transitions["demo_action"]), axis=-1)
+        if labelled.any():
+            self.buffer.add({key: np.asarray(transitions[key])[labelled] for key in self.KEYS})
 
     def sample(self, batch_size: int) -> dict[str, np.ndarray]:
         if self.buffer.size == 0:

@@ -23,6 +23,14 @@ Every worker is seeded: worker ``index`` of a run with seed ``s`` draws its epis
 ``numpy.random.SeedSequence([s, index])``, so a run's episodes do not depend on how many workers
 collect in parallel *per worker*, and the same seed gives the same episodes.
 
+With the hit-state action (``sac.SacConfig.action``), every mode's action is a hit state y
+(``control.hit_state``), stored as the transition's action, and the worker's ``HitStateLayer``
+turns it into the environment's eq. (12) action (the supervisor's fallback, as for a returner
+without action, when the layer has none). The returner's label is then its planned hit state,
+where it plans one at the observation's predicted hit (NaN otherwise: no cloning row); the
+demonstrator plays its planned hit state through the layer, with the DART noise added to the hit
+state (and plays its own action where it plans no hit).
+
 The near-miss measure (``EpisodeSummary.closest_approach``): the ball centre's distance to the
 blade centre at every observation, and between consecutive observations the minimum of the
 linearly interpolated relative position (the ball moves ~0.3 m in 32 ms; the racket far less).
@@ -160,7 +168,8 @@ class RolloutWorker:
         self.env.reset(seed=int(env_seed))  # seeds the env's stream; the first episode resets again
         self.rng = np.random.default_rng(int(noise_seed))
         config = sac or SacConfig()
-        self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31))
+        self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31), self.env.params.rally)
+        self._layer = None
         self.generator = torch.Generator().manual_seed(int(torch_seed) % 2**63)
         self.noise = OrnsteinUhlenbeck(self.exploration.ou_theta, self.exploration.ou_sigma, self.env.period)
         self._returner = None
@@ -171,6 +180,15 @@ class RolloutWorker:
     def set_actor(self, state_dict: dict) -> None:
         """Installs actor weights (``SacLearner.actor.state_dict()``)."""
         self.learner.actor.load_state_dict(state_dict)
+
+    @property
+    def layer(self):
+        """The hit-state layer (``control.hit_state.HitStateLayer``) of the env's rally diagram."""
+        if self._layer is None:
+            from ace_drake.control.hit_state import HitStateLayer
+
+            self._layer = HitStateLayer.for_rally(self.env.params.rally)
+        return self._layer
 
     @property
     def returner(self):
@@ -199,10 +217,14 @@ class RolloutWorker:
         closest = self._blade_distance(None)
         done = False
         while not done:
-            action, label = self._action(mode, obs)
+            if self.learner.config.action == "hit_state":
+                action, stored, label = self._hit_state_action(mode, obs)
+            else:
+                action, label = self._action(mode, obs)
+                stored = action
             next_obs, reward, done, _, next_info = env.step(action)
             closest = self._blade_distance(closest)
-            for key, value in (("obs", obs), ("privileged", info["privileged"]), ("action", action), ("reward", reward),
+            for key, value in (("obs", obs), ("privileged", info["privileged"]), ("action", stored), ("reward", reward),
                                ("next_obs", next_obs), ("next_privileged", next_info["privileged"]), ("done", float(done)),
                                ("demo_action", label)):
                 rows[key].append(value)
@@ -231,18 +253,56 @@ class RolloutWorker:
                 return noisy, label
         return label, label
 
+    def _hit_state_action(self, mode: str, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(the env's action, the hit state stored as the action, the label or None) of the
+        hit-state action (module docstring)."""
+        label = None
+        if mode in ("demonstrator", "dagger"):
+            planned, label, returner_action = self._hit_label(obs)
+        if mode == "ou":
+            y = self.noise.sample(self.rng)
+        elif mode in ("policy", "dagger"):
+            y = self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale)
+        elif planned is None:
+            return returner_action, np.zeros(ACTION_SIZE), label  # no planned hit state: the returner's own action
+        else:
+            y = planned
+            if self.rng.random() < self.exploration.demo_noise_fraction:
+                y = np.clip(planned + self.rng.normal(0.0, self.exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
+        action = self.layer(obs, y)
+        return (self._fallback(obs) if action is None else action), np.asarray(y, dtype=float), label
+
+    def _hit_label(self, obs: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """(the returner's planned hit state for ``obs`` as a hit-state action, or None; the label:
+        the same where the plan's hit is the observation's predicted one, else NaN; the returner's
+        action, as ``_label``). A plan for a later hit (the predicted one needs too much
+        acceleration) is still the demonstrator's hit state: the layer aims it at the predicted
+        hit, which costs nothing (README), but it is not a label of that observation."""
+        returner, layout = self.returner, self.returner.layout
+        action = self._label(obs)
+        plan, hit = returner.last_plan, layout.part(obs, "hit_prediction")
+        if plan is None or hit[0] < 0.5:
+            return None, np.full(ACTION_SIZE, np.nan), action
+        planned = self.layer.parameterisation.coordinates(plan.q, plan.v, layout.part(obs, "robot_state")[:8])
+        at_prediction = abs(plan.time - hit[1]) <= 0.5 * returner.segment
+        return planned, (planned if at_prediction else np.full(ACTION_SIZE, np.nan)), action
+
     def _label(self, obs: np.ndarray) -> np.ndarray:
         """The returner's action for ``obs``; when it has none, continuing the plan or else heading
         for the reset pose, whichever the stack accepts first (the plan if neither)."""
         returner = self.returner
         q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
         label = returner(obs)
-        if label is None:
-            label = returner.first_safe(q0, v0, a0, [self.env.hold_action,
-                                                       lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
-            if label is None:
-                label = self.env.hold_action()
-        return label
+        return self._fallback(obs) if label is None else label
+
+    def _fallback(self, obs: np.ndarray) -> np.ndarray:
+        """Without an action: continuing the plan or else heading for the reset pose, whichever
+        the stack accepts first (the plan if neither)."""
+        returner = self.returner
+        q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
+        label = returner.driver.first_safe(q0, v0, a0, [self.env.hold_action,
+                                                      lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
+        return self.env.hold_action() if label is None else label
 
     def _blade_distance(self, previous):
         """(closest approach so far (m), relative position now): module docstring."""

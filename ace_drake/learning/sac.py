@@ -25,6 +25,14 @@ second batch of demonstrated transitions (observations with the model-based retu
 so that the sparse terminal reward is not the only thing telling 16 action dimensions how to hit
 a ball; with ``bc_weight`` 0 (the default) or no demonstration batch, the update is the paper's.
 
+The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
+the next segment; "hit_state" (this project's; README *Training: the hit-state actor*) is the
+joints' state at the hit (``control.hit_state.HitStateAction``), turned into the eq. (12) action
+by a fixed layer outside the learner (``control.hit_state.HitStateLayer``: in the rollout workers
+and the policy controller). The critic then values hit states, the replay stores them, and the
+cloning term is ``learning.hit_state.HitStateCloning``'s loss on the returner's planned hit
+states instead of the squared action error.
+
 d is 1 only at a terminal transition (the episode ended; the rally environment never truncates).
 The critic's features are the privileged observation plus the actor observation's parts named in
 ``SacConfig.critic_observation_parts`` (``networks`` docstring).
@@ -53,6 +61,7 @@ from ace_drake.learning.networks import (
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.learning.rally_env import PRIVILEGED_PARTS, privileged_slice
 
+ACTIONS = ("terminal", "hit_state")
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())
 
@@ -85,6 +94,12 @@ class SacConfig:
     critic_observation_parts: tuple[str, ...] = ("robot_state",)
     # The behaviour-cloning term's weight (module docstring; this project's, 0: the paper's SAC).
     bc_weight: float = 0.0
+    # What the actor outputs (module docstring): "terminal" (eq. (12), the paper's) or "hit_state".
+    action: str = "terminal"
+    # The hit-state cloning loss (learning.hit_state): its consistency weight (30 measured best of
+    # 0-100, README) and the task-space scales (blade position m, normal, blade velocity m/s).
+    consistency_weight: float = 30.0
+    hit_loss_scales: tuple[float, float, float] = (0.02, 0.05, 0.2)
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -99,6 +114,14 @@ class SacConfig:
             raise ValueError(f"SacConfig.tau must be in (0, 1], got {self.tau}")
         if not (self.alpha >= 0.0 and self.aux_weight >= 0.0 and self.bc_weight >= 0.0):
             raise ValueError(f"SacConfig.alpha, aux_weight and bc_weight must be >= 0, got {self.alpha}, {self.aux_weight}, {self.bc_weight}")
+        if self.action not in ACTIONS:
+            raise ValueError(f"SacConfig.action must be one of {ACTIONS}, got {self.action!r}")
+        if self.action == "hit_state" and not {"robot_state", "hit_prediction"} <= set(self.actor_observation_parts):
+            raise ValueError("SacConfig: the hit_state action needs robot_state and hit_prediction among actor_observation_parts "
+                             "(the hit state is relative to the segment start, and its hit is the predicted one)")
+        if not (self.consistency_weight >= 0.0 and len(self.hit_loss_scales) == 3 and all(x > 0 for x in self.hit_loss_scales)):
+            raise ValueError(f"SacConfig: consistency_weight must be >= 0 and hit_loss_scales three values > 0, "
+                             f"got {self.consistency_weight}, {self.hit_loss_scales}")
 
     @property
     def layout(self) -> ObservationLayout:
@@ -116,8 +139,12 @@ class SacLearner:
     from its own torch generator, so the same seed and batches give the same updates, bit for
     bit, and a learner restored from ``state_dict`` continues exactly as the original would."""
 
-    def __init__(self, config: SacConfig | None = None):
+    def __init__(self, config: SacConfig | None = None, rally=None):
+        """``rally``: the RallyParams of the diagram the actor plays in (default RallyParams()),
+        read only by the hit-state action's cloning loss and parameterisation."""
         self.config = config or SacConfig()
+        self.rally = rally
+        self._hit_cloning = None
         c = self.config
         layout = c.layout
         self.generator = torch.Generator().manual_seed(c.seed)
@@ -167,8 +194,22 @@ class SacLearner:
         return out.reshape(*np.shape(obs)[:-1], ACTION_SIZE)
 
     def policy(self) -> DeterministicPolicy:
-        """A copy of the actor as a standalone deterministic policy module (networks)."""
-        return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale)
+        """A copy of the actor as a standalone deterministic policy module (networks), with its
+        action kind and, for hit states, their parameterisation."""
+        hit_state = self.hit_cloning.parameterisation if self.config.action == "hit_state" else None
+        return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale,
+                                   self.config.action, hit_state)
+
+    @property
+    def hit_cloning(self):
+        """The hit-state cloning loss (``learning.hit_state.HitStateCloning``), built on first use."""
+        if self._hit_cloning is None:
+            from ace_drake.config import RallyParams
+            from ace_drake.learning.hit_state import HitStateCloning
+
+            c = self.config
+            self._hit_cloning = HitStateCloning(self.rally or RallyParams(), c.layout, c.hit_loss_scales, c.consistency_weight)
+        return self._hit_cloning
 
     # ------------------------------------------------------------------------------ losses
     def _tensors(self, batch: dict) -> dict[str, torch.Tensor]:
@@ -192,10 +233,13 @@ class SacLearner:
         return torch.mean((self.actor.decode(embedding) - truth) ** 2)
 
     def behaviour_cloning_loss(self, demonstrations: dict) -> torch.Tensor:
-        """mean |tanh(mu(o)) - a_demo|^2 over a demonstration batch (keys ``obs``, ``demo_action``)."""
+        """mean |tanh(mu(o)) - a_demo|^2 over a demonstration batch (keys ``obs``, ``demo_action``);
+        for the hit-state action, ``HitStateCloning.loss`` (``demo_action`` then holds hit states)."""
         obs = torch.as_tensor(np.asarray(demonstrations["obs"]), dtype=torch.float32)
         target = torch.as_tensor(np.asarray(demonstrations["demo_action"]), dtype=torch.float32)
         mean, _, _ = self.actor(self.actor_features(obs))
+        if self.config.action == "hit_state":
+            return self.hit_cloning.loss(obs, torch.tanh(mean), target)
         return torch.mean(torch.sum((torch.tanh(mean) - target) ** 2, dim=-1))
 
     def update(self, batch: dict, demonstrations: dict | None = None, bc_weight: float | None = None) -> dict[str, float]:
@@ -285,8 +329,10 @@ def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> N
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
-    torch.save({"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config),
-                "actor": actor_state or learner.actor.state_dict()}, temporary)
+    payload = {"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config), "actor": actor_state or learner.actor.state_dict()}
+    if learner.config.action == "hit_state":
+        payload["hit_state"] = learner.hit_cloning.parameterisation.as_dict()
+    torch.save(payload, temporary)
     os.replace(temporary, path)
 
 
@@ -302,4 +348,10 @@ def load_policy(path) -> DeterministicPolicy:
         raise ValueError(f"{path}: not a policy artefact (format {POLICY_FORMAT})")
     learner = SacLearner(from_dict(SacConfig, payload["sac_config"]))
     learner.actor.load_state_dict(payload["actor"])
-    return learner.policy()
+    policy = learner.policy() if learner.config.action == "terminal" else None
+    if policy is None:  # the hit-state parameterisation it was trained with, not today's default
+        from ace_drake.control.hit_state import HitStateAction
+
+        policy = DeterministicPolicy(copy.deepcopy(learner.actor).eval().requires_grad_(False), learner._actor_index, learner._actor_scale,
+                                     "hit_state", HitStateAction.from_dict(payload["hit_state"]))
+    return policy

@@ -176,7 +176,7 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = progress
         torch.set_num_threads(config.torch_threads)
-        self.learner = SacLearner(config.sac)
+        self.learner = SacLearner(config.sac, config.env.rally)
         augment = ()
         if config.mirror:
             from ace_drake.learning.mirror import Mirror
@@ -525,7 +525,7 @@ def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
 
 def chosen_policy(trainer: Trainer, which: str):
     """The DeterministicPolicy of ``chosen_actor`` (what the exported file holds)."""
-    learner = SacLearner(trainer.config.sac)
+    learner = SacLearner(trainer.config.sac, trainer.config.env.rally)
     learner.actor.load_state_dict(chosen_actor(trainer, which)[0])
     return learner.policy()
 

@@ -2,7 +2,8 @@
 (``ReturnerParams.memory`` off), ``policy:<name>``.
 
 Every controller has a policy's interface (a callable observation -> action (16,) | None, or a
-torch module), so that the PolicyController runs any of them in the same rally diagram.
+torch module), so that the PolicyController runs any of them in the same rally diagram. A policy
+whose actor outputs hit states (``sac.SacConfig.action``) plays through ``HitStatePolicy``.
 """
 
 from __future__ import annotations
@@ -47,6 +48,38 @@ class NoisyActions:
         return np.clip(np.asarray(action, dtype=float) + self.rng.normal(0.0, self.sigma, np.shape(action)), -1.0, 1.0)
 
 
+class HitStatePolicy:
+    """A hit-state policy (``DeterministicPolicy`` with action "hit_state") behind the fixed layer
+    that makes its output an eq. (12) action (``control.hit_state.HitStateLayer``):
+    ``controller(observation) -> action (16,) | None``."""
+
+    def __init__(self, policy, layer):
+        from ace_drake.systems.policy_controller import as_policy
+
+        if policy.hit_state is not None and not layer.parameterisation.matches(policy.hit_state):
+            raise ConfigError("this hit-state policy was trained with other command limits than the rally diagram's "
+                              "(its hit-state parameterisation differs)")
+        self.policy, self.layer, self._call = policy, layer, as_policy(policy)
+
+    def __call__(self, observation):
+        return self.layer(observation, self._call(observation))
+
+
+def hit_state_controller(controller, params: RallyParams):
+    """``controller`` ready for the rally diagram of ``params``: a hit-state DeterministicPolicy
+    wrapped in ``HitStatePolicy`` (raises ConfigError if ``params`` does not compute the
+    observation's hit prediction, which it needs), anything else unchanged."""
+    from ace_drake.learning.networks import DeterministicPolicy
+
+    if isinstance(controller, DeterministicPolicy) and controller.action == "hit_state":
+        if not params.hit_prediction:
+            raise ConfigError("a hit-state policy plays the observation's predicted hit: build its diagram with RallyParams.hit_prediction true")
+        from ace_drake.control.hit_state import HitStateLayer
+
+        return HitStatePolicy(controller, HitStateLayer.for_rally(params))
+    return controller
+
+
 def controller_names() -> list[str]:
     """The names ``make_controller`` accepts, shipped policies included."""
     policies = sorted(path.stem for path in POLICIES_DIR.glob("*.pt")) if POLICIES_DIR.is_dir() else []
@@ -73,7 +106,7 @@ def make_controller(name: str, params: RallyParams):
             raise ConfigError(f"policy {name} reads a longer observation than the rally diagram of these params builds")
         if reads_hit_prediction(policy, params) and not params.hit_prediction:
             raise ConfigError(f"policy {name} reads the observation's hit_prediction part: build its diagram with RallyParams.hit_prediction true")
-        return policy
+        return hit_state_controller(policy, params)
     raise ConfigError(f"unknown controller {name!r}; choose one of {', '.join(controller_names())}")
 
 
@@ -87,7 +120,8 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
     """``params`` for the rally diagram of ``controller`` (possibly inside ``NoisyActions``):
     the observation's hit prediction (``RallyParams.hit_prediction``) off for the controllers
     known not to read it: ``still``, the returners (which predict the ball themselves) and loaded
-    policies (``sac.load_policy``, ``SacLearner.policy``) whose actor does not read the part.
+    policies (``sac.load_policy``, ``SacLearner.policy``) whose actor does not read the part
+    (a hit-state policy always does).
     Their observation then has zeros there: the same episodes, simulated ~1.4 x faster on the
     statistical path (``ace-drake bench sim``; a returner's own planning dominates its
     evaluation, ~1.1 x faster, README *Speed*). Any other callable keeps ``params`` as given."""
@@ -100,6 +134,8 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
 
     if inner is still or isinstance(inner, ModelBasedReturner):
         reads = False
+    elif isinstance(inner, HitStatePolicy):
+        return params
     elif isinstance(inner, DeterministicPolicy):
         reads = reads_hit_prediction(inner, params)
     else:

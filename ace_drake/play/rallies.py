@@ -37,10 +37,11 @@ def play_rallies(
     observation's hit prediction only if the controller reads it
     (``play.controllers.diagram_params_for``)."""
     from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.play.controllers import diagram_params_for
+    from ace_drake.play.controllers import diagram_params_for, hit_state_controller
     from ace_drake.play.opponent import Launcher
     from ace_drake.play.shots import make_distribution
 
+    controller = hit_state_controller(controller, params)
     params = diagram_params_for(controller, params)
 
     if count < 1:
