@@ -226,3 +226,25 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
     other = HitStateAction(policy.hit_state.half_range * 1.1, policy.hit_state.velocity)
     with pytest.raises(ConfigError, match="command limits"):
         controllers.HitStatePolicy(type(policy)(policy.actor, policy.index, policy.scale, "hit_state", other), controller.layer)
+
+
+def test_the_returners_planned_hit_state_plays_through_the_layer(layer):
+    from ace_drake.control.hit_state import PlannedHitState
+    from ace_drake.play import controllers
+
+    params = RallyParams()
+    planned = controllers.make_controller("returner:hit_state", params)
+    assert isinstance(planned, PlannedHitState) and controllers.diagram_params_for(planned, params) is params
+    with pytest.raises(ConfigError, match="hit_prediction"):
+        controllers.make_controller("returner:hit_state", RallyParams(hit_prediction=False))
+    with pytest.raises(ValueError, match="memoryless"):
+        PlannedHitState(ModelBasedReturner.for_rally(params), layer)
+    estimate = simulate(INCOMING_BALL, BallPhysicsParams(), 0.1).final_state[0]
+    obs = observation(layer.layout, estimate, planned.returner.predictor)
+    y, at_prediction, action = planned.plan(obs)
+    assert at_prediction and action is not None
+    np.testing.assert_allclose(y, layer.parameterisation.coordinates(planned.returner.last_plan.q, planned.returner.last_plan.v, READY))
+    np.testing.assert_allclose(planned(obs), layer(obs, y))
+    no_hit = obs.copy()
+    no_hit[layer.layout.slice("hit_prediction")] = 0.0
+    assert planned.plan(no_hit)[0] is None

@@ -21,6 +21,11 @@ preferred hit, ``control.hit_prediction``) at t_p seconds, whose boundary is k s
 k = round((t_p - lead - lag) / T), D = k T (the predictor samples hits on that grid); k <= 0
 follows through; no predicted hit gives no action (the supervisor resets).
 
+``PlannedHitState`` is the memoryless returner's planned hit state as such an action: the
+demonstrator and the labels of a hit-state actor (``learning.rollout``), and with the layer a
+controller (``returner:hit_state``: the layer's ceiling, what an actor that imitated the returner's
+hit states perfectly would do).
+
 Why: an actor that outputs eq. (12)'s per-segment terminal states must re-derive the whole swing
 every 32 ms and its errors from call to call make the swing jitter; one that outputs the hit
 state names the same target all along, and this layer makes the motion (measured in the README).
@@ -208,3 +213,41 @@ class HitStateLayer:
         q_hit, v_hit = self.parameterisation.hit_state(np.clip(np.asarray(y, dtype=float), -1.0, 1.0), q0)
         q_hit = np.clip(q_hit, self.driver.stack.limits.lower, self.driver.stack.limits.upper)
         return self.driver.drive(q0, v0, a0, q_hit, v_hit, steps * self.segment)
+
+
+class PlannedHitState:
+    """The memoryless returner's planned hit state as a hit-state action (module docstring).
+    ``plan(observation)`` gives (the planned y or None, whether the plan's hit is the observation's
+    predicted one, the returner's own action or None); calling it is the controller that plays the
+    planned y through ``layer`` (the returner's own action where it plans no hit)."""
+
+    def __init__(self, returner, layer: HitStateLayer):
+        """``returner``: a ``ModelBasedReturner`` without memory (its plan must be a function of
+        the observation); ``layer``: the rally diagram's HitStateLayer."""
+        if returner.params.memory:
+            raise ValueError("PlannedHitState: the returner must be memoryless (ReturnerParams.memory false)")
+        self.returner, self.layer = returner, layer
+
+    def reset(self) -> None:
+        self.returner.reset()
+
+    def plan(self, observation: np.ndarray) -> tuple[np.ndarray | None, bool, np.ndarray | None]:
+        """(y (16,) of the returner's planned hit from the segment start, or None when it plans
+        none or nothing is predicted; whether its hit time is the predicted hit's, within half a
+        segment; the returner's action). A plan for a later hit (the predicted one needs too
+        much acceleration) still gives y: the layer aims it at the predicted hit."""
+        observation = np.asarray(observation, dtype=float)
+        action = self.returner(observation)
+        plan, hit = self.returner.last_plan, self.layer.layout.part(observation, "hit_prediction")
+        if plan is None or hit[0] < 0.5:
+            return None, False, action
+        q0 = self.layer.layout.part(observation, "robot_state")[:8]
+        return self.layer.parameterisation.coordinates(plan.q, plan.v, q0), abs(plan.time - hit[1]) <= 0.5 * self.segment, action
+
+    @property
+    def segment(self) -> float:
+        return self.layer.segment
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray | None:
+        planned, _, action = self.plan(observation)
+        return action if planned is None else self.layer(observation, planned)

@@ -170,6 +170,7 @@ class RolloutWorker:
         config = sac or SacConfig()
         self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31), self.env.params.rally)
         self._layer = None
+        self._planned = None
         self.generator = torch.Generator().manual_seed(int(torch_seed) % 2**63)
         self.noise = OrnsteinUhlenbeck(self.exploration.ou_theta, self.exploration.ou_sigma, self.env.period)
         self._returner = None
@@ -273,19 +274,16 @@ class RolloutWorker:
         return (self._fallback(obs) if action is None else action), np.asarray(y, dtype=float), label
 
     def _hit_label(self, obs: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-        """(the returner's planned hit state for ``obs`` as a hit-state action, or None; the label:
-        the same where the plan's hit is the observation's predicted one, else NaN; the returner's
-        action, as ``_label``). A plan for a later hit (the predicted one needs too much
-        acceleration) is still the demonstrator's hit state: the layer aims it at the predicted
-        hit, which costs nothing (README), but it is not a label of that observation."""
-        returner, layout = self.returner, self.returner.layout
-        action = self._label(obs)
-        plan, hit = returner.last_plan, layout.part(obs, "hit_prediction")
-        if plan is None or hit[0] < 0.5:
-            return None, np.full(ACTION_SIZE, np.nan), action
-        planned = self.layer.parameterisation.coordinates(plan.q, plan.v, layout.part(obs, "robot_state")[:8])
-        at_prediction = abs(plan.time - hit[1]) <= 0.5 * returner.segment
-        return planned, (planned if at_prediction else np.full(ACTION_SIZE, np.nan)), action
+        """(the returner's planned hit state for ``obs``, or None; the label: the same where the
+        plan's hit is the observation's predicted one, else NaN; the returner's action, as
+        ``_label``): ``control.hit_state.PlannedHitState.plan``."""
+        if self._planned is None:
+            from ace_drake.control.hit_state import PlannedHitState
+
+            self._planned = PlannedHitState(self.returner, self.layer)
+        planned, at_prediction, action = self._planned.plan(obs)
+        label = planned if planned is not None and at_prediction else np.full(ACTION_SIZE, np.nan)
+        return planned, label, self._fallback(obs) if action is None else action
 
     def _label(self, obs: np.ndarray) -> np.ndarray:
         """The returner's action for ``obs``; when it has none, continuing the plan or else heading

@@ -1,5 +1,6 @@
 """The rally controllers a command line can name: ``still``, ``returner``, ``returner:memoryless``
-(``ReturnerParams.memory`` off), ``policy:<name>``.
+(``ReturnerParams.memory`` off), ``returner:hit_state`` (the memoryless returner's planned hit
+states through the hit-state layer: ``control.hit_state.PlannedHitState``), ``policy:<name>``.
 
 Every controller has a policy's interface (a callable observation -> action (16,) | None, or a
 torch module), so that the PolicyController runs any of them in the same rally diagram. A policy
@@ -83,7 +84,7 @@ def hit_state_controller(controller, params: RallyParams):
 def controller_names() -> list[str]:
     """The names ``make_controller`` accepts, shipped policies included."""
     policies = sorted(path.stem for path in POLICIES_DIR.glob("*.pt")) if POLICIES_DIR.is_dir() else []
-    return ["still", "returner", "returner:memoryless", *(f"policy:{name}" for name in policies)]
+    return ["still", "returner", "returner:memoryless", "returner:hit_state", *(f"policy:{name}" for name in policies)]
 
 
 def make_controller(name: str, params: RallyParams):
@@ -95,6 +96,13 @@ def make_controller(name: str, params: RallyParams):
         from ace_drake.control.returner import ModelBasedReturner
 
         return ModelBasedReturner.for_rally(params, ReturnerParams(memory=name == "returner"))
+    if name == "returner:hit_state":
+        from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
+        from ace_drake.control.returner import ModelBasedReturner
+
+        if not params.hit_prediction:
+            raise ConfigError("returner:hit_state plays the observation's predicted hit: build its diagram with RallyParams.hit_prediction true")
+        return PlannedHitState(ModelBasedReturner.for_rally(params, ReturnerParams(memory=False)), HitStateLayer.for_rally(params))
     if name.startswith("policy:"):
         path = POLICIES_DIR / f"{name.removeprefix('policy:')}.pt"
         if not path.is_file():
@@ -127,6 +135,7 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
     evaluation, ~1.1 x faster, README *Speed*). Any other callable keeps ``params`` as given."""
     import dataclasses
 
+    from ace_drake.control.hit_state import PlannedHitState
     from ace_drake.control.returner import ModelBasedReturner
 
     inner = controller.controller if isinstance(controller, NoisyActions) else controller
@@ -134,7 +143,7 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
 
     if inner is still or isinstance(inner, ModelBasedReturner):
         reads = False
-    elif isinstance(inner, HitStatePolicy):
+    elif isinstance(inner, (HitStatePolicy, PlannedHitState)):
         return params
     elif isinstance(inner, DeterministicPolicy):
         reads = reads_hit_prediction(inner, params)
