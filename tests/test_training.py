@@ -350,7 +350,7 @@ def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):
     first = Trainer(_config(env_steps=30), tmp_path / "first", progress=lambda line: None)
     first.run()
     config = _config(env_steps=first.state.env_steps + 20, initialize_from=str(tmp_path / "first" / "checkpoint.pt"), bc_weight_final=0.3,
-                     exploration=dataclasses.replace(_exploration(), policy_std_scale=0.1))
+                     actor_lr_final=1e-6, exploration=dataclasses.replace(_exploration(), policy_std_scale=0.1))
     second = Trainer(config, tmp_path / "second", progress=lambda line: None)
     assert second.state.phase == "learn" and second.learner.updates == first.learner.updates
     assert len(second.replay) == len(first.replay) and second.state.evaluations == first.state.evaluations
@@ -359,9 +359,14 @@ def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):
     assert state.phase == "done" and state.env_steps >= config.env_steps and second.learner.updates > first.learner.updates
     own = state.evaluations[len(first.state.evaluations):]
     assert len(own) >= 2 and own[0][0] < config.env_steps  # the starting actor is evaluated first
+    # The actor's learning rate fell along the schedule towards actor_lr_final.
+    lr = second.learner.actor_optimizer.param_groups[0]["lr"]
+    assert 0.999 * config.actor_lr_final <= lr < config.sac.actor_lr
     assert chosen_actor(second, "best")[1] in own
     with pytest.raises(ConfigError, match="initialize_from"):
         _config(initialize_from=str(tmp_path / "missing.pt"))
+    with pytest.raises(ConfigError, match="actor_lr_final"):
+        _config(actor_lr_final=0.0)
 
 
 def _exploration():

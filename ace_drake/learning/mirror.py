@@ -26,7 +26,9 @@ With M = diag(1, -1, 1):
   along -f(delta) meets the boundary at the same beta. So map(-delta; F') = -map(delta; F) and
   negating the joint's two action components is exact. ``Mirror`` checks that every negated
   joint's position limits mirror onto themselves ([s l + c, s u + c] = [l, u]) and refuses the
-  robot otherwise.
+  robot otherwise. The hit-state action (``control.hit_state``: y_q = (q_hit - q0) / half-range,
+  y_v = v_hit / v_max per joint) mirrors by the same signs: for a negated joint with zero offset
+  both components negate, and the half-range and v_max of symmetric limits are unchanged.
 
 Layouts: ``observation.ObservationLayout`` (actor) and ``rally_env.PRIVILEGED_PARTS`` (critic).
 """

@@ -200,6 +200,12 @@ class SacLearner:
         return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale,
                                    self.config.action, hit_state)
 
+    def set_actor_lr(self, lr: float) -> None:
+        """Sets the actor optimiser's learning rate (a schedule: ``trainer``); the optimiser's
+        state keeps it, so a restored learner continues at it."""
+        for group in self.actor_optimizer.param_groups:
+            group["lr"] = float(lr)
+
     @property
     def hit_cloning(self):
         """The hit-state cloning loss (``learning.hit_state.HitStateCloning``), built on first use."""

@@ -15,7 +15,9 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    worker always has a task in flight (``episodes_per_task`` episodes with the latest actor); the
    learner updates as long as it is below ``updates_per_step`` updates per collected step and
    otherwise waits for episodes; fresh weights go to every task submitted after an update chunk.
-   The cloning weight goes linearly from ``sac.bc_weight`` to ``bc_weight_final`` over the phase.
+   The cloning weight goes linearly from ``sac.bc_weight`` to ``bc_weight_final`` over the phase,
+   and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is given
+   (a schedule lets the actor settle on a precise fit by the end of a run; the paper's is fixed).
 
 Every ``checkpoint_every`` steps the whole learner state (networks, optimisers, generator, replay
 tables, demonstrations, counters, history) is written atomically to ``checkpoint.pt`` (a
@@ -68,6 +70,7 @@ class TrainConfig:
     pretrain_updates: int = 0
     pretrain_bc_weight: float = 10.0
     bc_weight_final: float = 0.0
+    actor_lr_final: float | None = None  # the actor's learning rate at the learn phase's end (None: fixed)
     # The learn phase's collection: "policy" (SAC's) or "dagger" (the actor plays, the returner
     # labels its states for the cloning term; this project's, rollout docstring).
     learn_mode: str = "policy"
@@ -104,6 +107,8 @@ class TrainConfig:
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.actor_lr_final is not None and not self.actor_lr_final > 0.0:
+            raise ConfigError(f"TrainConfig.actor_lr_final must be > 0 (or left out), got {self.actor_lr_final}")
         if self.learn_mode not in ("policy", "dagger"):
             raise ConfigError(f"TrainConfig.learn_mode must be 'policy' or 'dagger', got {self.learn_mode!r}")
         if self.backend not in ("ray", "local"):
@@ -299,6 +304,8 @@ class Trainer:
             learned = self.state.env_steps - learn_start
             if len(self.replay) >= c.sac.batch_size and self.learner.updates - updates_start < c.updates_per_step * learned:
                 progress = min(1.0, learned / max(1, c.env_steps - learn_start))
+                if c.actor_lr_final is not None:
+                    self.learner.set_actor_lr(c.sac.actor_lr + progress * (c.actor_lr_final - c.sac.actor_lr))
                 self._update(c.update_chunk, c.sac.bc_weight + progress * (c.bc_weight_final - c.sac.bc_weight))
                 pool.publish(self.learner.actor.state_dict())
             elif result is None:  # nothing to learn from yet: wait for the workers
