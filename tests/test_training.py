@@ -178,6 +178,24 @@ def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
     assert sixth == fifth
 
 
+def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
+    import yaml
+
+    from ace_drake.config import from_dict
+    from ace_drake.robot_model import MODELS_DIR
+
+    data = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_dagger.yaml").read_text())
+    if not Path(data["evaluation_data"]).is_file():
+        pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
+    assert data.pop("initialize_from") == "out/train/rally_hit_state/checkpoint.pt"  # stage 1's default run dir
+    second, first = from_dict(TrainConfig, data), load_train_config(MODELS_DIR / "train_rally_hit_state.yaml")
+    assert first.sac.action == "hit_state" and second.sac == first.sac  # initialize_from loads stage 1's learner
+    assert first.demonstrations > 0 and first.env_steps < 41_940  # below the steps its demonstrations and OU took: it stops after cloning
+    assert second.seed != first.seed and second.learn_mode == "dagger" and second.exploration.policy_std_scale == 0.0
+    assert not first.returner.memory and not second.returner.memory  # PlannedHitState needs a memoryless returner
+    assert second.env.shots.players and not set(second.env.shots.players) & {"Elite D", "Elite E"}
+
+
 def test_the_workers_label_with_the_configured_returner():
     from ace_drake.config import ReturnerParams
 
