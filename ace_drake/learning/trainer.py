@@ -509,8 +509,10 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         "config": json.loads(json.dumps(to_dict(c))),
     }
     (policies_dir / f"{c.name}.json").write_text(json.dumps(sidecar, indent=2, default=float) + "\n")
+    rollouts = "actor's mean" if c.exploration.policy_std_scale == 0.0 else (
+        "stochastic actor" if c.exploration.policy_std_scale == 1.0 else f"actor at {c.exploration.policy_std_scale:g} of its spread")
     plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c),
-                        s.learn_start[0] if c.initialize_from else None)
+                        s.learn_start[0] if c.initialize_from else None, rollouts)
     return sidecar
 
 
@@ -557,11 +559,13 @@ def evaluation_series(state: Progress, description: str = "", started_at: int | 
             ([e for e in evaluated if e[0] > started_at], label)]
 
 
-def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None) -> None:
-    """Return rate against environment steps: the rollout policy's (last 100 episodes) and the
-    periodic evaluations' (with their 95 % intervals) on ``description``'s shots. A run started
-    from another's checkpoint at ``started_at`` steps (``initialize_from``) draws the earlier
-    run's evaluations, which may be of other shots, as a separate series."""
+def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None,
+                        rollouts: str = "stochastic actor") -> None:
+    """Return rate against environment steps: the rollout policy's (last 100 episodes; how it
+    acted: ``rollouts``) and the periodic evaluations' (with their 95 % intervals) on
+    ``description``'s shots. A run started from another's checkpoint at ``started_at`` steps
+    (``initialize_from``) draws the earlier run's evaluations, which may be of other shots, as a
+    separate series."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -570,7 +574,7 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     figure, axes = plt.subplots(figsize=(6, 3.5), dpi=100)
     if state.rollout_curve:
         steps, _, rates = zip(*state.rollout_curve)
-        axes.plot(steps, rates, color="0.6", label="rollouts (stochastic actor, last 100)")
+        axes.plot(steps, rates, color="0.6", label=f"rollouts ({rollouts}, last 100)")
     series = evaluation_series(state, description, started_at)
     for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
         if not points:
