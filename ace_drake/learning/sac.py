@@ -139,12 +139,15 @@ class SacLearner:
     from its own torch generator, so the same seed and batches give the same updates, bit for
     bit, and a learner restored from ``state_dict`` continues exactly as the original would."""
 
-    def __init__(self, config: SacConfig | None = None, rally=None):
+    def __init__(self, config: SacConfig | None = None, rally=None, hit_state_action=None):
         """``rally``: the RallyParams of the diagram the actor plays in (default RallyParams()),
-        read only by the hit-state action's cloning loss and parameterisation."""
+        read only by the hit-state action's cloning loss and parameterisation;
+        ``hit_state_action``: the hit-state parameterisation (``control.hit_state.HitStateAction``)
+        if not the one of ``rally``'s command limits (a loaded artefact's own)."""
         self.config = config or SacConfig()
         self.rally = rally
         self._hit_cloning = None
+        self._hit_state_action = hit_state_action
         c = self.config
         layout = c.layout
         self.generator = torch.Generator().manual_seed(c.seed)
@@ -196,9 +199,18 @@ class SacLearner:
     def policy(self) -> DeterministicPolicy:
         """A copy of the actor as a standalone deterministic policy module (networks), with its
         action kind and, for hit states, their parameterisation."""
-        hit_state = self.hit_cloning.parameterisation if self.config.action == "hit_state" else None
         return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale,
-                                   self.config.action, hit_state)
+                                   self.config.action, self.hit_state_action)
+
+    @property
+    def hit_state_action(self):
+        """The hit-state parameterisation (``control.hit_state.HitStateAction``) of a hit-state
+        learner, None for the terminal action."""
+        if self.config.action != "hit_state":
+            return None
+        if self._hit_state_action is None:
+            self._hit_state_action = self.hit_cloning.parameterisation
+        return self._hit_state_action
 
     def set_actor_lr(self, lr: float) -> None:
         """Sets the actor optimiser's learning rate (a schedule: ``trainer``); the optimiser's
@@ -336,8 +348,8 @@ def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> N
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
     payload = {"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config), "actor": actor_state or learner.actor.state_dict()}
-    if learner.config.action == "hit_state":
-        payload["hit_state"] = learner.hit_cloning.parameterisation.as_dict()
+    if learner.hit_state_action is not None:
+        payload["hit_state"] = learner.hit_state_action.as_dict()
     torch.save(payload, temporary)
     os.replace(temporary, path)
 
@@ -352,12 +364,11 @@ def load_policy(path) -> DeterministicPolicy:
         raise ValueError(f"{path}: not a policy artefact ({type(error).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != POLICY_FORMAT:
         raise ValueError(f"{path}: not a policy artefact (format {POLICY_FORMAT})")
-    learner = SacLearner(from_dict(SacConfig, payload["sac_config"]))
-    learner.actor.load_state_dict(payload["actor"])
-    policy = learner.policy() if learner.config.action == "terminal" else None
-    if policy is None:  # the hit-state parameterisation it was trained with, not today's default
+    hit_state_action = None
+    if "hit_state" in payload:  # the hit-state parameterisation it was trained with, not today's default
         from ace_drake.control.hit_state import HitStateAction
 
-        policy = DeterministicPolicy(copy.deepcopy(learner.actor).eval().requires_grad_(False), learner._actor_index, learner._actor_scale,
-                                     "hit_state", HitStateAction.from_dict(payload["hit_state"]))
-    return policy
+        hit_state_action = HitStateAction.from_dict(payload["hit_state"])
+    learner = SacLearner(from_dict(SacConfig, payload["sac_config"]), hit_state_action=hit_state_action)
+    learner.actor.load_state_dict(payload["actor"])
+    return learner.policy()
