@@ -1,7 +1,7 @@
 """Reinforcement learning: the rally environment, its observation and rewards, the learner (SAC
 with the auxiliary decoder loss and an optional cloning term, event tables, hindsight relabelling,
-mirroring), the rollout workers (``rollout``, ``workers``: Ray) and the training run
-(``trainer``: ``ace-drake train``).
+mirroring; the hit-state action's torch kinematics and cloning loss, ``hit_state``), the rollout
+workers (``rollout``, ``workers``: Ray) and the training run (``trainer``: ``ace-drake train``).
 
 Importing this package does not import Drake's diagram builders; ``RallyEnv`` builds its
 training diagram when constructed.
