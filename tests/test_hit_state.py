@@ -60,7 +60,8 @@ def test_the_parameterisation_round_trips_and_works_in_torch(layer):
     np.testing.assert_allclose(parameterisation.coordinates(q_hit, v_hit, READY), y, atol=1e-12)
     np.testing.assert_allclose(v_hit, y[:, 8:] * layer.driver.stack.limits.velocity)
     q_t, v_t = parameterisation.hit_state(torch.as_tensor(y), torch.as_tensor(READY))
-    np.testing.assert_allclose(q_t.numpy(), q_hit) and np.testing.assert_allclose(v_t.numpy(), v_hit)
+    np.testing.assert_allclose(q_t.numpy(), q_hit)
+    np.testing.assert_allclose(v_t.numpy(), v_hit)
     assert HitStateAction.from_dict(parameterisation.as_dict()).matches(parameterisation)
 
 
@@ -85,13 +86,15 @@ def test_the_driver_commands_the_hermite_one_segment_ahead():
     action = driver.drive(q0, v0, np.zeros(8), q_hit, v_hit, 6 * driver.segment)
     q_T, v_T = map_action(action, feasible_sets(q0, v0, np.zeros(8), stack.limits, stack.control, stack.period))
     expected = hermite(q0, v0, q_hit, v_hit, 6 * driver.segment, driver.segment)
-    np.testing.assert_allclose(q_T, expected[0], atol=1e-9) and np.testing.assert_allclose(v_T, expected[1], atol=1e-9)
+    np.testing.assert_allclose(q_T, expected[0], atol=1e-9)
+    np.testing.assert_allclose(v_T, expected[1], atol=1e-9)
     assert driver.last_choice == 0
     # Following through carries the joints on at their velocities.
     v_moving = np.r_[0.0, 0.0, 0.0, 0.3, 0.0, -0.3, 0.0, 0.0]
     q_T, v_T = map_action(driver.follow_through(q0, v_moving, np.zeros(8)),
                           feasible_sets(q0, v_moving, np.zeros(8), stack.limits, stack.control, stack.period))
-    np.testing.assert_allclose(q_T, q0 + v_moving * driver.segment, atol=1e-9) and np.testing.assert_allclose(v_T, v_moving, atol=1e-9)
+    np.testing.assert_allclose(q_T, q0 + v_moving * driver.segment, atol=1e-9)
+    np.testing.assert_allclose(v_T, v_moving, atol=1e-9)
 
 
 def test_the_layer_fed_the_returners_plan_sends_the_returners_action(layer):

@@ -185,8 +185,14 @@ class HitStateLayer:
     def for_rally(cls, rally) -> HitStateLayer:
         """The layer for the rally diagram of ``rally`` (a RallyParams): the supervisor's stack
         (``diagrams.make_control_stack``), its layout, and the lead and lag of the diagram's own
-        hit predictor (``diagrams``: ``HitPredictor.for_robot`` with default ReturnerParams)."""
+        hit predictor (``diagrams``: ``HitPredictor.for_robot`` with default ReturnerParams).
+        Raises ConfigError if ``rally`` does not compute the observation's hit prediction, which
+        the layer plays."""
+        from ace_drake.config import ConfigError
         from ace_drake.control.hit_prediction import HitPredictor
+
+        if not rally.hit_prediction:
+            raise ConfigError("the hit-state layer plays the observation's predicted hit: build its diagram with RallyParams.hit_prediction true")
         from ace_drake.diagrams import make_control_stack
         from ace_drake.robot_model import MODELS_DIR, load_scenario
 

@@ -264,8 +264,8 @@ class RolloutWorker:
             y = self.noise.sample(self.rng)
         elif mode in ("policy", "dagger"):
             y = self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale)
-        elif planned is None:
-            return returner_action, np.zeros(ACTION_SIZE), label  # no planned hit state: the returner's own action
+        elif planned is None:  # no planned hit state: the returner's own action
+            return self._fallback(obs) if returner_action is None else returner_action, np.zeros(ACTION_SIZE), label
         else:
             y = planned
             if self.rng.random() < self.exploration.demo_noise_fraction:
@@ -273,17 +273,18 @@ class RolloutWorker:
         action = self.layer(obs, y)
         return (self._fallback(obs) if action is None else action), np.asarray(y, dtype=float), label
 
-    def _hit_label(self, obs: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    def _hit_label(self, obs: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray | None]:
         """(the returner's planned hit state for ``obs``, or None; the label: the same where the
-        plan's hit is the observation's predicted one, else NaN; the returner's action, as
-        ``_label``): ``control.hit_state.PlannedHitState.plan``."""
+        plan's hit is the observation's predicted one, else NaN; the returner's action or None):
+        ``control.hit_state.PlannedHitState.plan``. The fallback for a missing action is left to
+        the one caller that plays it (a collision check per step saved in DAgger mode)."""
         if self._planned is None:
             from ace_drake.control.hit_state import PlannedHitState
 
             self._planned = PlannedHitState(self.returner, self.layer)
         planned, at_prediction, action = self._planned.plan(obs)
         label = planned if planned is not None and at_prediction else np.full(ACTION_SIZE, np.nan)
-        return planned, label, self._fallback(obs) if action is None else action
+        return planned, label, action
 
     def _label(self, obs: np.ndarray) -> np.ndarray:
         """The returner's action for ``obs``; when it has none, continuing the plan or else heading

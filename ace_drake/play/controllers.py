@@ -69,12 +69,11 @@ class HitStatePolicy:
 def hit_state_controller(controller, params: RallyParams):
     """``controller`` ready for the rally diagram of ``params``: a hit-state DeterministicPolicy
     wrapped in ``HitStatePolicy`` (raises ConfigError if ``params`` does not compute the
-    observation's hit prediction, which it needs), anything else unchanged."""
+    observation's hit prediction, which it needs: ``HitStateLayer.for_rally``), anything else
+    unchanged."""
     from ace_drake.learning.networks import DeterministicPolicy
 
     if isinstance(controller, DeterministicPolicy) and controller.action == "hit_state":
-        if not params.hit_prediction:
-            raise ConfigError("a hit-state policy plays the observation's predicted hit: build its diagram with RallyParams.hit_prediction true")
         from ace_drake.control.hit_state import HitStateLayer
 
         return HitStatePolicy(controller, HitStateLayer.for_rally(params))
@@ -100,8 +99,6 @@ def make_controller(name: str, params: RallyParams):
         from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
         from ace_drake.control.returner import ModelBasedReturner
 
-        if not params.hit_prediction:
-            raise ConfigError("returner:hit_state plays the observation's predicted hit: build its diagram with RallyParams.hit_prediction true")
         return PlannedHitState(ModelBasedReturner.for_rally(params, ReturnerParams(memory=False)), HitStateLayer.for_rally(params))
     if name.startswith("policy:"):
         path = POLICIES_DIR / f"{name.removeprefix('policy:')}.pt"
