@@ -240,15 +240,17 @@ class PlannedHitState:
     def plan(self, observation: np.ndarray) -> tuple[np.ndarray | None, bool, np.ndarray | None]:
         """(y (16,) of the returner's planned hit from the segment start, or None when it plans
         none or nothing is predicted; whether its hit time is the predicted hit's, within half a
-        segment; the returner's action). A plan for a later hit (the predicted one needs too
-        much acceleration) still gives y: the layer aims it at the predicted hit."""
+        segment; the returner's action where there is no y, else None: a plan played through the
+        layer is not also driven the returner's way, ``ModelBasedReturner.plan``). A plan for a
+        later hit (the predicted one needs too much acceleration) still gives y: the layer aims
+        it at the predicted hit."""
         observation = np.asarray(observation, dtype=float)
-        action = self.returner(observation)
-        plan, hit = self.returner.last_plan, self.layer.layout.part(observation, "hit_prediction")
+        plan, returner_action = self.returner.plan(observation)
+        hit = self.layer.layout.part(observation, "hit_prediction")
         if plan is None or hit[0] < 0.5:
-            return None, False, action
+            return None, False, returner_action()
         q0 = self.layer.layout.part(observation, "robot_state")[:8]
-        return self.layer.parameterisation.coordinates(plan.q, plan.v, q0), abs(plan.time - hit[1]) <= 0.5 * self.segment, action
+        return self.layer.parameterisation.coordinates(plan.q, plan.v, q0), abs(plan.time - hit[1]) <= 0.5 * self.segment, None
 
     @property
     def segment(self) -> float:

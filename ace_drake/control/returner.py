@@ -68,8 +68,9 @@ commanded, and solves the full IK from the segment-start configuration.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 from pydrake.multibody.inverse_kinematics import InverseKinematics
@@ -479,8 +480,22 @@ class ModelBasedReturner:
         finally:
             self.call_seconds.append(time.perf_counter() - start)
 
+    def plan(self, observation: np.ndarray) -> tuple[HitPlan | None, Callable[[], np.ndarray | None]]:
+        """Steps 1-4 of a call: (the hit it plans for ``observation`` or None, a function giving
+        the action the call would return). The plan is driven (step 5 and step 6's collision
+        check) only if that function is called: for callers that play the plan their own way
+        (``control.hit_state.PlannedHitState``). Advances the returner's state as a call does."""
+        start = time.perf_counter()
+        try:
+            result = self._act(np.asarray(observation, dtype=float), drive=False)
+            return self.last_plan, (result if callable(result) else lambda: result)
+        finally:
+            self.call_seconds.append(time.perf_counter() - start)
+
     # ------------------------------------------------------------------------------ one call
-    def _act(self, observation: np.ndarray) -> np.ndarray | None:
+    def _act(self, observation: np.ndarray, drive: bool = True):
+        """The call's action (or None); with ``drive`` false, where a hit is planned, the function
+        that drives it instead (``plan``)."""
         layout = self.layout
         self._ik_budget = self.params.ik_solves_per_call
         self.last_plan = None
@@ -516,7 +531,8 @@ class ModelBasedReturner:
         if hit is None:
             return None
         boundary = hit.time - flight.clock - self.lag  # when the command must be at (q_hit, v_hit), s after the observation
-        return self.driver.drive(q0, v0, a0, hit.q, hit.v, boundary - self.lead)
+        steps_5_6 = functools.partial(self.driver.drive, q0, v0, a0, hit.q, hit.v, boundary - self.lead)
+        return steps_5_6() if drive else steps_5_6
 
     def _advance(self, estimate: np.ndarray | None) -> Flight:
         """The memory for this call: the clock advanced by one segment, or a fresh memory when the

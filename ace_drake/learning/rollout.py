@@ -275,8 +275,8 @@ class RolloutWorker:
 
     def _hit_label(self, obs: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray | None]:
         """(the returner's planned hit state for ``obs``, or None; the label: the same where the
-        plan's hit is the observation's predicted one, else NaN; the returner's action or None):
-        ``control.hit_state.PlannedHitState.plan``. The fallback for a missing action is left to
+        plan's hit is the observation's predicted one, else NaN; the returner's action where there
+        is no planned hit state, else None): ``control.hit_state.PlannedHitState.plan``. The fallback for a missing action is left to
         the one caller that plays it (a collision check per step saved in DAgger mode)."""
         if self._planned is None:
             from ace_drake.control.hit_state import PlannedHitState
@@ -289,9 +289,7 @@ class RolloutWorker:
     def _label(self, obs: np.ndarray) -> np.ndarray:
         """The returner's action for ``obs``; when it has none, continuing the plan or else heading
         for the reset pose, whichever the stack accepts first (the plan if neither)."""
-        returner = self.returner
-        q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
-        label = returner(obs)
+        label = self.returner(obs)
         return self._fallback(obs) if label is None else label
 
     def _fallback(self, obs: np.ndarray) -> np.ndarray:
