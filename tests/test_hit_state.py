@@ -112,6 +112,39 @@ def test_the_layer_fed_the_returners_plan_sends_the_returners_action(layer):
     np.testing.assert_allclose(layer(obs, y), action, atol=1e-9)
 
 
+def test_the_layer_that_meets_the_ball_moves_the_blade_onto_the_predicted_ball_and_keeps_its_orientation(layer, model):
+    from ace_drake.physics.contact import blade_standoff
+
+    meeting = HitStateLayer.for_rally(RallyParams(), meet_ball=True)
+    assert meeting.meets_ball and not layer.meets_ball
+    assert meeting.standoff == pytest.approx(blade_standoff(BallPhysicsParams().aero.ball_radius, BallPhysicsParams().racket))
+    returner = ModelBasedReturner.for_rally(RallyParams(), ReturnerParams(memory=False))
+    estimate = simulate(INCOMING_BALL, BallPhysicsParams(), 0.1).final_state[0]
+    obs = observation(layer.layout, estimate, returner.predictor)
+    plan, _ = returner.plan(obs)
+    ball = layer.layout.part(obs, "hit_prediction")[2:5]
+    # The returner's own plan already meets the ball: the layer leaves it (nearly) where it is.
+    np.testing.assert_allclose(meeting.meet_ball(plan.q, ball), plan.q, atol=2e-3)
+    # An actor's hit state a few cm off (a 0.05 rad shoulder error) is moved back onto the ball.
+    off = plan.q + np.r_[0.0, 0.0, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
+    X_off = model.racket_pose(off)
+    miss = ball - meeting.standoff * X_off.rotation().matrix()[:, 2] - X_off.translation()
+    assert np.linalg.norm(miss) > 0.02
+    met = meeting.meet_ball(off, ball)
+    X_met = model.racket_pose(met)
+    np.testing.assert_allclose(X_met.translation() + meeting.standoff * X_met.rotation().matrix()[:, 2], ball, atol=1e-3)
+    np.testing.assert_allclose(X_met.rotation().matrix(), X_off.rotation().matrix(), atol=1e-3)
+    limits = meeting.driver.stack.limits
+    assert np.all(met >= limits.lower) and np.all(met <= limits.upper)
+    # Out of reach: the result stays inside the command limits.
+    far = meeting.meet_ball(plan.q, ball + np.r_[0.0, 5.0, 0.0])
+    assert np.all(far >= limits.lower) and np.all(far <= limits.upper)
+    # Through the layer, the action is the one for the met hit state.
+    y_off = layer.parameterisation.coordinates(off, plan.v, READY)
+    y_met = layer.parameterisation.coordinates(met, plan.v, READY)
+    np.testing.assert_allclose(meeting(obs, y_off), layer(obs, y_met), atol=1e-9)
+
+
 def test_the_layer_has_no_action_without_a_predicted_hit_and_follows_through_at_it(layer):
     predictor = HitPredictor.for_robot(layer.driver.stack.scenario, layer.driver.stack.control, BallPhysicsParams())
     estimate = simulate(INCOMING_BALL, BallPhysicsParams(), 0.1).final_state[0]
@@ -224,6 +257,11 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
                                                                                    controller.layer.driver.stack.control, BallPhysicsParams()))
     y = controller.policy(torch.as_tensor(obs, dtype=torch.float32)[None])[0].numpy()
     np.testing.assert_allclose(controller(obs), controller.layer(obs, y))
+    assert not controller.layer.meets_ball
+    # A policy trained for the ball-meeting layer keeps it in its artefact and plays through it.
+    save_policy(tmp_path / "meeting.pt", SacLearner(dataclasses.replace(SMALL, meet_ball=True)))
+    assert load_policy(tmp_path / "meeting.pt").meet_ball
+    assert controllers.make_controller("policy:meeting", RallyParams()).layer.meets_ball
     with pytest.raises(ConfigError, match="hit_prediction"):
         controllers.make_controller("policy:hit_state", RallyParams(hit_prediction=False))
     other = HitStateAction(policy.hit_state.half_range * 1.1, policy.hit_state.velocity)

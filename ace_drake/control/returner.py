@@ -82,7 +82,7 @@ from ace_drake.control.hit_prediction import Flight, HitPredictor, Prediction
 from ace_drake.control.hit_state import HitDriver, hermite_peak_acceleration
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.observation import ObservationLayout
-from ace_drake.physics.contact import racket_impact, racket_restitution
+from ace_drake.physics.contact import blade_standoff, racket_impact, racket_restitution
 from ace_drake.physics.propagate import simulate
 from ace_drake.robot_model import MODELS_DIR, IkResult, RobotModel, load_scenario
 
@@ -295,7 +295,7 @@ def racket_plans(
     blade's thickness behind the ball along the normal."""
     returner = returner or ReturnerParams()
     ball = np.asarray(ball, dtype=float)
-    standoff = params.aero.ball_radius + 0.5 * params.racket.blade_thickness
+    standoff = blade_standoff(params.aero.ball_radius, params.racket)
     flight_times = list(returner.flight_times)
     if previous is not None:
         flight_times = [previous.flight_time] + [t for t in flight_times if t != previous.flight_time]

@@ -139,12 +139,14 @@ class DeterministicPolicy(nn.Module):
     part selection and input scaling included, so that it can be saved and loaded alone.
     ``action``: what the output is (``sac.SacConfig.action``); for "hit_state", ``hit_state`` is
     its ``control.hit_state.HitStateAction`` and the policy plays through
-    ``play.controllers.hit_state_controller``."""
+    ``play.controllers.hit_state_controller``, whose layer meets the ball if ``meet_ball``
+    (``sac.SacConfig.meet_ball``)."""
 
-    def __init__(self, actor: Actor, index: torch.Tensor, scale: torch.Tensor, action: str = "terminal", hit_state=None):
+    def __init__(self, actor: Actor, index: torch.Tensor, scale: torch.Tensor, action: str = "terminal", hit_state=None,
+                 meet_ball: bool = False):
         super().__init__()
         self.actor = actor
-        self.action, self.hit_state = action, hit_state
+        self.action, self.hit_state, self.meet_ball = action, hit_state, meet_ball
         self.register_buffer("index", index.clone())
         self.register_buffer("scale", scale.clone())
 

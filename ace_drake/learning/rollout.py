@@ -188,7 +188,7 @@ class RolloutWorker:
         if self._layer is None:
             from ace_drake.control.hit_state import HitStateLayer
 
-            self._layer = HitStateLayer.for_rally(self.env.params.rally)
+            self._layer = HitStateLayer.for_rally(self.env.params.rally, meet_ball=self.learner.config.meet_ball)
         return self._layer
 
     @property

@@ -100,6 +100,10 @@ class SacConfig:
     # 0-100, README) and the task-space scales (blade position m, normal, blade velocity m/s).
     consistency_weight: float = 30.0
     hit_loss_scales: tuple[float, float, float] = (0.02, 0.05, 0.2)
+    # The hit-state layer moves the actor's q_hit so the blade meets the predicted ball
+    # (control.hit_state, HitStateLayer.meet_ball; this project's). Read where the actor plays
+    # (rollout workers, the policy controller); the cloning loss is the same either way.
+    meet_ball: bool = False
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -200,7 +204,7 @@ class SacLearner:
         """A copy of the actor as a standalone deterministic policy module (networks), with its
         action kind and, for hit states, their parameterisation."""
         return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale,
-                                   self.config.action, self.hit_state_action)
+                                   self.config.action, self.hit_state_action, self.config.meet_ball)
 
     @property
     def hit_state_action(self):

@@ -65,6 +65,12 @@ def table_impact(v_W: np.ndarray, w_W: np.ndarray, table: TableParams, radius: f
     return v_post, w_post
 
 
+def blade_standoff(radius: float, racket: RacketParams) -> float:
+    """The blade centre's distance (m) behind a ball of ``radius`` m touching the blade, along
+    the blade's normal: the radius plus half the blade's thickness."""
+    return radius + 0.5 * racket.blade_thickness
+
+
 def racket_restitution(v_normal: np.ndarray, racket: RacketParams) -> np.ndarray:
     """eps_racket = gamma1 exp(gamma2 |v_z^-|) (paper, below eq. (8)); v_normal in m/s."""
     return racket.restitution_gamma1 * np.exp(racket.restitution_gamma2 * np.abs(v_normal))

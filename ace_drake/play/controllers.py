@@ -68,15 +68,15 @@ class HitStatePolicy:
 
 def hit_state_controller(controller, params: RallyParams):
     """``controller`` ready for the rally diagram of ``params``: a hit-state DeterministicPolicy
-    wrapped in ``HitStatePolicy`` (raises ConfigError if ``params`` does not compute the
-    observation's hit prediction, which it needs: ``HitStateLayer.for_rally``), anything else
-    unchanged."""
+    wrapped in ``HitStatePolicy`` with the layer it was trained for (meeting the ball or not;
+    raises ConfigError if ``params`` does not compute the observation's hit prediction, which it
+    needs: ``HitStateLayer.for_rally``), anything else unchanged."""
     from ace_drake.learning.networks import DeterministicPolicy
 
     if isinstance(controller, DeterministicPolicy) and controller.action == "hit_state":
         from ace_drake.control.hit_state import HitStateLayer
 
-        return HitStatePolicy(controller, HitStateLayer.for_rally(params))
+        return HitStatePolicy(controller, HitStateLayer.for_rally(params, meet_ball=controller.meet_ball))
     return controller
 
 
