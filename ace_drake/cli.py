@@ -593,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")
-    train.add_argument("config", help="training config YAML (learning.trainer.TrainConfig; e.g. configs/train_rally.yaml)")
+    train.add_argument("config", help="training config YAML (learning.trainer.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
     train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
     train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")

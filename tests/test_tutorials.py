@@ -122,6 +122,8 @@ def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):
     assert "hit_prediction 11" in run.stdout and re.search(r"step \d+: hit predicted 0\.\d{3} s ahead", run.stdout)
     assert re.search(r"a demonstration: \d+ steps, outcome '\w+'; [1-9]\d* steps carry", run.stdout)
     assert re.search(r"cloning loss on them \(task space \+ joints \+ consistency\): \d+\.\d", run.stdout)
+    met = re.search(r"meeting the ball: the blade's contact point (\d+\.\d) cm from the predicted ball for the plan, (\d+\.\d) cm for the off hit state, (\d+\.\d) cm once", run.stdout)
+    assert met and float(met[2]) > 1.0 and float(met[3]) <= 0.2 and float(met[1]) <= 0.5
     for name in ("tutorial.pt", "tutorial.json", "tutorial_curve.png"):
         assert (tmp_path / "policies" / name).is_file()
     assert (tmp_path / "run" / "checkpoint.pt").is_file()

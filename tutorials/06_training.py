@@ -130,6 +130,20 @@ def main() -> None:
         rows = {"obs": t["obs"][labelled], "demo_action": t["demo_action"][labelled]}
         print(f"   the untrained actor's cloning loss on them (task space + joints + consistency): "
               f"{learner.behaviour_cloning_loss(rows).item():.1f}")
+        # The layer that meets the ball (SacConfig.meet_ball): an actor's hit state a little off
+        # (here the plan with a 0.05 rad shoulder error) is moved so the blade meets the predicted ball.
+        from ace_drake.control.hit_state import HitStateLayer
+
+        meeting = HitStateLayer.for_rally(worker.env.params.rally, meet_ball=True)
+        ball = layout.part(t["obs"][first], "hit_prediction")[2:5]
+
+        def miss(q):
+            X_WR = meeting.model.racket_pose(q)
+            return 100 * np.linalg.norm(ball - meeting.standoff * X_WR.rotation().matrix()[:, 2] - X_WR.translation())
+
+        off = q_hit + np.r_[0.0, 0.0, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
+        print(f"   meeting the ball: the blade's contact point {miss(q_hit):.1f} cm from the predicted ball for the plan, "
+              f"{miss(off):.1f} cm for the off hit state, {miss(meeting.meet_ball(off, ball)):.1f} cm once the layer has moved it")
     print("done")
 
 
