@@ -65,6 +65,17 @@ def test_the_parameterisation_round_trips_and_works_in_torch(layer):
     assert HitStateAction.from_dict(parameterisation.as_dict()).matches(parameterisation)
 
 
+def test_steps_to_hit_agree_in_numpy_and_torch(layer):
+    # The layer's k and the cloning loss's k come from one formula, rounding alike at half steps.
+    from ace_drake.control.hit_state import steps_to_hit
+
+    times = layer.lead + layer.lag + layer.segment * np.array([-0.5, 0.0, 0.5, 1.49, 1.5, 2.5, 7.2])
+    k = layer.steps_to_hit(times)
+    np.testing.assert_array_equal(k, [0, 0, 0, 1, 2, 2, 7])
+    np.testing.assert_array_equal(steps_to_hit(torch.as_tensor(times), layer.lead, layer.lag, layer.segment).numpy(), k)
+    assert isinstance(layer.steps_to_hit(float(times[-1])), np.integer)
+
+
 def test_torch_kinematics_match_drake(model):
     kinematics = RacketKinematics(model, torch.float64)
     rng = np.random.default_rng(1)

@@ -183,6 +183,20 @@ def _like(array: np.ndarray, reference):
     return array
 
 
+def steps_to_hit(hit_time, lead: float, lag: float, segment: float):
+    """k = round((t_p - lead - lag) / T) (module docstring): the segments from the observation's
+    segment start to the boundary where the joints must be at the hit state, for a hit
+    ``hit_time`` s after the observation (lead, lag, segment T in s). An int, or an array of
+    them; for a torch tensor of times (the cloning loss's), a tensor of rounded floats. Both
+    round half to even."""
+    ratio = (hit_time - lead - lag) / segment
+    if type(hit_time).__module__.startswith("torch"):
+        import torch
+
+        return torch.round(ratio)
+    return np.rint(np.asarray(ratio)).astype(int)
+
+
 class HitStateLayer:
     """The fixed layer from a hit-state action to the control stack's action (module docstring):
     ``layer(observation, y) -> action (16,) | None``."""
@@ -242,10 +256,8 @@ class HitStateLayer:
         return q
 
     def steps_to_hit(self, hit_time):
-        """k (int, or an array of them): the segments from the observation's segment start to the
-        boundary where the joints must be at the hit state, for a hit ``hit_time`` s after the
-        observation."""
-        return np.rint((np.asarray(hit_time) - self.lead - self.lag) / self.segment).astype(int)
+        """k (``steps_to_hit``) for this layer's lead, lag and segment."""
+        return steps_to_hit(hit_time, self.lead, self.lag, self.segment)
 
     def __call__(self, observation: np.ndarray, y: np.ndarray) -> np.ndarray | None:
         observation = np.asarray(observation, dtype=float)

@@ -14,7 +14,7 @@ the directional derivative J(q) v of its position (``torch.func.jvp``). Matched 
 **The cloning loss** (``HitStateCloning``) compares the actor's hit state y with the returner's
 y_label (its planned hit's (q_hit, v_hit), ``control.hit_state.HitStateAction.coordinates``)
 where it matters, per row, with D = k T the time from the segment start to the hit's boundary
-(``HitStateLayer.steps_to_hit``) and A the acceleration limits:
+(``control.hit_state.steps_to_hit``) and A the acceleration limits:
 
     task        = |p - p_l|^2 / s_p^2 + |n - n_l|^2 / s_n^2 + |u - u_l|^2 / s_u^2
                   (blade centre p, forehand normal n and blade velocity u = J(q) v of the two
@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from ace_drake.config import RallyParams
-from ace_drake.control.hit_state import HitStateAction
+from ace_drake.control.hit_state import HitStateAction, steps_to_hit
 from ace_drake.learning.observation import ObservationLayout
 from ace_drake.robot_model import RobotModel
 
@@ -133,7 +133,7 @@ class HitStateCloning:
         robot = obs[:, self._robot]
         q0, v0 = robot[:, :8], robot[:, 8:16]
         hit_time = obs[:, self._hit][:, 1:2]
-        steps = torch.clamp(torch.round((hit_time - self.lead - self.lag) / self.segment), min=1.0)
+        steps = torch.clamp(steps_to_hit(hit_time, self.lead, self.lag, self.segment), min=1.0)
         duration = steps * self.segment
         q, v = self.parameterisation.hit_state(y, q0)
         p, R, u = self.kinematics.pose_and_velocity(q, v)
