@@ -29,9 +29,9 @@ blade's own normal, the blade's orientation kept: Gauss-Newton steps on the rack
     dq = W J^T (J W J^T + lambda I)^-1 [0; p_ball - s n(q) - p(q)],    q <- clip(q + dq)
 
 so the actor chooses how to hit (the normal, the velocity, the arm's redundant posture) and the
-layer makes the blade meet the ball where the predictor says it will be. The actor's blade
-position misses the returner's by 3.3 cm (median; 9.4 cm at the 90th percentile, against a blade
-radius of about 7.5 cm) across the line of the normal, where the returner's own is within 2 mm
+layer makes the blade meet the ball where the predictor says it will be. A cloned actor's blade
+centre sits 3.3 cm (median; 9.4 cm at the 90th percentile, against a blade radius of about
+7.5 cm) off the line through the predicted ball along its normal, the returner's within 2 mm
 (README, *Training: the hit-state actor*).
 
 ``PlannedHitState`` is the memoryless returner's planned hit state as such an action: the
