@@ -276,8 +276,9 @@ class RolloutWorker:
     def _hit_label(self, obs: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray | None]:
         """(the returner's planned hit state for ``obs``, or None; the label: the same where the
         plan's hit is the observation's predicted one, else NaN; the returner's action where there
-        is no planned hit state, else None): ``control.hit_state.PlannedHitState.plan``. The fallback for a missing action is left to
-        the one caller that plays it (a collision check per step saved in DAgger mode)."""
+        is no planned hit state, else None): ``control.hit_state.PlannedHitState.plan``. The
+        fallback for a missing action is left to the one caller that plays it (a collision check
+        per step saved in DAgger mode)."""
         if self._planned is None:
             from ace_drake.control.hit_state import PlannedHitState
 
