@@ -435,12 +435,13 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
         assert action.shape == (1, ACTION_SIZE) and torch.all(action.abs() <= 1.0)
 
 
-@pytest.mark.parametrize("name, at_least", [("rally_hit_state", 4), ("rally_hit_state_meet", 5)])
-def test_the_shipped_hit_state_policies_return_recorded_human_shots(name, at_least):
+@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state", 4), ("policy:rally_hit_state_meet", 5), ("returner:hit_state", 5)])
+def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # The first 12 recorded shots of Elite A (a training player), cameras, seed 0: 7 are playable;
     # rally_hit_state returned 5 of them, rally_hit_state_meet (the layer meeting the ball) 7,
-    # rally_sac 3, still 0 (measured). A behaviour, not a benchmark (README *Training: the
-    # hit-state actor* has the measured rates).
+    # returner:hit_state (the returner's planned hit states through the layer) 7, rally_sac 3,
+    # still 0 (measured). A behaviour, not a benchmark (README *Training: the hit-state actor*
+    # has the measured rates).
     from ace_drake.analysis.evaluation import evaluate
     from ace_drake.config import RallyParams
     from ace_drake.play import controllers
@@ -451,7 +452,7 @@ def test_the_shipped_hit_state_policies_return_recorded_human_shots(name, at_lea
         pytest.skip(f"the match data is not at {data}")
     shots, serve = human_shots(str(data), ("Elite A",))
     params = RallyParams()
-    figures = evaluate(controllers.make_controller(f"policy:{name}", params), params, shots[:12], serve[:12], seed=0)
+    figures = evaluate(controllers.make_controller(name, params), params, shots[:12], serve[:12], seed=0)
     rate = figures["return_rate"]
     assert rate["played"] >= 5 and rate["returned"] >= at_least, rate
 
