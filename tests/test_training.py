@@ -15,7 +15,7 @@ from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
-from ace_drake.learning.trainer import TrainConfig, Trainer, chosen_actor, export, load_train_config
+from ace_drake.learning.trainer import TrainConfig, Trainer, chosen_actor, evaluation_series, export, load_train_config
 
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
 
@@ -213,6 +213,26 @@ def test_the_meeting_config_is_stage_1_with_more_demonstrations_and_the_ball_mee
     assert not meeting.returner.memory
 
 
+def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations():
+    import dataclasses
+
+    import yaml
+
+    from ace_drake.config import from_dict
+    from ace_drake.robot_model import MODELS_DIR
+
+    data = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_meet_more.yaml").read_text())
+    if not Path(data["evaluation_data"]).is_file():
+        pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
+    assert data.pop("initialize_from") == "out/train/rally_hit_state_meet/checkpoint.pt"  # the meeting run's default run dir
+    more, meeting = from_dict(TrainConfig, data), load_train_config(MODELS_DIR / "train_rally_hit_state_meet.yaml")
+    assert more.sac == meeting.sac  # initialize_from loads its learner
+    assert more.initialize_phase == "demonstrations" and more.seed != meeting.seed
+    assert more.demonstrations > meeting.demonstrations and more.pretrain_updates > meeting.pretrain_updates
+    assert more.ou_episodes == meeting.ou_episodes and more.env_steps < 16 * meeting.demonstrations  # no OU, no learn phase
+    assert more.env.shots == meeting.env.shots and more.returner == meeting.returner and more.exploration == meeting.exploration
+
+
 def test_the_workers_label_with_the_configured_returner():
     from ace_drake.config import ReturnerParams
 
@@ -402,6 +422,25 @@ def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):
         _config(initialize_from=str(tmp_path / "missing.pt"))
     with pytest.raises(ConfigError, match="actor_lr_final"):
         _config(actor_lr_final=0.0)
+
+
+def test_a_run_can_take_up_another_runs_demonstrations_phase(tmp_path):
+    first = Trainer(_config(env_steps=10), tmp_path / "first", progress=lambda line: None)
+    first.run()
+    demonstrated, cloned = first.state.demonstration_episodes, first.learner.updates
+    config = _config(seed=4, env_steps=10, demonstrations=demonstrated + 1, pretrain_updates=first.state.pretrain_updates + 6,
+                     initialize_from=str(tmp_path / "first" / "checkpoint.pt"), initialize_phase="demonstrations")
+    second = Trainer(config, tmp_path / "second", progress=lambda line: None)
+    assert second.state.phase == "demonstrations" and second.state.initialized_at == first.state.env_steps
+    state = second.run()
+    # One more demonstration (the OU total was reached already), six more cloning updates, then its own evaluation.
+    assert state.demonstration_episodes == demonstrated + 1 and state.ou_episodes == first.state.ou_episodes
+    assert second.learner.updates >= cloned + 6 and len(second.demonstrations) > len(first.demonstrations)
+    own = [e for e in state.evaluations if e[0] > state.initialized_at]
+    assert len(own) == len(state.evaluations) - len(first.state.evaluations) >= 1
+    assert evaluation_series(state, "", state.initialized_at)[1][0] == [(e[0], e[2]) for e in own if e[2]["rate"] is not None]
+    with pytest.raises(ConfigError, match="initialize_phase"):
+        _config(initialize_phase="ou")
 
 
 def _exploration():

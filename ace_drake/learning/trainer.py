@@ -85,6 +85,10 @@ class TrainConfig:
     # Another run's checkpoint to start from, in the learn phase (its learner, replay tables and
     # demonstrations; e.g. a run stopped after its pretraining); "" starts afresh.
     initialize_from: str = ""
+    # The phase a run initialised from a checkpoint takes up: "learn", or "demonstrations" to go on
+    # collecting demonstrations, OU episodes and cloning updates up to this config's totals
+    # (demonstrations, ou_episodes, pretrain_updates), counted from the checkpoint's own.
+    initialize_phase: str = "learn"
     mirror: bool = False  # mirror augmentation; the shipped robot is not mirror-symmetric (mirror.py)
     torch_threads: int = 1
     log_every: float = 30.0  # s between progress lines
@@ -121,6 +125,8 @@ class TrainConfig:
             raise ConfigError("TrainConfig.evaluation_players selects shots of evaluation_data; give a match-data CSV")
         if self.evaluation_data and not Path(self.evaluation_data).is_file():
             raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
+        if self.initialize_phase not in ("demonstrations", "learn"):
+            raise ConfigError(f"TrainConfig.initialize_phase must be 'demonstrations' or 'learn', got {self.initialize_phase!r}")
         if self.initialize_from and not Path(self.initialize_from).is_file():
             raise ConfigError(f"TrainConfig.initialize_from: no such file {self.initialize_from}")
         for path in self.demonstration_files:
@@ -164,6 +170,7 @@ class Progress:
     # (env_steps, updates, evaluation figures) per evaluation
     evaluations: list = dataclasses.field(default_factory=list)
     learn_start: tuple = (0, 0)  # (env_steps, updates) when the learn phase began
+    initialized_at: int | None = None  # env_steps of the checkpoint the run started from (initialize_from)
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
@@ -444,10 +451,12 @@ class Trainer:
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
 
     def _initialize_from(self, path: Path) -> None:
-        """Starts the learn phase from another run's checkpoint (``initialize_from``): its learner
-        (the SacConfig must be the same), replay tables, demonstrations and counters. Its best
-        actor is forgotten (its evaluations may be of other shots): this run evaluates its starting
-        actor first and chooses among its own evaluations."""
+        """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
+        must be the same), replay tables, demonstrations and counters, in ``initialize_phase``:
+        the learn phase, or the demonstrations phase, whose collections and cloning updates then
+        run on to this config's totals. Its best actor is forgotten (its evaluations may be of
+        other shots): this run evaluates its actor first (after its cloning updates, if any) and
+        chooses among its own evaluations."""
         import torch
 
         payload = torch.load(path, weights_only=False)
@@ -456,11 +465,12 @@ class Trainer:
         self.demonstrations.load_state_dict(payload["demonstrations"])
         s = self.state = Progress(**payload["progress"])  # its counters and history
         c = self.config
-        s.phase, s.learn_start, s.resumptions = "learn", (s.env_steps, self.learner.updates), 0
+        s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
+        s.initialized_at = s.env_steps
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
-        self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; learn phase")
+        self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")
 
     def _save_config(self) -> None:
         import yaml
@@ -511,8 +521,10 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     (policies_dir / f"{c.name}.json").write_text(json.dumps(sidecar, indent=2, default=float) + "\n")
     rollouts = "actor's mean" if c.exploration.policy_std_scale == 0.0 else (
         "stochastic actor" if c.exploration.policy_std_scale == 1.0 else f"actor at {c.exploration.policy_std_scale:g} of its spread")
-    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c),
-                        s.learn_start[0] if c.initialize_from else None, rollouts)
+    started_at = s.initialized_at
+    if started_at is None and c.initialize_from:
+        started_at = s.learn_start[0]  # a run initialised before Progress.initialized_at existed: the same step
+    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c), started_at, rollouts)
     return sidecar
 
 
