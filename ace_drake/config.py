@@ -628,7 +628,10 @@ class RallyParams:
     observation histories (paper, *States*: the last N positions and spins; the paper does not
     give N, 10 is 50 ms of positions at 200 Hz). ``hit_prediction``: whether the observation's
     ``hit_prediction`` part is computed (``control.hit_prediction``, ~5 ms of CPU per observation,
-    every 32 ms; False: zeros there, for controllers that do not read it). ``time_limit``: s after
+    every 32 ms; False: zeros there, for controllers that do not read it). ``hit_memory``: that
+    part keeps the hit it predicted 32 ms before while it is still a candidate (the model-based
+    returner's memory of its hit time; ``ObservationBuilder``), instead of judging from the
+    estimate alone (needs ``hit_prediction``). ``time_limit``: s after
     the opponent's hit at which an unresolved episode ends. ``seed``: the default of every seed
     parameter."""
 
@@ -640,11 +643,14 @@ class RallyParams:
     position_history: int = 10
     spin_history: int = 10
     hit_prediction: bool = True
+    hit_memory: bool = False
     time_limit: float = 2.0
     seed: int = 0
 
     def __post_init__(self) -> None:
         _require_positive(self, "position_history", "spin_history", "time_limit")
+        if self.hit_memory and not self.hit_prediction:
+            raise ConfigError("hit_memory keeps the observation's predicted hit: it needs hit_prediction true")
 
 
 def _require_latency_interval(config: Any) -> None:

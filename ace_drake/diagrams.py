@@ -414,7 +414,7 @@ def add_rally(builder: DiagramBuilder, params: RallyParams, policy, meshcat: Mes
     layout = ObservationLayout(params.position_history, params.spin_history)
     control = add_control_stack(builder, robot, make_control_stack(scenario, params.control), policy, layout.size)
     predictor = HitPredictor.for_robot(scenario, params.control, params.physics) if params.hit_prediction else None
-    observation = builder.AddNamedSystem("observation_builder", ObservationBuilder(layout, predictor=predictor))
+    observation = builder.AddNamedSystem("observation_builder", ObservationBuilder(layout, predictor=predictor, hit_memory=params.hit_memory))
     joints = robot.joint_plant.q_port.size()
     # [q, v] of the planned [q, v, a] (a selection matrix: Drake's C++ MatrixGain).
     select = builder.AddNamedSystem("planned_joint_state", MatrixGain(np.eye(2 * joints, 3 * joints)))

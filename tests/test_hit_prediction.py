@@ -66,3 +66,15 @@ def test_the_features_are_the_preferred_hit_or_zeros(predictor):
     # A ball that lands long (no bounce on the robot's half) has no hit.
     long_ball = np.array([1.0, 0.0, 0.4, -12.0, 0.0, 1.0, 0.0, 0.0, 0.0])
     assert predictor.preferred_hit(long_ball) is None
+
+
+def test_a_kept_hit_comes_first_while_it_is_a_candidate(predictor):
+    estimate = simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0]
+    time, state = predictor.preferred_hit(estimate)
+    later = time + predictor.segment  # the next segment boundary: a hit too, just past the top
+    kept_time, kept_state = predictor.preferred_hit(estimate, keep=later)
+    assert kept_time == pytest.approx(later, abs=1e-9) and kept_state[2] < state[2] + 0.05
+    np.testing.assert_array_equal(predictor.features(estimate, True, keep=later), np.concatenate([[1.0, kept_time], kept_state]))
+    # A kept time that is no candidate (between boundaries, or past the ball's reach) changes nothing.
+    for keep in (time + 0.5 * predictor.segment, 5.0, None):
+        assert predictor.preferred_hit(estimate, keep=keep)[0] == time

@@ -261,7 +261,7 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
     controller = controllers.make_controller("policy:hit_state", RallyParams())
     assert isinstance(controller, controllers.HitStatePolicy)
     params = RallyParams()
-    assert controllers.diagram_params_for(controller, params) is params  # it reads the predicted hit
+    assert controllers.diagram_params_for(controller, params) == params  # it reads the predicted hit (no memory)
     assert controllers.hit_state_controller(controller, params) is controller
     estimate = simulate(INCOMING_BALL, BallPhysicsParams(), 0.1).final_state[0]
     obs = observation(controller.layer.layout, estimate, HitPredictor.for_robot(controller.layer.driver.stack.scenario,
@@ -286,7 +286,7 @@ def test_the_returners_planned_hit_state_plays_through_the_layer(layer):
 
     params = RallyParams()
     planned = controllers.make_controller("returner:hit_state", params)
-    assert isinstance(planned, PlannedHitState) and controllers.diagram_params_for(planned, params) is params
+    assert isinstance(planned, PlannedHitState) and controllers.diagram_params_for(planned, params) == params
     with pytest.raises(ConfigError, match="hit_prediction"):
         controllers.make_controller("returner:hit_state", RallyParams(hit_prediction=False))
     with pytest.raises(ValueError, match="memoryless"):
@@ -300,3 +300,14 @@ def test_the_returners_planned_hit_state_plays_through_the_layer(layer):
     no_hit = obs.copy()
     no_hit[layer.layout.slice("hit_prediction")] = 0.0
     assert planned.plan(no_hit)[0] is None
+    # On an observation that keeps its predicted hit, the returner plans the observed hit first:
+    # here one segment past the one it prefers, which it then plans, and labels.
+    remembering = controllers.make_controller("returner:hit_memory", params)
+    assert remembering.hit_memory and not planned.hit_memory
+    preferred = planned.returner.predictor.preferred_hit(estimate)[0]
+    later = obs.copy()
+    later[layer.layout.slice("hit_prediction")] = planned.returner.predictor.features(estimate, True, keep=preferred + layer.segment)
+    y_later, at_prediction, _ = remembering.plan(later)
+    assert at_prediction and remembering.returner.last_plan.time == pytest.approx(preferred + layer.segment, abs=1e-9)
+    assert not planned.plan(later)[1]  # the memoryless labeller plans its own preference: no label there
+    assert not np.allclose(y_later, y)

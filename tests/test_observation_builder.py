@@ -104,3 +104,45 @@ def test_the_rally_diagram_predicts_the_hit_unless_told_not_to():
         diagram = build_rally_diagram(RallyParams(hit_prediction=on))
         builder = diagram.GetSubsystemByName("observation_builder")
         assert (builder.predictor is not None) == on
+
+
+def test_the_builder_with_hit_memory_keeps_the_hit_it_predicted():
+    from pydrake.systems.analysis import Simulator
+
+    scenario = load_scenario(MODELS_DIR / "scenario.yaml")
+    physics = BallPhysicsParams()
+    predictor = HitPredictor.for_robot(scenario, ControlParams(), physics)
+    with pytest.raises(ValueError, match="needs a predictor"):
+        ObservationBuilder(hit_memory=True)
+    dut = ObservationBuilder(ObservationLayout(2, 2), predictor=predictor, hit_memory=True)
+    context = dut.CreateDefaultContext()
+    for port in (dut.position_measurements_port, dut.spin_measurements_port):
+        port.FixValue(context, AbstractValue.Make(MeasurementHistory()))
+    dut.robot_state_port.FixValue(context, np.zeros(24))
+    dut.end_effector_state_port.FixValue(context, np.zeros(13))
+    dut.estimate_status_port.FixValue(context, [1.0, 1.0, 0.0])
+    first = predictor.segment - predictor.lead  # the PolicyController's first observation instant
+    simulator = Simulator(dut, context)
+
+    def observe(t):
+        """The hit_prediction part at t (before the event at t), the estimate following the ball's flight."""
+        dut.ball_state_estimate_port.FixValue(context, simulate(INCOMING_BALL, physics, 0.1 + t).final_state[0])
+        simulator.AdvanceTo(t)
+        return dut.layout.part(dut.observation_port.Eval(context), "hit_prediction")
+
+    estimate = simulate(INCOMING_BALL, physics, 0.1 + first).final_state[0]
+    assert np.isnan(context.get_discrete_state(0).get_value()[0])  # nothing kept yet: judged from the estimate
+    np.testing.assert_array_equal(observe(first), predictor.features(estimate, True))
+    # Keep a hit one segment past the preferred one: it stays the observation's hit, one segment
+    # nearer at the next observation, and the event stores it again.
+    preferred = predictor.preferred_hit(estimate)[0]
+    context.get_mutable_discrete_state(0).SetFromVector([first + preferred + predictor.segment])
+    np.testing.assert_array_equal(observe(first), predictor.features(estimate, True, keep=preferred + predictor.segment))
+    hit = observe(first + predictor.segment)
+    assert hit[0] == 1.0 and hit[1] == pytest.approx(preferred, abs=1e-9)
+    assert context.get_discrete_state(0).get_value()[0] == pytest.approx(first + preferred + predictor.segment, abs=1e-9)
+    # The memory is forgotten when the observation has no hit (here: no track).
+    dut.estimate_status_port.FixValue(context, [0.0, 0.0, -1.0])
+    assert observe(first + 2 * predictor.segment)[0] == 0.0
+    simulator.AdvanceTo(first + 2 * predictor.segment + 1e-4)
+    assert np.isnan(context.get_discrete_state(0).get_value()[0])

@@ -214,8 +214,6 @@ def test_the_meeting_config_is_stage_1_with_more_demonstrations_and_the_ball_mee
 
 
 def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations():
-    import dataclasses
-
     import yaml
 
     from ace_drake.config import from_dict
@@ -230,7 +228,7 @@ def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations
     assert more.initialize_phase == "demonstrations" and more.seed != meeting.seed
     assert more.demonstrations > meeting.demonstrations and more.pretrain_updates > meeting.pretrain_updates
     assert more.ou_episodes == meeting.ou_episodes and more.env_steps < 16 * meeting.demonstrations  # no OU, no learn phase
-    assert more.env.shots == meeting.env.shots and more.returner == meeting.returner and more.exploration == meeting.exploration
+    assert more.env == meeting.env and more.returner == meeting.returner and more.exploration == meeting.exploration
 
 
 def test_the_workers_label_with_the_configured_returner():
@@ -474,11 +472,13 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
         assert action.shape == (1, ACTION_SIZE) and torch.all(action.abs() <= 1.0)
 
 
-@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state", 4), ("policy:rally_hit_state_meet", 5), ("returner:hit_state", 5)])
+@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state", 4), ("policy:rally_hit_state_meet", 5), ("returner:hit_state", 5),
+                                            ("returner:hit_memory", 5)])
 def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # The first 12 recorded shots of Elite A (a training player), cameras, seed 0: 7 are playable;
     # rally_hit_state returned 5 of them, rally_hit_state_meet (the layer meeting the ball) 7,
-    # returner:hit_state (the returner's planned hit states through the layer) 7, rally_sac 3,
+    # returner:hit_state (the returner's planned hit states through the layer) 7, returner:hit_memory
+    # (the same on an observation that keeps its predicted hit) 6, rally_sac 3,
     # still 0 (measured). A behaviour, not a benchmark (README *Training: the hit-state actor*
     # has the measured rates).
     from ace_drake.analysis.evaluation import evaluate
@@ -548,3 +548,39 @@ def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_
     # The learner's own policy (what the trainer evaluates) too; a callable it does not know keeps the part.
     assert not controllers.diagram_params_for(SacLearner(SMALL).policy(), params).hit_prediction
     assert controllers.diagram_params_for(lambda observation: None, params) is params
+
+
+def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_path, monkeypatch):
+    from ace_drake.config import RallyParams
+    from ace_drake.play import controllers
+
+    hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
+    save_policy(tmp_path / "forgetful.pt", SacLearner(hit_state))
+    save_policy(tmp_path / "remembering.pt", SacLearner(dataclasses.replace(hit_state, hit_memory=True)))
+    monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path)
+    assert load_policy(tmp_path / "remembering.pt").hit_memory and not load_policy(tmp_path / "forgetful.pt").hit_memory
+    params = RallyParams()
+    memory = {name: controllers.diagram_params_for(controllers.make_controller(name, params), params).hit_memory
+              for name in ("returner", "returner:hit_state", "returner:hit_memory", "policy:forgetful", "policy:remembering")}
+    assert memory == {"returner": False, "returner:hit_state": False, "returner:hit_memory": True, "policy:forgetful": False,
+                      "policy:remembering": True}
+    # Whatever the given params say: a returner predicts the ball itself.
+    assert not controllers.diagram_params_for(controllers.make_controller("returner", params), RallyParams(hit_memory=True)).hit_memory
+    assert SacLearner(dataclasses.replace(hit_state, hit_memory=True)).policy().hit_memory
+    with pytest.raises(ConfigError, match="needs hit_prediction"):
+        RallyParams(hit_prediction=False, hit_memory=True)
+    with pytest.raises(ConfigError, match="must agree"):
+        _config(sac=dataclasses.replace(SMALL, hit_memory=True))
+    from ace_drake.learning.rally_env import RallyEnvParams, training_rally_params
+
+    env = RallyEnvParams(rally=dataclasses.replace(training_rally_params(), hit_memory=True))
+    assert _config(sac=dataclasses.replace(SMALL, hit_memory=True), env=env).env.rally.hit_memory
+
+
+def test_a_checkpoint_written_before_a_learner_field_existed_loads_with_its_default():
+    learner = SacLearner(SMALL)
+    state = learner.state_dict()
+    del state["config"]["hit_memory"]  # as written before SacConfig.hit_memory existed
+    SacLearner(SMALL).load_state_dict(state)
+    with pytest.raises(ValueError, match="hit_memory"):
+        SacLearner(dataclasses.replace(SMALL, hit_memory=True)).load_state_dict(state)

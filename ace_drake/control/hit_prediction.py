@@ -5,6 +5,10 @@ The model-based returner (``control.returner``, steps 1-2 of its docstring) plan
 prediction, and the ``ObservationBuilder`` gives a learned actor the same preferred hit as an
 observation part (``learning.observation``, ``hit_prediction``): the ball's state at the segment
 boundary nearest the top of its bounce where the racket may meet it, and how far ahead that is.
+Judged from each estimate alone, that hit jumps by a segment whenever the estimated top of the
+bounce crosses the midpoint between two boundaries; the returner with memory keeps the hit it
+planned, and the builder with ``hit_memory`` keeps the hit it predicted (``keep``), while either is
+still a candidate.
 
 ``HitPredictor`` holds what the prediction needs: the ball physics, the returner's hit window
 (``ReturnerParams``: heights, ``hit_x_min``, step, horizon), the segment length T, the observation
@@ -25,6 +29,7 @@ from ace_drake.physics.flight import rk4_step
 from ace_drake.physics.propagate import ContactKind, simulate
 
 IMMINENT_MARGIN = 0.01  # s: a bounce predicted within one segment + this is remembered as happening
+KEEP_TOLERANCE = 1e-6  # s: a candidate this close to a remembered hit time is that hit (sample times are exact multiples)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,10 +88,12 @@ class HitPredictor:
         lag = joint_lag(scenario) if params.joint_lag is None else params.joint_lag
         return cls(physics, params, segment, control.observation_lead, lag)
 
-    def preferred_hit(self, estimate: np.ndarray) -> tuple[float, np.ndarray] | None:
+    def preferred_hit(self, estimate: np.ndarray, keep: float | None = None) -> tuple[float, np.ndarray] | None:
         """The preferred hit of a ball estimated at ``estimate`` (9,) now, judged from the estimate
-        alone (the memoryless returner's choice): (seconds from now to the ball sample, the ball
-        state there (9,)), or None when the ball is not coming or has no hit."""
+        alone (the memoryless returner's choice), or the hit ``keep`` s from now while that is
+        still a candidate (an ObservationBuilder with ``hit_memory``): (seconds from now to the
+        ball sample, the ball state
+        there (9,)), or None when the ball is not coming or has no hit."""
         estimate = np.asarray(estimate, dtype=float)
         if estimate[3] >= 0.0:
             return None
@@ -94,16 +101,16 @@ class HitPredictor:
         prediction = self.predict(estimate)
         if prediction.times.size == 0:
             return None
-        order = self.candidates(flight, prediction, include_current=True)
+        order = self.candidates(flight, prediction, include_current=True, keep=keep)
         if not order:
             return None
         return float(prediction.times[order[0]]), prediction.states[order[0]].copy()
 
-    def features(self, estimate: np.ndarray, valid: bool) -> np.ndarray:
+    def features(self, estimate: np.ndarray, valid: bool, keep: float | None = None) -> np.ndarray:
         """The ``hit_prediction`` observation part (HIT_PREDICTION_SIZE,): [1, time to the
-        preferred hit (s), ball state there (p m, v m/s, w rad/s)], or zeros without a valid
-        estimate or a hit."""
-        hit = self.preferred_hit(estimate) if valid else None
+        preferred hit (s; ``keep``: ``preferred_hit``), ball state there (p m, v m/s, w rad/s)],
+        or zeros without a valid estimate or a hit."""
+        hit = self.preferred_hit(estimate, keep) if valid else None
         if hit is None:
             return np.zeros(HIT_PREDICTION_SIZE)
         return np.concatenate([[1.0, hit[0]], hit[1]])
@@ -187,12 +194,14 @@ class HitPredictor:
         return Prediction(np.asarray(times), np.asarray(states).reshape(-1, 9), contacts)
 
     # ------------------------------------------------------------------------------ the hit
-    def candidates(self, flight: Flight, prediction: Prediction, include_current: bool = False) -> list[int]:
+    def candidates(self, flight: Flight, prediction: Prediction, include_current: bool = False, keep: float | None = None) -> list[int]:
         """Indices of the prediction's samples where the robot may hit (``control.returner``'s
         step 2), most preferred first. ``flight``: what is remembered of the ball (a fresh
         ``Flight`` with ``bounce_time`` from ``bounce_behind`` when nothing is); an imminent
         bounce is recorded in it. ``include_current``: also the hit in the segment being commanded
-        (k = 0; the memoryless returner follows through there when it is preferred)."""
+        (k = 0; the memoryless returner follows through there when it is preferred). The hit of
+        ``flight.hit``, else the one ``keep`` s after the observation, comes first while it is a
+        candidate."""
         params = self.params
         table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
         first_is_bounce = bool(table_contacts) and table_contacts[0][1] == ContactKind.TABLE and table_contacts[0][2][0] < 0.0
@@ -229,7 +238,10 @@ class HitPredictor:
         apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
         order = sorted(index, key=lambda i: abs(times[i] - apex))
         if flight.hit is not None:  # keep the previous hit time while it is a candidate
-            kept = [i for i in order if abs(flight.clock + times[i] - flight.hit.time) < 1e-6]
+            kept = [i for i in order if abs(flight.clock + times[i] - flight.hit.time) < KEEP_TOLERANCE]
+            order = kept + [i for i in order if i not in kept]
+        elif keep is not None:
+            kept = [i for i in order if abs(times[i] - keep) < KEEP_TOLERANCE]
             order = kept + [i for i in order if i not in kept]
         return order
 

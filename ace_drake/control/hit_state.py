@@ -281,12 +281,15 @@ class PlannedHitState:
     predicted one, the returner's own action or None); calling it is the controller that plays the
     planned y through ``layer`` (the returner's own action where it plans no hit)."""
 
-    def __init__(self, returner, layer: HitStateLayer):
+    def __init__(self, returner, layer: HitStateLayer, hit_memory: bool = False):
         """``returner``: a ``ModelBasedReturner`` without memory (its plan must be a function of
-        the observation); ``layer``: the rally diagram's HitStateLayer."""
+        the observation); ``layer``: the rally diagram's HitStateLayer; ``hit_memory``: the
+        observation keeps its predicted hit (``RallyParams.hit_memory``), and the returner plans
+        that hit first (``ModelBasedReturner.plan``'s ``follow_observed_hit``), so that the memory
+        lives in the observation alone."""
         if returner.params.memory:
             raise ValueError("PlannedHitState: the returner must be memoryless (ReturnerParams.memory false)")
-        self.returner, self.layer = returner, layer
+        self.returner, self.layer, self.hit_memory = returner, layer, hit_memory
 
     def reset(self) -> None:
         self.returner.reset()
@@ -299,7 +302,7 @@ class PlannedHitState:
         later hit (the predicted one needs too much acceleration) still gives y: the layer aims
         it at the predicted hit."""
         observation = np.asarray(observation, dtype=float)
-        plan, returner_action = self.returner.plan(observation)
+        plan, returner_action = self.returner.plan(observation, follow_observed_hit=self.hit_memory)
         hit = self.layer.layout.part(observation, "hit_prediction")
         if plan is None or hit[0] < 0.5:
             return None, False, returner_action()

@@ -480,22 +480,31 @@ class ModelBasedReturner:
         finally:
             self.call_seconds.append(time.perf_counter() - start)
 
-    def plan(self, observation: np.ndarray) -> tuple[HitPlan | None, Callable[[], np.ndarray | None]]:
+    def plan(self, observation: np.ndarray, follow_observed_hit: bool = False) -> tuple[HitPlan | None, Callable[[], np.ndarray | None]]:
         """Steps 1-4 of a call: (the hit it plans for ``observation`` or None, a function giving
         the action the call would return). The plan is driven (step 5 and step 6's collision
         check) only if that function is called: for callers that play the plan their own way
-        (``control.hit_state.PlannedHitState``). Advances the returner's state as a call does."""
+        (``control.hit_state.PlannedHitState``). Advances the returner's state as a call does.
+        ``follow_observed_hit``: the observation's ``hit_prediction`` hit, when it has one, is
+        tried first (step 2), as a remembered hit is (for an observation that keeps its predicted
+        hit: ``RallyParams.hit_memory``)."""
         start = time.perf_counter()
         try:
-            result = self._act(np.asarray(observation, dtype=float), drive=False)
+            observation = np.asarray(observation, dtype=float)
+            keep = None
+            if follow_observed_hit:
+                hit = self.layout.part(observation, "hit_prediction")
+                keep = float(hit[1]) if hit[0] > 0.5 else None
+            result = self._act(observation, drive=False, keep=keep)
             return self.last_plan, (result if callable(result) else lambda: result)
         finally:
             self.call_seconds.append(time.perf_counter() - start)
 
     # ------------------------------------------------------------------------------ one call
-    def _act(self, observation: np.ndarray, drive: bool = True):
+    def _act(self, observation: np.ndarray, drive: bool = True, keep: float | None = None):
         """The call's action (or None); with ``drive`` false, where a hit is planned, the function
-        that drives it instead (``plan``)."""
+        that drives it instead (``plan``); ``keep``: a hit time (s after the observation) to try
+        first (``HitPredictor.candidates``)."""
         layout = self.layout
         self._ik_budget = self.params.ik_solves_per_call
         self.last_plan = None
@@ -519,7 +528,7 @@ class ModelBasedReturner:
         flight.prediction_positions = prediction.states[:, :3]
         skill = layout.part(observation, "skill")
         target = np.array([self.params.target_x, np.clip(skill[0], -self.params.target_y_limit, self.params.target_y_limit)])
-        candidates = self.predictor.candidates(flight, prediction, include_current=not self.params.memory)
+        candidates = self.predictor.candidates(flight, prediction, include_current=not self.params.memory, keep=keep)
         if not self.params.memory and candidates and candidates[0] == 0:
             return self.driver.follow_through(q0, v0, a0)  # the preferred hit falls in the segment this action commands
         candidates = [index for index in candidates if index > 0]

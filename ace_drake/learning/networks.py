@@ -140,13 +140,14 @@ class DeterministicPolicy(nn.Module):
     ``action``: what the output is (``sac.SacConfig.action``); for "hit_state", ``hit_state`` is
     its ``control.hit_state.HitStateAction`` and the policy plays through
     ``play.controllers.hit_state_controller``, whose layer meets the ball if ``meet_ball``
-    (``sac.SacConfig.meet_ball``)."""
+    (``sac.SacConfig.meet_ball``); ``hit_memory``: it reads an observation whose predicted hit is
+    kept from step to step (``sac.SacConfig.hit_memory``, ``play.controllers.diagram_params_for``)."""
 
     def __init__(self, actor: Actor, index: torch.Tensor, scale: torch.Tensor, action: str = "terminal", hit_state=None,
-                 meet_ball: bool = False):
+                 meet_ball: bool = False, hit_memory: bool = False):
         super().__init__()
         self.actor = actor
-        self.action, self.hit_state, self.meet_ball = action, hit_state, meet_ball
+        self.action, self.hit_state, self.meet_ball, self.hit_memory = action, hit_state, meet_ball, hit_memory
         self.register_buffer("index", index.clone())
         self.register_buffer("scale", scale.clone())
 

@@ -282,7 +282,7 @@ class RolloutWorker:
         if self._planned is None:
             from ace_drake.control.hit_state import PlannedHitState
 
-            self._planned = PlannedHitState(self.returner, self.layer)
+            self._planned = PlannedHitState(self.returner, self.layer, hit_memory=self.learner.config.hit_memory)
         planned, at_prediction, action = self._planned.plan(obs)
         label = planned if planned is not None and at_prediction else np.full(ACTION_SIZE, np.nan)
         return planned, label, action

@@ -104,6 +104,10 @@ class SacConfig:
     # (control.hit_state, HitStateLayer.meet_ball; this project's). Read where the actor plays
     # (rollout workers, the policy controller); the cloning loss is the same either way.
     meet_ball: bool = False
+    # The actor reads an observation whose predicted hit is kept from step to step (RallyParams.
+    # hit_memory; this project's): the training env's diagram must be built with it (TrainConfig
+    # checks), and the policy's diagram is (play.controllers.diagram_params_for).
+    hit_memory: bool = False
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -204,7 +208,7 @@ class SacLearner:
         """A copy of the actor as a standalone deterministic policy module (networks), with its
         action kind and, for hit states, their parameterisation."""
         return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale,
-                                   self.config.action, self.hit_state_action, self.config.meet_ball)
+                                   self.config.action, self.hit_state_action, self.config.meet_ball, self.config.hit_memory)
 
     @property
     def hit_state_action(self):
@@ -324,9 +328,11 @@ class SacLearner:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restores a ``state_dict``; raises ValueError if it was written with another config."""
-        saved = {k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items()}
+        """Restores a ``state_dict``; raises ValueError if it was written with another config (a
+        field added since it was written counts as its default)."""
         mine = dataclasses.asdict(self.config)
+        written = {**{k: v for k, v in dataclasses.asdict(SacConfig()).items() if k not in state["config"]}, **state["config"]}
+        saved = {k: tuple(v) if isinstance(v, list) else v for k, v in written.items()}
         if saved != mine:
             differing = sorted(k for k in mine if saved.get(k) != mine[k])
             raise ValueError(f"SacLearner.load_state_dict: the checkpoint's config differs in {differing}")

@@ -125,6 +125,9 @@ class TrainConfig:
             raise ConfigError("TrainConfig.evaluation_players selects shots of evaluation_data; give a match-data CSV")
         if self.evaluation_data and not Path(self.evaluation_data).is_file():
             raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
+        if self.sac.hit_memory != self.env.rally.hit_memory:
+            raise ConfigError(f"TrainConfig: sac.hit_memory ({self.sac.hit_memory}) and env.rally.hit_memory ({self.env.rally.hit_memory}) "
+                              "must agree: the actor reads the observation the env's diagram builds")
         if self.initialize_phase not in ("demonstrations", "learn"):
             raise ConfigError(f"TrainConfig.initialize_phase must be 'demonstrations' or 'learn', got {self.initialize_phase!r}")
         if self.initialize_from and not Path(self.initialize_from).is_file():

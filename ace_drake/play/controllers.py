@@ -1,6 +1,8 @@
 """The rally controllers a command line can name: ``still``, ``returner``, ``returner:memoryless``
 (``ReturnerParams.memory`` off), ``returner:hit_state`` (the memoryless returner's planned hit
-states through the hit-state layer: ``control.hit_state.PlannedHitState``), ``policy:<name>``.
+states through the hit-state layer: ``control.hit_state.PlannedHitState``), ``returner:hit_memory``
+(the same on an observation that keeps its predicted hit, ``RallyParams.hit_memory``, the hit
+the returner then plans first), ``policy:<name>``.
 
 Every controller has a policy's interface (a callable observation -> action (16,) | None, or a
 torch module), so that the PolicyController runs any of them in the same rally diagram. A policy
@@ -62,6 +64,11 @@ class HitStatePolicy:
                               "(its hit-state parameterisation differs)")
         self.policy, self.layer, self._call = policy, layer, as_policy(policy)
 
+    @property
+    def hit_memory(self) -> bool:
+        """Whether the policy reads an observation that keeps its predicted hit."""
+        return self.policy.hit_memory
+
     def __call__(self, observation):
         return self.layer(observation, self._call(observation))
 
@@ -83,7 +90,7 @@ def hit_state_controller(controller, params: RallyParams):
 def controller_names() -> list[str]:
     """The names ``make_controller`` accepts, shipped policies included."""
     policies = sorted(path.stem for path in POLICIES_DIR.glob("*.pt")) if POLICIES_DIR.is_dir() else []
-    return ["still", "returner", "returner:memoryless", "returner:hit_state", *(f"policy:{name}" for name in policies)]
+    return ["still", "returner", "returner:memoryless", "returner:hit_state", "returner:hit_memory", *(f"policy:{name}" for name in policies)]
 
 
 def make_controller(name: str, params: RallyParams):
@@ -95,11 +102,12 @@ def make_controller(name: str, params: RallyParams):
         from ace_drake.control.returner import ModelBasedReturner
 
         return ModelBasedReturner.for_rally(params, ReturnerParams(memory=name == "returner"))
-    if name == "returner:hit_state":
+    if name in ("returner:hit_state", "returner:hit_memory"):
         from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
         from ace_drake.control.returner import ModelBasedReturner
 
-        return PlannedHitState(ModelBasedReturner.for_rally(params, ReturnerParams(memory=False)), HitStateLayer.for_rally(params))
+        return PlannedHitState(ModelBasedReturner.for_rally(params, ReturnerParams(memory=False)), HitStateLayer.for_rally(params),
+                               hit_memory=name == "returner:hit_memory")
     if name.startswith("policy:"):
         path = POLICIES_DIR / f"{name.removeprefix('policy:')}.pt"
         if not path.is_file():
@@ -126,7 +134,8 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
     the observation's hit prediction (``RallyParams.hit_prediction``) off for the controllers
     known not to read it: ``still``, the returners (which predict the ball themselves) and loaded
     policies (``sac.load_policy``, ``SacLearner.policy``) whose actor does not read the part
-    (a hit-state policy always does).
+    (a hit-state policy always does); its memory (``RallyParams.hit_memory``) on exactly for the
+    controllers made for it (a hit-state policy or ``PlannedHitState`` with ``hit_memory``).
     Their observation then has zeros there: the same episodes, simulated ~1.4 x faster on the
     statistical path (``ace-drake bench sim``; a returner's own planning dominates its
     evaluation, ~1.1 x faster, README *Speed*). Any other callable keeps ``params`` as given."""
@@ -139,14 +148,15 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
     from ace_drake.learning.networks import DeterministicPolicy
 
     if inner is still or isinstance(inner, ModelBasedReturner):
-        reads = False
+        reads, memory = False, False
     elif isinstance(inner, (HitStatePolicy, PlannedHitState)):
-        return params
+        reads, memory = True, inner.hit_memory
     elif isinstance(inner, DeterministicPolicy):
-        reads = reads_hit_prediction(inner, params)
+        reads, memory = reads_hit_prediction(inner, params), inner.hit_memory
     else:
         return params
-    return dataclasses.replace(params, hit_prediction=params.hit_prediction and reads)
+    reads = params.hit_prediction and reads
+    return dataclasses.replace(params, hit_prediction=reads, hit_memory=reads and memory)
 
 
 def reads_hit_prediction(policy, params: RallyParams) -> bool:

@@ -37,15 +37,27 @@ class ObservationBuilder(LeafSystem):
             ``predictor`` (zeros without one).
     Parameters:
         numeric skill (3,): [y_desired (m), w_p, w_s], fixed for an episode (paper eq. (11)).
-    State: none.
+    State: none; with ``hit_memory``, discrete [the time (s) of the hit the last observation
+        predicted, NaN for none], so that the ``hit_prediction`` part keeps that hit while it is
+        still a candidate (``HitPredictor.preferred_hit``'s ``keep``: the model-based returner's
+        memory of its hit time) instead of switching between segment boundaries as the estimate
+        moves.
+    Events (with ``hit_memory``): periodic discrete update at the PolicyController's instants
+        (every T, offset T - observation lead), storing the hit of the observation it reads.
     """
 
-    def __init__(self, layout: ObservationLayout | None = None, skill=DEFAULT_SKILL, predictor: HitPredictor | None = None):
+    def __init__(self, layout: ObservationLayout | None = None, skill=DEFAULT_SKILL, predictor: HitPredictor | None = None,
+                 hit_memory: bool = False):
         """Args: layout, the history lengths; skill, the default skill parameter; predictor, the
-        HitPredictor of the observation's ``hit_prediction`` part (None: zeros there)."""
+        HitPredictor of the observation's ``hit_prediction`` part (None: zeros there);
+        hit_memory: keep the predicted hit from one observation to the next (class docstring;
+        needs a predictor)."""
         super().__init__()
+        if hit_memory and predictor is None:
+            raise ValueError("ObservationBuilder: hit_memory needs a predictor (the hit_prediction part)")
         self.layout = layout or ObservationLayout()
         self.predictor = predictor
+        self.hit_memory = hit_memory
         self.position_measurements_port = self.DeclareAbstractInputPort("position_measurements", AbstractValue.Make(MeasurementHistory()))
         self.spin_measurements_port = self.DeclareAbstractInputPort("spin_measurements", AbstractValue.Make(MeasurementHistory()))
         self.robot_state_port = self.DeclareVectorInputPort("robot_state", ROBOT_STATE_SIZE)
@@ -56,6 +68,10 @@ class ObservationBuilder(LeafSystem):
             raise ValueError(f"ObservationBuilder: skill must have {SKILL_SIZE} values, got {len(skill)}")
         self._skill_index = self.DeclareNumericParameter(BasicVector(np.asarray(skill, dtype=float)))
         self.observation_port = self.DeclareVectorOutputPort("observation", self.layout.size, self.CalcObservation)
+        if hit_memory:
+            self._memory_index = self.DeclareDiscreteState(BasicVector([np.nan]))
+            segment, lead = predictor.segment, predictor.lead
+            self.DeclarePeriodicDiscreteUpdateEvent(segment, segment - lead, self.UpdateHitMemory)
 
     def SetSkill(self, context, skill) -> None:
         """Sets the episode's skill [y_desired (m), w_p in [0, 1], w_s in [-1, 1]] in ``context``."""
@@ -70,7 +86,13 @@ class ObservationBuilder(LeafSystem):
         now = context.get_time()
         estimate = self.ball_state_estimate_port.Eval(context)
         status = self.estimate_status_port.Eval(context)
-        hit = None if self.predictor is None else self.predictor.features(estimate, valid=status[0] > 0.5)
+        hit = None
+        if self.predictor is not None:
+            keep = None
+            if self.hit_memory:
+                kept = context.get_discrete_state(self._memory_index).get_value()[0]
+                keep = kept - now if np.isfinite(kept) else None
+            hit = self.predictor.features(estimate, valid=status[0] > 0.5, keep=keep)
         output.SetFromVector(
             self.layout.assemble(
                 positions=self.position_measurements_port.Eval(context).as_array(self.layout.position_history, now),
@@ -83,3 +105,9 @@ class ObservationBuilder(LeafSystem):
                 hit_prediction=hit,
             )
         )
+
+    def UpdateHitMemory(self, context, discrete_state) -> None:
+        """Stores the time (s) of the hit the observation now predicts (NaN: none)."""
+        hit = self.layout.part(self.observation_port.Eval(context), "hit_prediction")
+        kept = context.get_time() + hit[1] if hit[0] > 0.5 else np.nan
+        discrete_state.get_mutable_vector(self._memory_index).SetFromVector([kept])
