@@ -135,17 +135,26 @@ def test_the_shipped_training_config_loads():
     assert config.name == "rally_sac" and config.demonstrations > 0 and config.learn_mode == "dagger"
 
 
-def test_the_shipped_second_stage_config_continues_the_first():
+def _continuation(name: str, first: str) -> tuple[TrainConfig, TrainConfig]:
+    """(the shipped config ``models/<name>.yaml``, which starts from another run's checkpoint,
+    without its ``initialize_from``; the config ``models/<first>.yaml`` of that run). Asserts that
+    ``initialize_from`` is the first run's default run directory's checkpoint; skips without the
+    match data the configs name."""
     import yaml
 
     from ace_drake.config import from_dict
     from ace_drake.robot_model import MODELS_DIR
 
-    data = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
+    data = yaml.safe_load((MODELS_DIR / f"{name}.yaml").read_text())
     if not Path(data["evaluation_data"]).is_file():
         pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
-    assert data.pop("initialize_from") == "out/train/rally_sac/checkpoint.pt"  # the first stage's default run dir
-    second, first = from_dict(TrainConfig, data), load_train_config(MODELS_DIR / "train_rally.yaml")
+    earlier = load_train_config(MODELS_DIR / f"{first}.yaml")
+    assert data.pop("initialize_from") == f"out/train/{earlier.name}/checkpoint.pt"
+    return from_dict(TrainConfig, data), earlier
+
+
+def test_the_shipped_second_stage_config_continues_the_first():
+    second, first = _continuation("train_rally_human", "train_rally")
     assert second.sac == first.sac  # initialize_from loads the first stage's learner
     assert second.env.shots.players and not set(second.env.shots.players) & {"Elite D", "Elite E"}
     assert second.evaluation_players == second.env.shots.players  # the exported actor is chosen on training players only
@@ -179,16 +188,7 @@ def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
 
 
 def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
-    import yaml
-
-    from ace_drake.config import from_dict
-    from ace_drake.robot_model import MODELS_DIR
-
-    data = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_dagger.yaml").read_text())
-    if not Path(data["evaluation_data"]).is_file():
-        pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
-    assert data.pop("initialize_from") == "out/train/rally_hit_state/checkpoint.pt"  # stage 1's default run dir
-    second, first = from_dict(TrainConfig, data), load_train_config(MODELS_DIR / "train_rally_hit_state.yaml")
+    second, first = _continuation("train_rally_hit_state_dagger", "train_rally_hit_state")
     assert first.sac.action == "hit_state" and second.sac == first.sac  # initialize_from loads stage 1's learner
     assert first.demonstrations > 0 and first.env_steps < 41_940  # below the steps its demonstrations and OU took: it stops after cloning
     assert second.seed != first.seed and second.learn_mode == "dagger" and second.exploration.policy_std_scale == 0.0
@@ -214,16 +214,7 @@ def test_the_meeting_config_is_stage_1_with_more_demonstrations_and_the_ball_mee
 
 
 def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations():
-    import yaml
-
-    from ace_drake.config import from_dict
-    from ace_drake.robot_model import MODELS_DIR
-
-    data = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_meet_more.yaml").read_text())
-    if not Path(data["evaluation_data"]).is_file():
-        pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
-    assert data.pop("initialize_from") == "out/train/rally_hit_state_meet/checkpoint.pt"  # the meeting run's default run dir
-    more, meeting = from_dict(TrainConfig, data), load_train_config(MODELS_DIR / "train_rally_hit_state_meet.yaml")
+    more, meeting = _continuation("train_rally_hit_state_meet_more", "train_rally_hit_state_meet")
     assert more.sac == meeting.sac  # initialize_from loads its learner
     assert more.initialize_phase == "demonstrations" and more.seed != meeting.seed
     assert more.demonstrations > meeting.demonstrations and more.pretrain_updates > meeting.pretrain_updates

@@ -92,8 +92,8 @@ class HitPredictor:
         """The preferred hit of a ball estimated at ``estimate`` (9,) now, judged from the estimate
         alone (the memoryless returner's choice), or the hit ``keep`` s from now while that is
         still a candidate (an ObservationBuilder with ``hit_memory``): (seconds from now to the
-        ball sample, the ball state
-        there (9,)), or None when the ball is not coming or has no hit."""
+        ball sample, the ball state there (9,)), or None when the ball is not coming or has no
+        hit."""
         estimate = np.asarray(estimate, dtype=float)
         if estimate[3] >= 0.0:
             return None
@@ -237,10 +237,9 @@ class HitPredictor:
         after_bounce = np.flatnonzero((times > bounce) & (times < end))
         apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
         order = sorted(index, key=lambda i: abs(times[i] - apex))
-        if flight.hit is not None:  # keep the previous hit time while it is a candidate
-            kept = [i for i in order if abs(flight.clock + times[i] - flight.hit.time) < KEEP_TOLERANCE]
-            order = kept + [i for i in order if i not in kept]
-        elif keep is not None:
+        if flight.hit is not None:
+            keep = flight.hit.time - flight.clock  # the previous hit, kept while it is a candidate
+        if keep is not None:
             kept = [i for i in order if abs(times[i] - keep) < KEEP_TOLERANCE]
             order = kept + [i for i in order if i not in kept]
         return order
