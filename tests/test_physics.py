@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from ace_drake.config import AeroParams, BallPhysicsParams, ConfigError, from_dict
 from ace_drake.physics import contact
-from ace_drake.physics.flight import flight_acceleration, magnus_coefficient, make_state, one_ball_flight_acceleration, rk4_step
+from ace_drake.physics.flight import flight_acceleration, magnus_coefficient, make_state, one_ball_flight_acceleration, rk4_step, rk4_step_numpy
 from ace_drake.physics.propagate import ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, simulate
 
 PARAMS = BallPhysicsParams()
@@ -80,6 +80,29 @@ def test_magnus_coefficient_cap_and_zero_spin_limit():
 def test_one_ball_acceleration_is_the_batched_one_bit_for_bit(v, w):
     one = one_ball_flight_acceleration(tuple(v), tuple(w), AERO)
     np.testing.assert_array_equal(one, flight_acceleration(np.array(v), np.array(w), AERO))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(-3, 3), min_size=3, max_size=3),
+    st.lists(st.floats(-40, 40), min_size=3, max_size=3),
+    st.one_of(st.just([0.0, 0.0, 0.0]), st.lists(st.floats(-1000, 1000), min_size=3, max_size=3)),
+    st.floats(-0.05, 0.05),
+)
+def test_compiled_rk4_step_is_the_numpy_step_bit_for_bit(p, v, w, dt):
+    state = make_state(p, v, w)
+    np.testing.assert_array_equal(rk4_step(state, dt, AERO), rk4_step_numpy(state, dt, AERO))
+
+
+def test_compiled_rk4_step_keeps_shapes_and_per_ball_steps():
+    rng = np.random.default_rng(3)
+    states = np.concatenate([rng.normal(0, 1, (4, 5, 3)), rng.normal(0, 8, (4, 5, 3)), rng.normal(0, 300, (4, 5, 3))], axis=-1)
+    steps = rng.uniform(-0.02, 0.02, (4, 5))
+    np.testing.assert_array_equal(rk4_step(states, steps, AERO), rk4_step_numpy(states, steps, AERO))
+    np.testing.assert_array_equal(rk4_step(states[:, 0], steps[:1, 0], AERO), rk4_step_numpy(states[:, 0], steps[:1, 0], AERO))
+    assert rk4_step(states[0, 0], 1e-3, AERO).shape == (9,)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 9\)"):
+        rk4_step(np.zeros(8), 1e-3, AERO)
 
 
 @settings(max_examples=300, deadline=None)

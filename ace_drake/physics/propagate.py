@@ -172,6 +172,9 @@ def simulate(
     times = [0.0]
     states = [x.copy()] if record else []
     t = 0.0
+    # The guards at every ball's current state, carried from step to step (a free step's end is
+    # the next step's start), recomputed only where a contact changed the state.
+    gaps = _gaps(x, kinds, params) if kinds else None
     for _ in range(n_steps):
         h = min(dt, duration - t)
         remaining = np.where(active, h, 0.0)
@@ -185,11 +188,12 @@ def simulate(
             if not kinds:
                 x[rows], remaining[rows] = x1, 0.0
                 break
-            gaps0 = np.stack([contact_gap(k, x0, params) for k in kinds], axis=-1)
-            gaps1 = np.stack([contact_gap(k, x1, params) for k in kinds], axis=-1)
+            gaps0 = gaps[rows]
+            gaps1 = _gaps(x1, kinds, params)
             crossing = (gaps0 > 0.0) & (gaps1 <= 0.0)
             free = ~crossing.any(axis=-1)
             x[rows[free]] = x1[free]
+            gaps[rows[free]] = gaps1[free]
             remaining[rows[free]] = 0.0
             if free.all():
                 break
@@ -214,6 +218,7 @@ def simulate(
                 x[row] = x_post
                 remaining[row] -= tau[j]
                 elapsed[row] += tau[j]
+            gaps[rows[hit]] = _gaps(x[rows[hit]], kinds, params)
         t += h
         times.append(t)
         if record:
@@ -225,6 +230,11 @@ def simulate(
         events=events,
         stop_events=stop_events,
     )
+
+
+def _gaps(states: np.ndarray, kinds: Sequence[ContactKind], params: BallPhysicsParams) -> np.ndarray:
+    """``contact_gap`` of every kind for (N, 9) states: (N, len(kinds)), m."""
+    return np.stack([contact_gap(kind, states, params) for kind in kinds], axis=-1)
 
 
 def _first_contact_time(x0, h, crossing, kinds, params):
