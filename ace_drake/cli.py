@@ -570,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     def add_rally_options(command, controller_default):
-        command.add_argument("--controller", default=controller_default, help="still, returner, returner:memoryless, returner:hit_state or policy:<name> (default: %(default)s)")
+        command.add_argument("--controller", default=controller_default, help="still, returner, returner:memoryless, returner:forget=<part>[+<part>...], returner:hit_state, returner:hit_memory or policy:<name> (default: %(default)s)")
         command.add_argument("--sensors", choices=("cameras", "statistical"), default="cameras", help="ball positions from the nine cameras + triangulator, or the training sensor model")
         command.add_argument("--seed", type=int, default=0)
         command.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")

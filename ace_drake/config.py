@@ -544,6 +544,9 @@ class PerceptionParams:
             raise ConfigError(f"positions must be cameras or statistical, got {self.positions!r}")
 
 
+RETURNER_MEMORY_PARTS = ("bounce", "hit", "follow", "racket", "ik", "fallback")  # ReturnerParams.forget
+
+
 @dataclasses.dataclass(frozen=True)
 class ReturnerParams:
     """The model-based returner (``control/returner.py``): where it sends the ball, which hits it
@@ -577,8 +580,19 @@ class ReturnerParams:
     # alone, so that the action is a function of the observation (as a policy's is): the labels a
     # learner imitates (``learning.rollout``, DAgger) are then learnable.
     memory: bool = True
+    # With memory on, remembered things to forget, for studying what the memory is worth (README,
+    # *Rally: the model-based returner*); any of RETURNER_MEMORY_PARTS: "bounce" (found behind the
+    # ball at every call instead), "hit" (the planned hit time is not tried first), "follow" (the
+    # follow-through is decided from the preferred hit, not from the plan), "racket" (the plan's
+    # flight time and return are not reused), "ik" (the plan's configuration is not refined: full IK
+    # from the segment start), "fallback" (no falling back on the plan being executed).
+    forget: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "forget", tuple(self.forget))
+        unknown = [part for part in self.forget if part not in RETURNER_MEMORY_PARTS]
+        if unknown:
+            raise ConfigError(f"forget: unknown memory part(s) {unknown}; choose from {', '.join(RETURNER_MEMORY_PARTS)}")
         _require_positive(self, "target_x", "net_clearance", "hit_height_max", "prediction_step", "prediction_horizon", "candidates_tried", "ik_solves_per_call")
         _require_non_negative(self, "target_y_limit", "hit_height_min", "ik_clearance")
         if not self.flight_times or any(not t > 0.0 for t in self.flight_times):

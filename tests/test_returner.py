@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
-from ace_drake.config import BallPhysicsParams, RallyParams, ReturnerParams
+from ace_drake.config import RETURNER_MEMORY_PARTS, BallPhysicsParams, ConfigError, RallyParams, ReturnerParams
 from ace_drake.control.action_mapping import map_action
 from ace_drake.control.feasible_set import feasible_sets
 import ace_drake.control.returner as returner_module
@@ -198,6 +198,51 @@ def test_the_memoryless_returner_acts_on_the_observation_alone(returner, memoryl
     first = memoryless(early)
     memoryless(observation(memoryless.layout, APEX_BALL))
     np.testing.assert_array_equal(memoryless(early), first)
+
+
+def test_forgetting_the_plans_configuration_solves_the_full_ik_again(returner, monkeypatch):
+    # Two calls for the same ball one segment apart: with its memory the returner moves the first
+    # call's hit configuration onto the new racket target (no full IK); with "ik" forgotten it
+    # solves the full IK from the segment start again, and the plan is otherwise the same hit.
+    solved = []
+    solve = returner_module.solve_hit_ik
+
+    def counting(*args, **kwargs):
+        solved.append(args[1])
+        return solve(*args, **kwargs)
+
+    hits = {}
+    for forget in ((), ("ik",)):
+        dut = ModelBasedReturner(model=returner.model, stack=returner.stack, params=ReturnerParams(forget=forget))
+        dut(observation(dut.layout, simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0]))
+        first = dut.last_plan.time
+        monkeypatch.setattr(returner_module, "solve_hit_ik", counting)
+        solved.clear()
+        assert dut(observation(dut.layout, simulate(INCOMING_BALL, PARAMS, 0.1 + dut.segment).final_state[0])) is not None
+        monkeypatch.setattr(returner_module, "solve_hit_ik", solve)
+        assert dut.last_plan.time == pytest.approx(first, abs=1e-9)  # the same hit, on the returner's clock
+        hits[forget] = len(solved)
+    assert hits[()] == 0 and hits[("ik",)] >= 1
+
+
+@pytest.mark.parametrize("part", RETURNER_MEMORY_PARTS)
+def test_the_returner_plays_a_ball_with_any_part_of_its_memory_forgotten(returner, part):
+    dut = ModelBasedReturner(model=returner.model, stack=returner.stack, params=ReturnerParams(forget=(part,)))
+    for elapsed in (0.1, 0.1 + dut.segment, 0.1 + 2 * dut.segment):
+        action = dut(observation(dut.layout, simulate(INCOMING_BALL, PARAMS, elapsed).final_state[0]))
+        assert action is not None and np.all(np.abs(action) <= 1.0) and dut.last_plan is not None
+
+
+def test_forget_names_parts_of_the_memory():
+    from ace_drake.play.controllers import make_controller
+
+    with pytest.raises(ConfigError, match="unknown memory part"):
+        ReturnerParams(forget=("everything",))
+    assert ReturnerParams(forget=["ik", "racket"]).forget == ("ik", "racket")  # a YAML list
+    dut = make_controller("returner:forget=ik+racket", RallyParams())
+    assert dut.params.memory and dut.params.forget == ("ik", "racket")
+    with pytest.raises(ConfigError, match="unknown memory part"):
+        make_controller("returner:forget=ik+nothing", RallyParams())
 
 
 @pytest.mark.parametrize("memory", [True, False])

@@ -62,7 +62,9 @@ the observation alone (the labels a learner imitates must be: ``learning.rollout
 finds whether the ball has bounced by following its flight back in time (``bounce_behind``),
 takes the preferred hit of step 2 afresh (the same grid of hit instants every call, so the choice
 holds while the estimate does), follows through when that hit falls in the segment being
-commanded, and solves the full IK from the segment-start configuration.
+commanded, and solves the full IK from the segment-start configuration. ``ReturnerParams.forget``
+drops parts of the memory one at a time instead (its bounce, hit time, follow-through, racket plan,
+hit configuration, fallback; ``returner:forget=...``), to measure what each is worth (README).
 """
 
 from __future__ import annotations
@@ -517,8 +519,9 @@ class ModelBasedReturner:
             # No track, or the ball is not coming (the robot has hit it): no new segment.
             self._flight = None if valid else flight
             return None
+        plan_follows = self.params.memory and "follow" not in self.params.forget  # else the preferred hit decides
         if flight.hit is not None and flight.hit.time - flight.clock < self.lead + self.lag + 0.5 * self.segment:
-            if flight.hit.time - flight.clock > self.lead + self.lag - 0.5 * self.segment:
+            if plan_follows and flight.hit.time - flight.clock > self.lead + self.lag - 0.5 * self.segment:
                 return self.driver.follow_through(q0, v0, a0)  # the hit happens in the segment this action commands
             flight.hit = None  # the hit time passed and the ball is still coming: replan
         prediction = self.predictor.predict(estimate)
@@ -528,12 +531,16 @@ class ModelBasedReturner:
         flight.prediction_positions = prediction.states[:, :3]
         skill = layout.part(observation, "skill")
         target = np.array([self.params.target_x, np.clip(skill[0], -self.params.target_y_limit, self.params.target_y_limit)])
-        candidates = self.predictor.candidates(flight, prediction, include_current=not self.params.memory, keep=keep)
-        if not self.params.memory and candidates and candidates[0] == 0:
+        planned = flight.hit
+        if "hit" in self.params.forget:
+            flight.hit = None  # not tried first (the ranking alone); still the plan for the other parts
+        candidates = self.predictor.candidates(flight, prediction, include_current=not plan_follows, keep=keep)
+        flight.hit = planned
+        if not plan_follows and candidates and candidates[0] == 0:
             return self.driver.follow_through(q0, v0, a0)  # the preferred hit falls in the segment this action commands
         candidates = [index for index in candidates if index > 0]
         hit = self._plan_hit(flight, candidates, prediction, q0, v0, target)
-        if hit is None and candidates and flight.hit is not None:
+        if hit is None and candidates and flight.hit is not None and "fallback" not in self.params.forget:
             hit = flight.hit  # nothing new works (e.g. no IK this time): keep going for the last plan
         flight.hit = hit
         self.last_plan = hit
@@ -558,6 +565,9 @@ class ModelBasedReturner:
                     flight = None
         if flight is None:
             flight = Flight()
+        if "bounce" in self.params.forget and estimate is not None:
+            behind = self.predictor.bounce_behind(estimate)  # as the memoryless returner finds it
+            flight.bounce_time = None if behind is None else flight.clock + behind
         self._flight = flight
         return flight
 
@@ -567,13 +577,14 @@ class ModelBasedReturner:
         make and reach in time (the cubic from the segment start within the acceleration limits);
         if none is in time, the previous plan's hit time if it is still possible (a late switch
         costs more than a late arrival), else the one that needs the least acceleration."""
-        limits = self.stack.limits
+        limits, forget = self.stack.limits, self.params.forget
         best, best_ratio = None, np.inf
         for index in candidates[: self.params.candidates_tried]:
             hit_time = flight.clock + prediction.times[index]
             same_hit = flight.hit is not None and abs(flight.hit.time - hit_time) < 1e-6
-            previous = flight.hit if same_hit else None
-            for racket in racket_plans(prediction.states[index], hit_time, self.physics, target, self.params, previous.racket if previous else None):
+            previous = flight.hit if same_hit and "ik" not in forget else None
+            previous_racket = flight.hit.racket if same_hit and "racket" not in forget else None
+            for racket in racket_plans(prediction.states[index], hit_time, self.physics, target, self.params, previous_racket):
                 q_hit = self._hit_configuration(racket, q0, previous)
                 if q_hit is None:
                     break  # the position is out of reach: try another hit time
@@ -585,7 +596,7 @@ class ModelBasedReturner:
                 ratio = float(np.max(hermite_peak_acceleration(q0, v0, q_hit, v_hit, duration) / limits.acceleration))
                 if ratio <= 1.0:
                     return HitPlan(hit_time, racket, q_hit, v_hit)
-                if same_hit:
+                if same_hit and "fallback" not in forget:
                     ratio = 0.0  # the plan being executed stays the fallback
                 if ratio < best_ratio:
                     best, best_ratio = HitPlan(hit_time, racket, q_hit, v_hit), ratio

@@ -90,7 +90,8 @@ def hit_state_controller(controller, params: RallyParams):
 def controller_names() -> list[str]:
     """The names ``make_controller`` accepts, shipped policies included."""
     policies = sorted(path.stem for path in POLICIES_DIR.glob("*.pt")) if POLICIES_DIR.is_dir() else []
-    return ["still", "returner", "returner:memoryless", "returner:hit_state", "returner:hit_memory", *(f"policy:{name}" for name in policies)]
+    return ["still", "returner", "returner:memoryless", "returner:forget=<part>[+<part>...]", "returner:hit_state", "returner:hit_memory",
+            *(f"policy:{name}" for name in policies)]
 
 
 def make_controller(name: str, params: RallyParams):
@@ -102,6 +103,11 @@ def make_controller(name: str, params: RallyParams):
         from ace_drake.control.returner import ModelBasedReturner
 
         return ModelBasedReturner.for_rally(params, ReturnerParams(memory=name == "returner"))
+    if name.startswith("returner:forget="):
+        from ace_drake.control.returner import ModelBasedReturner
+
+        # The returner with memory, some of it forgotten (ReturnerParams.forget: a study of its memory).
+        return ModelBasedReturner.for_rally(params, ReturnerParams(forget=tuple(name.removeprefix("returner:forget=").split("+"))))
     if name in ("returner:hit_state", "returner:hit_memory"):
         from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
         from ace_drake.control.returner import ModelBasedReturner
