@@ -245,14 +245,16 @@ def test_forget_names_parts_of_the_memory():
         make_controller("returner:forget=ik+nothing", RallyParams())
 
 
-@pytest.mark.parametrize("memory", [True, False])
-def test_an_easy_shot_is_returned_through_the_full_rally_diagram(memory):
+@pytest.mark.parametrize("name", ["returner", "returner:memoryless", "returner:forget=" + "+".join(RETURNER_MEMORY_PARTS)])
+def test_an_easy_shot_is_returned_through_the_full_rally_diagram(name):
     from ace_drake.diagrams import build_rally_diagram
+    from ace_drake.play.controllers import make_controller
     from ace_drake.play.episode import Outcome
     from ace_drake.play.runner import RallyRunner
 
     params = RallyParams()  # cameras, triangulation, EKF, perturbations: the full stack
-    dut = ModelBasedReturner.for_rally(params, ReturnerParams(memory=memory))
+    dut = make_controller(name, params)
+    assert isinstance(dut, ModelBasedReturner) and dut.params.memory == (name != "returner:memoryless")
     runner = RallyRunner(build_rally_diagram(params, dut), params)
     episode = runner.run(INCOMING_BALL, seed=0)
     assert episode.result.outcome == Outcome.RETURNED, episode.result.reason

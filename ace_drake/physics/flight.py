@@ -67,24 +67,10 @@ def one_ball_flight_acceleration(v_W: tuple[float, float, float], w_W: tuple[flo
 
     For callers that evaluate one ball at a time, such as the BallPlant's derivatives (thousands of
     calls per simulated second): NumPy's per-call overhead on 3-vectors makes the batched function
-    about six times slower there. Args: v_W (m/s) and w_W (rad/s) as 3 floats each.
+    about six times slower there. The arithmetic is ``_acceleration``'s, which the compiled
+    ``rk4_step`` shares. Args: v_W (m/s) and w_W (rad/s) as 3 floats each.
     """
-    vx, vy, vz = v_W
-    wx, wy, wz = w_W
-    density_ratio = aero.air_density / aero.ball_density
-    speed = math.sqrt(vx * vx + vy * vy + vz * vz)
-    spin_rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-    drag_gain = -(3.0 / (8.0 * aero.ball_radius)) * aero.drag_coefficient * density_ratio * speed
-    magnus = aero.magnus_cap
-    if spin_rate > 0.0:  # magnus_coefficient, with its limit at zero spin
-        magnus = min(aero.magnus_slope * speed / (aero.ball_radius * spin_rate) + aero.magnus_offset, aero.magnus_cap)
-    magnus_gain = -magnus * density_ratio
-    gravity_scale = (1.0 - density_ratio) if aero.buoyancy else 1.0
-    return (
-        drag_gain * vx + magnus_gain * (vy * wz - vz * wy),
-        drag_gain * vy + magnus_gain * (vz * wx - vx * wz),
-        drag_gain * vz + magnus_gain * (vx * wy - vy * wx) - gravity_scale * aero.gravity,
-    )
+    return _acceleration(*v_W, *w_W, *_flight_constants(aero))
 
 
 def state_derivative(state: np.ndarray, aero: AeroParams) -> np.ndarray:
@@ -103,8 +89,8 @@ def rk4_step(state: np.ndarray, dt: float | np.ndarray, aero: AeroParams) -> np.
 
     Compiled: the ball-by-ball loop of ``_rk4_rows`` does the operations of ``rk4_step_numpy`` in
     the same order (IEEE arithmetic and square roots only, no fused multiply-adds), so the two are
-    equal bit for bit (tests/test_physics.py); about 1 us a ball against ~200 us for NumPy's
-    calls on one ball, which is how the predictors call it.
+    equal bit for bit (tests/test_physics.py); ~6 us a call for one ball (mostly the call itself)
+    against ~150 us for NumPy's, which is how the predictors call it.
     """
     state = np.asarray(state, dtype=float)
     if state.shape[-1:] != (9,):
@@ -118,10 +104,7 @@ def rk4_step(state: np.ndarray, dt: float | np.ndarray, aero: AeroParams) -> np.
             steps = np.broadcast_to(steps, state.shape[:-1])
         steps = np.ascontiguousarray(steps.reshape(-1))
     out = np.empty_like(rows)
-    density_ratio = aero.air_density / aero.ball_density
-    drag_scale = -(3.0 / (8.0 * aero.ball_radius)) * aero.drag_coefficient * density_ratio  # flight_acceleration's order
-    weight = ((1.0 - density_ratio) if aero.buoyancy else 1.0) * aero.gravity
-    _rk4_rows(rows, steps, drag_scale, density_ratio, aero.magnus_slope, aero.ball_radius, aero.magnus_offset, aero.magnus_cap, weight, out)
+    _rk4_rows(rows, steps, *_flight_constants(aero), out)
     return out.reshape(state.shape)
 
 
@@ -137,10 +120,20 @@ def rk4_step_numpy(state: np.ndarray, dt: float | np.ndarray, aero: AeroParams) 
     return state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
+def _flight_constants(aero: AeroParams) -> tuple[float, ...]:
+    """The constants of ``_acceleration`` for ``aero``, each computed in ``flight_acceleration``'s
+    order: (drag scale -(3 / 8r) c_d rho_a / rho_b (1/m), rho_a / rho_b, the Magnus slope, r (m),
+    offset and cap, the weight term (1 - rho_a / rho_b) |g| (m/s^2))."""
+    density_ratio = aero.air_density / aero.ball_density
+    drag_scale = -(3.0 / (8.0 * aero.ball_radius)) * aero.drag_coefficient * density_ratio
+    weight = ((1.0 - density_ratio) if aero.buoyancy else 1.0) * aero.gravity
+    return drag_scale, density_ratio, aero.magnus_slope, aero.ball_radius, aero.magnus_offset, aero.magnus_cap, weight
+
+
 @numba.njit(cache=True)
-def _derivative(x, drag_scale, density_ratio, slope, radius, offset, cap, weight, k):
-    """``state_derivative`` of one ball x (9,) into k (9,), in ``flight_acceleration``'s order."""
-    vx, vy, vz, wx, wy, wz = x[3], x[4], x[5], x[6], x[7], x[8]
+def _acceleration(vx, vy, vz, wx, wy, wz, drag_scale, density_ratio, slope, radius, offset, cap, weight):
+    """Eq. (1) divided by the mass for one ball (m/s^2, 3 floats), in ``flight_acceleration``'s
+    order of operations (the cap of ``magnus_coefficient`` and its limit at zero spin)."""
     speed = math.sqrt(vx * vx + vy * vy + vz * vz)
     spin_rate = math.sqrt(wx * wx + wy * wy + wz * wz)
     drag_gain = drag_scale * speed
@@ -148,10 +141,18 @@ def _derivative(x, drag_scale, density_ratio, slope, radius, offset, cap, weight
     if spin_rate > 0.0:
         magnus = min(slope * speed / (radius * spin_rate) + offset, cap)
     magnus_gain = -magnus * density_ratio
-    k[0], k[1], k[2] = vx, vy, vz
-    k[3] = drag_gain * vx + magnus_gain * (vy * wz - vz * wy)
-    k[4] = drag_gain * vy + magnus_gain * (vz * wx - vx * wz)
-    k[5] = drag_gain * vz + magnus_gain * (vx * wy - vy * wx) - weight
+    return (
+        drag_gain * vx + magnus_gain * (vy * wz - vz * wy),
+        drag_gain * vy + magnus_gain * (vz * wx - vx * wz),
+        drag_gain * vz + magnus_gain * (vx * wy - vy * wx) - weight,
+    )
+
+
+@numba.njit(cache=True)
+def _derivative(x, drag_scale, density_ratio, slope, radius, offset, cap, weight, k):
+    """``state_derivative`` of one ball x (9,) into k (9,)."""
+    k[0], k[1], k[2] = x[3], x[4], x[5]
+    k[3], k[4], k[5] = _acceleration(x[3], x[4], x[5], x[6], x[7], x[8], drag_scale, density_ratio, slope, radius, offset, cap, weight)
     k[6], k[7], k[8] = 0.0, 0.0, 0.0
 
 
