@@ -199,8 +199,8 @@ class HitPredictor:
         step 2), most preferred first. ``flight``: what is remembered of the ball (a fresh
         ``Flight`` with ``bounce_time`` from ``bounce_behind`` when nothing is); an imminent
         bounce is recorded in it. ``include_current``: also the hit in the segment being commanded
-        (k = 0; the memoryless returner follows through there when it is preferred). The hit of
-        ``flight.hit``, else the one ``keep`` s after the observation, comes first while it is a
+        (k = 0; the memoryless returner follows through there when it is preferred). The hit
+        ``keep`` s after the observation (a remembered or kept hit) comes first while it is a
         candidate."""
         params = self.params
         table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
@@ -237,8 +237,6 @@ class HitPredictor:
         after_bounce = np.flatnonzero((times > bounce) & (times < end))
         apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
         order = sorted(index, key=lambda i: abs(times[i] - apex))
-        if flight.hit is not None:
-            keep = flight.hit.time - flight.clock  # the previous hit, kept while it is a candidate
         if keep is not None:
             kept = [i for i in order if abs(times[i] - keep) < KEEP_TOLERANCE]
             order = kept + [i for i in order if i not in kept]

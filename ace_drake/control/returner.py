@@ -95,6 +95,11 @@ SAME_BALL_DISTANCE = 0.3  # m: an estimate this far from the last prediction is 
 IK_MAJOR_ITERATIONS = 100
 
 
+def _no_action() -> None:
+    """A call's action where it sends none (the supervisor runs the last plan's reset)."""
+    return None
+
+
 # ---------------------------------------------------------------------------------------------
 # Racket planning (shared with analysis/scripted_swing.py)
 # ---------------------------------------------------------------------------------------------
@@ -478,7 +483,7 @@ class ModelBasedReturner:
     def __call__(self, observation: np.ndarray) -> np.ndarray | None:
         start = time.perf_counter()
         try:
-            return self._act(np.asarray(observation, dtype=float))
+            return self._act(np.asarray(observation, dtype=float))()
         finally:
             self.call_seconds.append(time.perf_counter() - start)
 
@@ -497,16 +502,17 @@ class ModelBasedReturner:
             if follow_observed_hit:
                 hit = self.layout.part(observation, "hit_prediction")
                 keep = float(hit[1]) if hit[0] > 0.5 else None
-            result = self._act(observation, drive=False, keep=keep)
-            return self.last_plan, (result if callable(result) else lambda: result)
+            drive = self._act(observation, keep=keep)
+            return self.last_plan, drive
         finally:
             self.call_seconds.append(time.perf_counter() - start)
 
     # ------------------------------------------------------------------------------ one call
-    def _act(self, observation: np.ndarray, drive: bool = True, keep: float | None = None):
-        """The call's action (or None); with ``drive`` false, where a hit is planned, the function
-        that drives it instead (``plan``); ``keep``: a hit time (s after the observation) to try
-        first (``HitPredictor.candidates``)."""
+    def _act(self, observation: np.ndarray, keep: float | None = None) -> Callable[[], np.ndarray | None]:
+        """Steps 1-4 of a call, and the function giving its action (or None): steps 5-6, which
+        drive a planned hit and check it as the supervisor will, run only when it is called
+        (``plan``). ``keep``: a hit time (s after the observation) to try first
+        (``HitPredictor.candidates``) when no remembered hit is."""
         layout = self.layout
         self._ik_budget = self.params.ik_solves_per_call
         self.last_plan = None
@@ -518,26 +524,24 @@ class ModelBasedReturner:
         if not valid or estimate[3] >= 0.0:
             # No track, or the ball is not coming (the robot has hit it): no new segment.
             self._flight = None if valid else flight
-            return None
+            return _no_action
         plan_follows = self.params.memory and "follow" not in self.params.forget  # else the preferred hit decides
         if flight.hit is not None and flight.hit.time - flight.clock < self.lead + self.lag + 0.5 * self.segment:
             if plan_follows and flight.hit.time - flight.clock > self.lead + self.lag - 0.5 * self.segment:
-                return self.driver.follow_through(q0, v0, a0)  # the hit happens in the segment this action commands
+                return functools.partial(self.driver.follow_through, q0, v0, a0)  # the hit happens in the segment this action commands
             flight.hit = None  # the hit time passed and the ball is still coming: replan
         prediction = self.predictor.predict(estimate)
         if prediction.times.size == 0:
-            return None  # the ball reaches the floor before the next segment starts
+            return _no_action  # the ball reaches the floor before the next segment starts
         flight.prediction_times = flight.clock + prediction.times
         flight.prediction_positions = prediction.states[:, :3]
         skill = layout.part(observation, "skill")
         target = np.array([self.params.target_x, np.clip(skill[0], -self.params.target_y_limit, self.params.target_y_limit)])
-        planned = flight.hit
-        if "hit" in self.params.forget:
-            flight.hit = None  # not tried first (the ranking alone); still the plan for the other parts
+        if flight.hit is not None and "hit" not in self.params.forget:
+            keep = flight.hit.time - flight.clock  # the planned hit is tried first while it is a candidate
         candidates = self.predictor.candidates(flight, prediction, include_current=not plan_follows, keep=keep)
-        flight.hit = planned
         if not plan_follows and candidates and candidates[0] == 0:
-            return self.driver.follow_through(q0, v0, a0)  # the preferred hit falls in the segment this action commands
+            return functools.partial(self.driver.follow_through, q0, v0, a0)  # the preferred hit falls in the segment this action commands
         candidates = [index for index in candidates if index > 0]
         hit = self._plan_hit(flight, candidates, prediction, q0, v0, target)
         if hit is None and candidates and flight.hit is not None and "fallback" not in self.params.forget:
@@ -545,10 +549,9 @@ class ModelBasedReturner:
         flight.hit = hit
         self.last_plan = hit
         if hit is None:
-            return None
+            return _no_action
         boundary = hit.time - flight.clock - self.lag  # when the command must be at (q_hit, v_hit), s after the observation
-        steps_5_6 = functools.partial(self.driver.drive, q0, v0, a0, hit.q, hit.v, boundary - self.lead)
-        return steps_5_6() if drive else steps_5_6
+        return functools.partial(self.driver.drive, q0, v0, a0, hit.q, hit.v, boundary - self.lead)  # steps 5-6
 
     def _advance(self, estimate: np.ndarray | None) -> Flight:
         """The memory for this call: the clock advanced by one segment, or a fresh memory when the
