@@ -545,6 +545,7 @@ class PerceptionParams:
 
 
 RETURNER_MEMORY_PARTS = ("bounce", "hit", "follow", "racket", "ik", "fallback")  # ReturnerParams.forget
+IK_NOMINALS = ("braking", "segment_start")  # ReturnerParams.ik_nominal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -572,6 +573,13 @@ class ReturnerParams:
     # the motion with a 5 mm margin, and the motion around the hit comes closer than the hit).
     ik_clearance: float = 0.03
     ik_solves_per_call: int = 4  # full IK solves (``solve_hit_ik``) a call may spend; refinements are free
+    # Where a full IK solve starts (its nominal configuration and first seed): "braking", the arm's
+    # revolute joints where braking uniformly to rest over the D s to the hit's boundary would stop
+    # them, q0 + v0 D / 2, and the gantry at q0, so that a moving arm keeps to the solution it is
+    # moving towards; "segment_start", q0 itself. None: "braking" without memory (369 of the 411
+    # playable recorded shots against 353), "segment_start" with it (376 against 372), the better
+    # rule for each (README, *Rally: the model-based returner*).
+    ik_nominal: str | None = None
     # The joints' lag behind the command (eq. (9) ramp-tracking lag plus half a command period of
     # zero-order hold); None: computed from the scenario's joint dynamics.
     joint_lag: float | None = None
@@ -585,14 +593,23 @@ class ReturnerParams:
     # ball at every call instead), "hit" (the planned hit time is not tried first), "follow" (the
     # follow-through is decided from the preferred hit, not from the plan), "racket" (the plan's
     # flight time and return are not reused), "ik" (the plan's configuration is not refined: full IK
-    # from the segment start), "fallback" (no falling back on the plan being executed).
+    # afresh), "fallback" (no falling back on the plan being executed).
     forget: tuple[str, ...] = ()
+
+    @property
+    def ik_rule(self) -> str:
+        """The IK's starting rule in force (``ik_nominal``, None resolved by ``memory``)."""
+        if self.ik_nominal is not None:
+            return self.ik_nominal
+        return "segment_start" if self.memory else "braking"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "forget", tuple(self.forget))
         unknown = [part for part in self.forget if part not in RETURNER_MEMORY_PARTS]
         if unknown:
             raise ConfigError(f"forget: unknown memory part(s) {unknown}; choose from {', '.join(RETURNER_MEMORY_PARTS)}")
+        if self.ik_nominal is not None and self.ik_nominal not in IK_NOMINALS:
+            raise ConfigError(f"ik_nominal must be one of {', '.join(IK_NOMINALS)}, got {self.ik_nominal!r}")
         _require_positive(self, "target_x", "net_clearance", "hit_height_max", "prediction_step", "prediction_horizon", "candidates_tried", "ik_solves_per_call")
         _require_non_negative(self, "target_y_limit", "hit_height_min", "ik_clearance")
         if not self.flight_times or any(not t > 0.0 for t in self.flight_times):

@@ -149,6 +149,8 @@ class RobotModel:
         self.lower, self.upper = limits["lower"], limits["upper"]
         self.velocity_limit, self.acceleration_limit = limits["velocity"], limits["acceleration"]
         self.ready_pose = np.asarray(self.scenario.ready_pose, dtype=float)
+        # True for the arm's revolute joints, False for the gantry's prismatic ones (JOINT_NAMES order).
+        self.revolute = np.array([self.plant.GetJointByName(name, self.robot).type_name() == "revolute" for name in JOINT_NAMES])
 
     # ------------------------------------------------------------------------------ kinematics
     def _set(self, q: np.ndarray, v: np.ndarray | None = None) -> None:

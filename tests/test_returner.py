@@ -225,6 +225,45 @@ def test_forgetting_the_plans_configuration_solves_the_full_ik_again(returner, m
     assert hits[()] == 0 and hits[("ik",)] >= 1
 
 
+@pytest.mark.parametrize("rule", ["braking", "segment_start"])
+def test_a_full_ik_starts_where_braking_would_stop_the_moving_arm(returner, monkeypatch, rule):
+    # The robot moving at the segment start: a full IK's nominal configuration (and first seed)
+    # is, with "braking", the arm's joints at q0 + v0 D / 2 for the hit's D > 0 (one D for every
+    # joint), the gantry at q0; with "segment_start", q0 itself.
+    dut = ModelBasedReturner(model=returner.model, stack=returner.stack, params=ReturnerParams(memory=False, ik_nominal=rule))
+    obs = observation(dut.layout, simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0])
+    q0 = dut.layout.part(obs, "robot_state")[:8].copy()
+    v0 = np.array([0.3, -0.2, 0.4, -0.3, 0.5, 0.6, -0.4, 0.2])  # rad/s or m/s, well inside the limits
+    obs[dut.layout.slice("robot_state")][8:16] = v0
+    starts = []
+    solve = returner_module.solve_hit_ik
+
+    def recording(model, p_WR, normal_W, q_nominal, seeds, clearance):
+        starts.append((np.array(q_nominal), np.array(seeds[0])))
+        return solve(model, p_WR, normal_W, q_nominal, seeds, clearance)
+
+    monkeypatch.setattr(returner_module, "solve_hit_ik", recording)
+    assert dut(obs) is not None and dut.last_plan is not None
+    nominal, seed = starts[0]
+    np.testing.assert_array_equal(seed, nominal)
+    arm = dut.model.revolute
+    np.testing.assert_array_equal(nominal[~arm], q0[~arm])  # the gantry: where it is
+    if rule == "segment_start":
+        np.testing.assert_array_equal(nominal, q0)
+    else:
+        half_durations = (nominal[arm] - q0[arm]) / v0[arm]
+        assert half_durations[0] > 0.0
+        np.testing.assert_allclose(half_durations, half_durations[0], rtol=1e-9)
+        assert half_durations[0] <= 0.5 * dut.params.prediction_horizon
+
+
+def test_the_ik_nominal_is_one_of_the_named_rules_by_default_the_better_one_for_each_mode():
+    with pytest.raises(ConfigError, match="ik_nominal must be one of braking, segment_start"):
+        ReturnerParams(ik_nominal="ready_pose")
+    assert ReturnerParams().ik_rule == "segment_start" and ReturnerParams(memory=False).ik_rule == "braking"
+    assert ReturnerParams(memory=False, ik_nominal="segment_start").ik_rule == "segment_start"
+
+
 @pytest.mark.parametrize("part", RETURNER_MEMORY_PARTS)
 def test_the_returner_plays_a_ball_with_any_part_of_its_memory_forgotten(returner, part):
     dut = ModelBasedReturner(model=returner.model, stack=returner.stack, params=ReturnerParams(forget=(part,)))

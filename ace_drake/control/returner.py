@@ -30,8 +30,11 @@ latest estimate (the estimate improves as the ball flies):
    tried in order (``flight_times``) until the ball clears the net and the joints can make the
    racket state.
 4. **Inverse kinematics** for the racket pose (``solve_hit_ik``: Drake's InverseKinematics with
-   the blade free to roll about its normal and ``ik_clearance`` between all geometry, nearest the
-   segment-start configuration in a metric that makes the slow gantry expensive), then on later
+   the blade free to roll about its normal and ``ik_clearance`` between all geometry, nearest a
+   nominal configuration in a metric that makes the slow gantry expensive: the segment start, or
+   without memory where braking uniformly to rest by the hit would stop the moving arm, so that
+   the solution keeps to the branch the arm is moving towards, ``ReturnerParams.ik_nominal``),
+   then on later
    calls the previous solution moved onto the updated pose by Gauss-Newton steps
    (``refine_hit_ik``: continuity, and 0.3 ms instead of 2-60 ms); the **joint velocities** for
    the racket velocity by least squares weighted by the joints' speed limits
@@ -62,7 +65,7 @@ the observation alone (the labels a learner imitates must be: ``learning.rollout
 finds whether the ball has bounced by following its flight back in time (``bounce_behind``),
 takes the preferred hit of step 2 afresh (the same grid of hit instants every call, so the choice
 holds while the estimate does), follows through when that hit falls in the segment being
-commanded, and solves the full IK from the segment-start configuration. ``ReturnerParams.forget``
+commanded, and solves the full IK afresh (from where braking would stop the arm: step 4). ``ReturnerParams.forget``
 drops parts of the memory one at a time instead (its bounce, hit time, follow-through, racket plan,
 hit configuration, fallback; ``returner:forget=...``), to measure what each is worth (README).
 """
@@ -584,18 +587,19 @@ class ModelBasedReturner:
         best, best_ratio = None, np.inf
         for index in candidates[: self.params.candidates_tried]:
             hit_time = flight.clock + prediction.times[index]
+            duration = prediction.times[index] - self.lag - self.lead  # from the segment start to the hit's boundary, s
             same_hit = flight.hit is not None and abs(flight.hit.time - hit_time) < 1e-6
             previous = flight.hit if same_hit and "ik" not in forget else None
             previous_racket = flight.hit.racket if same_hit and "racket" not in forget else None
+            nominal = self._ik_nominal(q0, v0, duration)
             for racket in racket_plans(prediction.states[index], hit_time, self.physics, target, self.params, previous_racket):
-                q_hit = self._hit_configuration(racket, q0, previous)
+                q_hit = self._hit_configuration(racket, nominal, previous)
                 if q_hit is None:
                     break  # the position is out of reach: try another hit time
                 previous = HitPlan(hit_time, racket, q_hit, np.zeros(8))  # seeds the next flight time's IK
                 v_hit = racket_joint_velocities(self.model, q_hit, racket.velocity)
                 if np.any(np.abs(v_hit) > limits.velocity) or not np.all(in_invariant_set(q_hit, v_hit, limits, self.stack.control, self.stack.period)):
                     continue  # too fast for the joints: a slower return
-                duration = prediction.times[index] - self.lag - self.lead
                 ratio = float(np.max(hermite_peak_acceleration(q0, v0, q_hit, v_hit, duration) / limits.acceleration))
                 if ratio <= 1.0:
                     return HitPlan(hit_time, racket, q_hit, v_hit)
@@ -606,21 +610,34 @@ class ModelBasedReturner:
                 break
         return best
 
-    def _hit_configuration(self, racket: RacketPlan, q0: np.ndarray, previous: HitPlan | None) -> np.ndarray | None:
+    def _ik_nominal(self, q0: np.ndarray, v0: np.ndarray, duration: float) -> np.ndarray:
+        """Where a full IK solve for a hit ``duration`` s after the segment start starts
+        (``ReturnerParams.ik_nominal``): the segment start q0, or with "braking" the arm's joints
+        at q0 + v0 D / 2 (uniform braking from v0 to rest over D stops there; the gantry stays at
+        q0), inside the joint limits. A moving arm's solution then stays on the branch it is moving
+        towards instead of hopping between nearly equidistant ones from call to call (measured:
+        README, *Rally: the model-based returner*)."""
+        if self.params.ik_rule == "segment_start":
+            return q0
+        step = np.where(self.model.revolute, 0.5 * v0 * max(duration, 0.0), 0.0)
+        return np.clip(q0 + step, self.model.lower, self.model.upper)
+
+    def _hit_configuration(self, racket: RacketPlan, nominal: np.ndarray, previous: HitPlan | None) -> np.ndarray | None:
         """q_hit for the racket plan: the previous plan's configuration moved onto it
         (``refine_hit_ik``) when there is one, else (or if that fails) the full IK
-        (``solve_hit_ik``) from the previous solution, the segment start and the default seeds,
-        within the call's budget of ``ik_solves_per_call`` solves."""
+        (``solve_hit_ik``, nearest ``nominal``: ``_ik_nominal``) from the previous solution,
+        ``nominal`` and the default seeds, within the call's budget of ``ik_solves_per_call``
+        solves."""
         if previous is not None:
             q = refine_hit_ik(self.model, previous.q, racket.position, racket.normal)
             if q is not None:
                 return q
-        seeds = [q0] if previous is None else [previous.q, q0]
+        seeds = [nominal] if previous is None else [previous.q, nominal]
         for attempt in (seeds, [self.model.seed_for(racket.position, roll) for roll in (0.0, 1.5, -1.5)]):
             if self._ik_budget <= 0:
                 return None  # this call has spent its budget (a failing IK can take 60 ms a seed)
             self._ik_budget -= 1
-            ik = solve_hit_ik(self.model, racket.position, racket.normal, q0, attempt, self.params.ik_clearance)
+            ik = solve_hit_ik(self.model, racket.position, racket.normal, nominal, attempt, self.params.ik_clearance)
             if ik.success:
                 return ik.q
         return None
