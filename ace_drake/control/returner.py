@@ -34,8 +34,7 @@ latest estimate (the estimate improves as the ball flies):
    nominal configuration in a metric that makes the slow gantry expensive: the segment start, or
    without memory where braking uniformly to rest by the hit would stop the moving arm, so that
    the solution keeps to the branch the arm is moving towards, ``ReturnerParams.ik_nominal``),
-   then on later
-   calls the previous solution moved onto the updated pose by Gauss-Newton steps
+   then on later calls the previous solution moved onto the updated pose by Gauss-Newton steps
    (``refine_hit_ik``: continuity, and 0.3 ms instead of 2-60 ms); the **joint velocities** for
    the racket velocity by least squares weighted by the joints' speed limits
    (``racket_joint_velocities``).
@@ -65,9 +64,10 @@ the observation alone (the labels a learner imitates must be: ``learning.rollout
 finds whether the ball has bounced by following its flight back in time (``bounce_behind``),
 takes the preferred hit of step 2 afresh (the same grid of hit instants every call, so the choice
 holds while the estimate does), follows through when that hit falls in the segment being
-commanded, and solves the full IK afresh (from where braking would stop the arm: step 4). ``ReturnerParams.forget``
-drops parts of the memory one at a time instead (its bounce, hit time, follow-through, racket plan,
-hit configuration, fallback; ``returner:forget=...``), to measure what each is worth (README).
+commanded, and solves the full IK afresh (from where braking would stop the arm: step 4).
+``ReturnerParams.forget`` drops parts of the memory one at a time instead (its bounce, hit time,
+follow-through, racket plan, hit configuration, fallback; ``returner:forget=...``), to measure
+what each is worth (README).
 """
 
 from __future__ import annotations
