@@ -106,19 +106,42 @@ def cmd_evaluate(args) -> int:
         sample = make_distribution(ShotParams(seed=args.seed), params.physics).draw(np.random.default_rng(args.seed), args.episodes or 200)
         shots, serve = sample.states, sample.serve
         source = f"{len(shots)} shots from the built-in synthetic distribution"
+    skills, skill_text = _evaluation_skills(args.skill, len(shots), params, args.seed)
     controller = make_controller(args.controller, params)
     noise = f", Gaussian action noise {args.action_noise:g}" if args.action_noise else ""
     if args.action_noise:
         controller = NoisyActions(controller, args.action_noise, seed=args.seed)
-    log(f"evaluate: '{args.controller}'{noise} on {source}, {args.sensors} sensors, seed {args.seed}")
-    figures = evaluate(controller, params, shots, serve, args.seed, progress=log)
+    log(f"evaluate: '{args.controller}'{noise} on {source}, {args.sensors} sensors, seed {args.seed}, {skill_text}")
+    figures = evaluate(controller, params, shots, serve, args.seed, progress=log, skills=skills)
     figures = {"controller": args.controller, "action_noise": args.action_noise, "data": args.data, "players": list(players),
-               "sensors": args.sensors, "seed": args.seed, **figures}
+               "sensors": args.sensors, "seed": args.seed, "skills": args.skill or "default", **figures}
     if args.json:
         emit_json({**figures, **_provenance(), **({"data_sha256": _sha256(args.data)} if args.data else {})})
         return 0
     _print_evaluation(figures)
     return 0
+
+
+def _evaluation_skills(spec: str | None, count: int, params: RallyParams, seed: int) -> tuple[np.ndarray | None, str]:
+    """The skills of ``evaluate --skill``: None (the diagram's default), one fixed skill
+    "Y,WP,WS" for every shot, or "sampled": one per shot from the training distribution
+    (``learning.rally_env.SkillSampling``) drawn with ``seed``. Returns (skills (count, 3) or None,
+    a phrase for the log); raises ConfigError for anything else."""
+    from ace_drake.learning.rally_env import SkillSampling
+
+    if spec is None:
+        return None, "the default skill (y_desired 0 m, w_p 1, w_s 0)"
+    if spec == "sampled":
+        rng = np.random.default_rng([seed, 0x5C111])
+        skills = np.array([SkillSampling().sample(rng, params.physics.table.width) for _ in range(count)]).reshape(count, 3)
+        return skills, "skills sampled as in training"
+    try:
+        skill = np.array([float(value) for value in spec.split(",")])
+    except ValueError:
+        skill = np.array([])
+    if skill.shape != (3,) or not np.all(np.isfinite(skill)) or not (0.0 <= skill[1] <= 1.0 and -1.0 <= skill[2] <= 1.0):
+        raise ConfigError(f"evaluate: --skill must be 'sampled' or Y,WP,WS (y_desired in m, w_p in [0, 1], w_s in [-1, 1]), got {spec!r}")
+    return np.tile(skill, (count, 1)), f"skill y_desired {skill[0]:g} m, w_p {skill[1]:g}, w_s {skill[2]:g}"
 
 
 def _print_evaluation(figures: dict) -> None:
@@ -142,6 +165,18 @@ def _print_evaluation(figures: dict) -> None:
     print("  not returned:")
     for reason, count in figures["not_returned_by_reason"].items():
         print(f"    {count:5d}  {reason}")
+    skill = figures["skill"]
+    aim = skill["aim"]
+    if aim["error_m"] is not None:
+        fit = "" if aim["slope"] is None else f"; y_land on y_desired: slope {aim['slope']:.2f}, correlation {aim['correlation']:.2f}"
+        print(f"  skill ({figures['skills']}): landing y - y_desired median {aim['error_m']['median']:.3f} m "
+              f"(p90 {aim['error_m']['p90']:.3f}) over {aim['count']} aimed returns{fit}")
+    for group in skill["landing_topspin_rad_s"]:
+        entry = group["landing_topspin_rad_s"]
+        if entry is not None:
+            print(f"    w_s {group['group']:<8} landing topspin median {entry['median']:.0f} rad/s (p10 {entry['p10']:.0f}, p90 {entry['p90']:.0f}) over {entry['count']}")
+    if skill["mean_reward"] is not None:
+        print(f"    mean eq. (10) reward {skill['mean_reward']:.3f}")
     print(f"  segments accepted {figures['segments_accepted']}, refused {figures['segments_refused']}; {figures['wall_time_s']:.0f} s")
 
 
@@ -589,6 +624,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--data", help="match-data CSV: one episode per human shot (shot_p2); default: the synthetic distribution")
     evaluate.add_argument("--players", help="with --data: only these players' shots, comma-separated player_id values (e.g. 'Elite D,Elite E')")
     evaluate.add_argument("--episodes", type=int, help="at most this many episodes (default: all shots of --data, or 200)")
+    evaluate.add_argument("--skill", help="the skill of every episode: Y,WP,WS (y_desired m, w_p, w_s) or 'sampled' (one per shot from the training distribution, seeded); default: 0,1,0")
     evaluate.add_argument("--action-noise", type=float, default=0.0, help="add Gaussian noise of this std (action units) to every action, seeded (default: none)")
     evaluate.set_defaults(run=cmd_evaluate)
 

@@ -562,6 +562,11 @@ class ReturnerParams:
     flight_times: tuple[float, ...] = (0.55, 0.45, 0.65, 0.75, 0.38)
     net_clearance: float = 0.04  # between the ball's bottom and the net cord
     brush_speed: float = 0.0  # racket speed along the blade's upward tangent (> 0: topspin)
+    # Added to brush_speed per unit of the skill's w_s (paper, *Rewards*: w_s weighs the landing's
+    # topspin), so that the returner follows the spin skill: 2 m/s put the median landing topspin
+    # at +198 / -32 / -157 rad/s for w_s = +1 / 0 / -1 on 21 recorded shots, returning 17 / 18 / 19
+    # of them (4 m/s: 11 / 18 / 14; README, *Rally: the model-based returner*). 0: spin ignored.
+    skill_brush: float = 2.0
     # The ball centre at the hit: height above the playing surface, and how far behind the table.
     hit_height_min: float = 0.12
     hit_height_max: float = 0.50

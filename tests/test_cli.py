@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from ace_drake.cli import main
+from ace_drake.config import RewardParams
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "ace_match_events_elite.csv"
@@ -43,6 +44,17 @@ def test_evaluate_counts_every_episode_with_its_interval(capsys):
     noisy = run_json(capsys, "evaluate", "--controller", "still", "--episodes", "1", "--sensors", "statistical", "--action-noise", "0.1", "--json")
     assert noisy["action_noise"] == 0.1 and noisy["episodes"] == 1
     assert main(["evaluate", "--controller", "still", "--episodes", "1", "--action-noise", "-1"]) == 2
+    assert result["skills"] == "default" and result["skill"]["aim"]["count"] == 0
+    # eq. (10): R_miss for a miss, R_hit for a ball that hit the still racket without being returned.
+    misses = sum(count for reason, count in result["not_returned_by_reason"].items() if reason.startswith("missed"))
+    reward = RewardParams()
+    expected = (misses * reward.miss + (rate["played"] - misses) * reward.hit) / rate["played"]
+    assert result["skill"]["mean_reward"] == pytest.approx(expected)
+    sampled = run_json(capsys, "evaluate", "--controller", "still", "--episodes", "2", "--sensors", "statistical", "--skill", "sampled", "--json")
+    assert sampled["skills"] == "sampled" and sampled["episodes"] == 2
+    for bad in ("0,2,0", "0,1", "left"):
+        assert main(["evaluate", "--controller", "still", "--episodes", "1", "--skill", bad]) == 2
+        assert "--skill must be" in capsys.readouterr().err
 
 
 @needs_data

@@ -33,14 +33,14 @@ def returner():
     return ModelBasedReturner()
 
 
-def observation(layout: ObservationLayout, estimate, valid=True, q=None) -> np.ndarray:
-    """An observation with the EKF estimate ``estimate`` (9,) and the robot at rest at q (default:
-    the ready pose); empty histories."""
+def observation(layout: ObservationLayout, estimate, valid=True, q=None, skill=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """An observation with the EKF estimate ``estimate`` (9,), the robot at rest at q (default:
+    the ready pose) and ``skill`` [y_desired, w_p, w_s]; empty histories."""
     q = np.asarray(RallyParams().control.reset_pose or (-0.45, -0.15, 0.0, 0.15, 0.35, 0.0, -0.5, 0.0)) if q is None else q
     empty = np.column_stack([np.zeros((10, 3)), -np.ones(10)])
     return layout.assemble(
         positions=empty, spins=empty, robot_state=np.concatenate([q, np.zeros(16)]), end_effector=np.zeros(13),
-        skill=[0.0, 1.0, 0.0], estimate=estimate if valid else np.zeros(9), estimate_status=[1.0 if valid else 0.0, 1.0 if valid else 0.0, 0.01 if valid else -1.0],
+        skill=skill, estimate=estimate if valid else np.zeros(9), estimate_status=[1.0 if valid else 0.0, 1.0 if valid else 0.0, 0.01 if valid else -1.0],
     )
 
 
@@ -147,6 +147,38 @@ def test_the_action_for_a_reachable_ball_moves_the_racket_towards_the_hit(return
     model = returner.model
     distance = [np.linalg.norm(model.racket_pose(q).translation() - plan.racket.position) for q in (q0, q_end)]
     assert distance[1] < distance[0]
+
+
+def test_the_returner_follows_the_skill_aiming_at_y_desired_and_brushing_by_w_s(returner):
+    # Paper, *Rewards*: y_desired is where the return should land, w_s weighs its topspin at
+    # landing. The returner aims at y_desired (clipped to target_y_limit) and brushes the ball along
+    # the blade by skill_brush * w_s: up for topspin, down for backspin.
+    from ace_drake.control.returner import _blade_up
+    from ace_drake.learning.rewards import travel_frame_spin
+
+    estimate = simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0]
+    plans = {}
+    for skill in [(0.3, 1.0, 1.0), (0.3, 1.0, 0.0), (0.3, 1.0, -1.0), (-0.9, 1.0, 0.0)]:
+        returner.reset()
+        assert returner(observation(returner.layout, estimate, skill=skill)) is not None
+        plans[skill] = returner.last_plan.racket
+    brush = {w_s: plans[(0.3, 1.0, w_s)].velocity @ _blade_up(plans[(0.3, 1.0, w_s)].normal) for w_s in (1.0, 0.0, -1.0)}
+    flat = brush[0.0]  # a racket moving along its normal has no component along the blade
+    assert flat == pytest.approx(0.0, abs=1e-9)
+    assert brush[1.0] == pytest.approx(returner.params.skill_brush, abs=1e-9) and brush[-1.0] == pytest.approx(-returner.params.skill_brush, abs=1e-9)
+    landing_spin = {}
+    for skill, plan in plans.items():
+        landing = simulate(plan.ball_out, PARAMS, 2.0, stop_on=(ContactKind.TABLE,)).stop_events[0].state_pre
+        target_y = float(np.clip(skill[0], -returner.params.target_y_limit, returner.params.target_y_limit))
+        np.testing.assert_allclose(landing[:2], [returner.params.target_x, target_y], atol=0.01)
+        landing_spin[skill] = travel_frame_spin(landing)
+    assert landing_spin[(0.3, 1.0, 1.0)] > landing_spin[(0.3, 1.0, 0.0)] + 100.0 > landing_spin[(0.3, 1.0, -1.0)] + 200.0
+    # With skill_brush 0 the spin skill is ignored (the earlier training runs' labeller).
+    flat_returner = ModelBasedReturner(model=returner.model, stack=returner.stack, params=ReturnerParams(skill_brush=0.0))
+    for w_s in (1.0, -1.0):
+        flat_returner.reset()
+        flat_returner(observation(flat_returner.layout, estimate, skill=(0.3, 1.0, w_s)))
+        np.testing.assert_allclose(flat_returner.last_plan.racket.velocity, plans[(0.3, 1.0, 0.0)].velocity, atol=1e-9)
 
 
 class _Report:

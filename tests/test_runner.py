@@ -50,6 +50,8 @@ def test_a_robot_that_never_moves_misses_and_the_policy_sees_the_ball(runner_and
     joints = runner.diagram.GetSubsystemByName("joint_plant")
     q = joints.q_port.Eval(joints.GetMyContextFromRoot(runner.context))
     np.testing.assert_allclose(q, runner.diagram.GetSubsystemByName("safety_supervisor").stack.reset_pose, atol=1e-9)
+    np.testing.assert_array_equal(episode.skill, [0.0, 1.0, 0.0])  # the ObservationBuilder's default
+    np.testing.assert_array_equal(runner.run(SHOT, seed=3, skill=[0.4, 0.5, -1.0]).skill, [0.4, 0.5, -1.0])
 
 
 def test_same_seed_same_episode_bit_for_bit(runner_and_policy):

@@ -181,9 +181,9 @@ def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
     sixth = yaml.safe_load((MODELS_DIR / "train_rally_human_memoryless.yaml").read_text())
     fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
     assert sixth.pop("initialize_from") == "out/train/rally_sac_human2/checkpoint.pt"  # stage 5's run directory (README)
-    # Both labelled with the IK from the segment start (the rule of their time); the sixth without memory.
-    assert sixth.pop("returner") == {"ik_nominal": "segment_start", "memory": False}
-    assert fifth.pop("returner") == {"ik_nominal": "segment_start"}
+    # Both labelled with the IK from the segment start and no spin skill (the rules of their time); the sixth without memory.
+    assert sixth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start", "memory": False}
+    assert fifth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start"}
     assert sixth.pop("seed") != fifth.pop("seed")
     fifth.pop("initialize_from")
     assert sixth == fifth

@@ -8,6 +8,11 @@ speed and spin (Fig. 3e-f); the time from the bounce on the robot's half to the 
 and every episode that was not returned counted by its reason. Shots that were not playable (they
 did not bounce legally on the robot's half under the simulated physics: ``Outcome.INVALID``) are
 counted and left out of the rate.
+
+Each episode is played with a skill [y_desired (m), w_p, w_s] (paper, *States*, *Rewards*): the
+diagram's default (the centre line, w_p = 1, w_s = 0) or one per shot. ``skill_figures`` says
+how the returns followed it: where they landed against y_desired (the aim), their topspin at
+landing by the sign of w_s, and the mean eq. (10) reward.
 """
 
 from __future__ import annotations
@@ -19,12 +24,15 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import binomtest
 
-from ace_drake.config import RallyParams
+from ace_drake.config import RallyParams, RewardParams
+from ace_drake.learning.rewards import terminal_reward, travel_frame_spin
 from ace_drake.play.episode import Outcome
 from ace_drake.play.runner import Episode, RallyRunner
 
 SPEED_BINS = (0.0, 6.0, 8.0, 10.0, 12.0, 14.0, np.inf)  # m/s, the shot's speed just after the hit
 SPIN_BINS = (0.0, 100.0, 200.0, 300.0, 400.0, np.inf)  # rad/s, its spin rate
+# The skill's w_s in three groups: backspin asked for (w_s < -1/3), neither, topspin (w_s > 1/3).
+SPIN_SKILL_GROUPS = (("backspin", -1.0, -1.0 / 3.0), ("neutral", -1.0 / 3.0, 1.0 / 3.0), ("topspin", 1.0 / 3.0, 1.0))
 
 
 def return_rate(returned: int, played: int) -> dict:
@@ -75,7 +83,39 @@ def summarize(episodes: list[Episode]) -> dict:
         "not_returned_by_reason": dict(reasons.most_common()),
         "segments_accepted": int(sum(e.segments[0] for e in episodes)),
         "segments_refused": int(sum(e.segments[1] for e in episodes)),
+        "skill": skill_figures(episodes),
     }
+
+
+def skill_figures(episodes: list[Episode], reward: RewardParams | None = None) -> dict:
+    """How the playable episodes followed their skills [y_desired (m), w_p, w_s]:
+
+    - ``aim``, over the returns whose skill weighs the position (w_p > 0): the landing's distance
+      |y_land - y_desired| (m; median, p10, p90) and, when y_desired varies (std > 5 cm), the
+      least-squares slope and the correlation of y_land on y_desired (1 and 1 for perfect aim;
+      0 for a controller that ignores it);
+    - ``landing_topspin_rad_s``, per group of w_s (``SPIN_SKILL_GROUPS``): the returns' spin about
+      the travel frame's y axis at landing (``rewards.travel_frame_spin``; > 0 topspin);
+    - ``mean_reward``: the eq. (10) terminal reward (``rewards.terminal_reward`` with ``reward``,
+      default ``RewardParams()``) averaged over the playable episodes."""
+    reward = reward or RewardParams()
+    playable = [e for e in episodes if e.result.outcome is not Outcome.INVALID]
+    returns = [e for e in playable if e.result.outcome is Outcome.RETURNED]
+    aimed = [e for e in returns if e.skill[1] > 0.0]
+    y_desired = np.array([e.skill[0] for e in aimed])
+    y_land = np.array([e.result.landing.state_pre[1] for e in aimed])
+    aim = {"count": len(aimed), "error_m": _distribution(np.abs(y_land - y_desired)), "slope": None, "correlation": None}
+    if len(aimed) > 2 and np.std(y_desired) > 0.05:
+        aim["slope"] = float(np.polyfit(y_desired, y_land, 1)[0])
+        aim["correlation"] = float(np.corrcoef(y_desired, y_land)[0, 1])
+    spin = []
+    w_s = np.array([e.skill[2] for e in returns])
+    groups = 1 + (w_s > SPIN_SKILL_GROUPS[2][1]).astype(int) - (w_s < SPIN_SKILL_GROUPS[0][2]).astype(int)
+    for index, (name, low, high) in enumerate(SPIN_SKILL_GROUPS):
+        landing = [travel_frame_spin(e.result.landing.state_pre) for e, group in zip(returns, groups) if group == index]
+        spin.append({"group": name, "w_s_low": low, "w_s_high": high, "landing_topspin_rad_s": _distribution(landing)})
+    rewards = [terminal_reward(e.result, e.skill, reward) for e in playable]
+    return {"aim": aim, "landing_topspin_rad_s": spin, "mean_reward": float(np.mean(rewards)) if rewards else None}
 
 
 def run_episodes(
@@ -84,25 +124,33 @@ def run_episodes(
     serve: np.ndarray,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    skills: np.ndarray | None = None,
 ) -> list[Episode]:
     """Plays every shot (n, 9) once (``serve`` (n,) marks serves), episode i seeded with
-    ``seed * 1_000_003 + i``; reports progress every 10% when ``progress`` is given."""
+    ``seed * 1_000_003 + i`` and played with skill ``skills[i]`` ((n, 3) [y_desired (m), w_p,
+    w_s]; None: the diagram's default); reports progress every 10% when ``progress`` is given."""
     shots = np.asarray(shots, dtype=float).reshape(-1, 9)
+    if skills is not None:
+        skills = np.asarray(skills, dtype=float)
+        if skills.shape != (len(shots), 3):
+            raise ValueError(f"run_episodes: skills must be ({len(shots)}, 3), one per shot, got {skills.shape}")
     episodes = []
     start = time.perf_counter()
     for index, (shot, is_serve) in enumerate(zip(shots, serve)):
-        episodes.append(runner.run(shot, seed=seed * 1_000_003 + index, serve=bool(is_serve)))
+        skill = None if skills is None else skills[index]
+        episodes.append(runner.run(shot, seed=seed * 1_000_003 + index, serve=bool(is_serve), skill=skill))
         if progress is not None and ((index + 1) % max(1, len(shots) // 10) == 0 or index + 1 == len(shots)):
             rate = np.mean([e.result.outcome is Outcome.RETURNED for e in episodes])
             progress(f"evaluate: {index + 1}/{len(shots)} episodes, returned {rate:.0%} so far, {time.perf_counter() - start:.0f} s")
     return episodes
 
 
-def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarray, seed: int = 0, progress=None) -> dict:
+def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarray, seed: int = 0, progress=None,
+             skills: np.ndarray | None = None) -> dict:
     """Evaluates ``controller`` (a policy callable or torch module) on ``shots`` with the rally
     diagram of ``params`` (without the observation's hit prediction when the controller does not
-    read it: ``play.controllers.diagram_params_for``): the figures of ``summarize`` plus the wall
-    time."""
+    read it: ``play.controllers.diagram_params_for``), each shot with its skill of ``skills``
+    (``run_episodes``): the figures of ``summarize`` plus the wall time."""
     from ace_drake.diagrams import build_rally_diagram
     from ace_drake.play.controllers import diagram_params_for, hit_state_controller
 
@@ -110,5 +158,5 @@ def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarr
     params = diagram_params_for(controller, params)
     start = time.perf_counter()
     runner = RallyRunner(build_rally_diagram(params, controller), params)
-    episodes = run_episodes(runner, shots, serve, seed, progress)
+    episodes = run_episodes(runner, shots, serve, seed, progress, skills)
     return {**summarize(episodes), "wall_time_s": time.perf_counter() - start}

@@ -26,7 +26,8 @@ latest estimate (the estimate improves as the ball flies):
    ``solve_return`` finds, by Newton's method on the flight model, the outgoing velocity that
    lands the ball on the target after a chosen flight time, each iterate's spin coming from the
    racket state that makes it (``invert_racket_contact``: a racket moving along its normal, plus
-   an optional brushing speed along the blade for topspin, ``brush_speed``). Flight times are
+   a brushing speed along the blade, ``brush_speed`` plus ``skill_brush`` times the skill's w_s:
+   topspin for w_s > 0, backspin for w_s < 0, the paper's spin skill). Flight times are
    tried in order (``flight_times``) until the ball clears the net and the joints can make the
    racket state.
 4. **Inverse kinematics** for the racket pose (``solve_hit_ik``: Drake's InverseKinematics with
@@ -296,22 +297,26 @@ def racket_plans(
     target: np.ndarray,
     returner: ReturnerParams | None = None,
     previous: RacketPlan | None = None,
+    brush_speed: float | None = None,
 ) -> Iterator[RacketPlan]:
     """Racket states that return ``ball`` (9,; just before the hit at ``hit_time`` s) to
     ``target`` (x, y) (m), one per flight time of ``returner.flight_times`` whose return clears the
     net by ``returner.net_clearance``, in that order (the caller takes the first its robot can
     make); a ``previous`` plan's flight time comes first, warm-started from its outgoing velocity
-    (replanning the same hit with a better estimate). The blade centre sits ball radius + half the
-    blade's thickness behind the ball along the normal."""
+    (replanning the same hit with a better estimate). The racket brushes the ball at
+    ``brush_speed`` (m/s along the blade's upward tangent, > 0 topspin; None:
+    ``returner.brush_speed``). The blade centre sits ball radius + half the blade's thickness
+    behind the ball along the normal."""
     returner = returner or ReturnerParams()
     ball = np.asarray(ball, dtype=float)
     standoff = blade_standoff(params.aero.ball_radius, params.racket)
+    brush_speed = returner.brush_speed if brush_speed is None else brush_speed
     flight_times = list(returner.flight_times)
     if previous is not None:
         flight_times = [previous.flight_time] + [t for t in flight_times if t != previous.flight_time]
     for flight_time in flight_times:
         guess = previous.ball_out[3:6] if previous is not None and flight_time == previous.flight_time else None
-        shot = solve_return(ball, target, flight_time, params, returner.brush_speed, v_guess=guess)
+        shot = solve_return(ball, target, flight_time, params, brush_speed, v_guess=guess)
         if shot is None or shot.net_clearance < returner.net_clearance:
             continue
         yield RacketPlan(
@@ -546,7 +551,8 @@ class ModelBasedReturner:
         if not plan_follows and candidates and candidates[0] == 0:
             return functools.partial(self.driver.follow_through, q0, v0, a0)  # the preferred hit falls in the segment this action commands
         candidates = [index for index in candidates if index > 0]
-        hit = self._plan_hit(flight, candidates, prediction, q0, v0, target)
+        brush = self.params.brush_speed + self.params.skill_brush * skill[2]  # the skill's w_s: topspin > 0, backspin < 0
+        hit = self._plan_hit(flight, candidates, prediction, q0, v0, target, brush)
         if hit is None and candidates and flight.hit is not None and "fallback" not in self.params.forget:
             hit = flight.hit  # nothing new works (e.g. no IK this time): keep going for the last plan
         flight.hit = hit
@@ -578,9 +584,10 @@ class ModelBasedReturner:
         return flight
 
     # ------------------------------------------------------------------------------ prediction
-    def _plan_hit(self, flight: Flight, candidates: list[int], prediction: Prediction, q0: np.ndarray, v0: np.ndarray, target: np.ndarray) -> HitPlan | None:
+    def _plan_hit(self, flight: Flight, candidates: list[int], prediction: Prediction, q0: np.ndarray, v0: np.ndarray, target: np.ndarray,
+                  brush: float) -> HitPlan | None:
         """The most preferred candidate hit (``HitPredictor.candidates``) with a racket state the joints can
-        make and reach in time (the cubic from the segment start within the acceleration limits);
+        make (sending the ball to ``target`` with the racket brushing at ``brush`` m/s) and reach in time (the cubic from the segment start within the acceleration limits);
         if none is in time, the previous plan's hit time if it is still possible (a late switch
         costs more than a late arrival), else the one that needs the least acceleration."""
         limits, forget = self.stack.limits, self.params.forget
@@ -592,7 +599,7 @@ class ModelBasedReturner:
             previous = flight.hit if same_hit and "ik" not in forget else None
             previous_racket = flight.hit.racket if same_hit and "racket" not in forget else None
             nominal = self._ik_nominal(q0, v0, duration)
-            for racket in racket_plans(prediction.states[index], hit_time, self.physics, target, self.params, previous_racket):
+            for racket in racket_plans(prediction.states[index], hit_time, self.physics, target, self.params, previous_racket, brush):
                 q_hit = self._hit_configuration(racket, nominal, previous)
                 if q_hit is None:
                     break  # the position is out of reach: try another hit time

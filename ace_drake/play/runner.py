@@ -20,13 +20,15 @@ from ace_drake.play.episode import EpisodeResult, classify, timed_out
 
 @dataclasses.dataclass(frozen=True)
 class Episode:
-    """One finished episode: the shot it started from (9), its result, the simulated duration (s)
-    and the supervisor's counts [segments accepted, refused]."""
+    """One finished episode: the shot it started from (9), its result, the simulated duration (s),
+    the supervisor's counts [segments accepted, refused] and the skill it was played with
+    [y_desired (m), w_p, w_s] (paper, *States*)."""
 
     shot: np.ndarray
     result: EpisodeResult
     duration: float
     segments: tuple[int, int]
+    skill: np.ndarray
 
 
 class RallyRunner:
@@ -47,6 +49,7 @@ class RallyRunner:
         self._controller = diagram.GetSubsystemByName("policy_controller")
         self._loggers = [system for system in diagram.GetSystems() if isinstance(system, VectorLogSink)]
         self._supervisor = diagram.GetSubsystemByName("safety_supervisor")
+        self._observation = diagram.GetSubsystemByName("observation_builder")
         self._period = self._supervisor.segment_samples * self._supervisor.period
 
     def reset(self, shot, seed: int = 0, skill=None, q=None, start_time: float = 0.0) -> None:
@@ -86,4 +89,5 @@ class RallyRunner:
                 break
         status = self._supervisor.supervisor_state(self._supervisor.GetMyContextFromRoot(self.context))
         duration = self.context.get_time() - start_time
-        return Episode(np.asarray(shot, dtype=float), timed_out(result), duration, (status.accepted, status.rejected))
+        skill = self._observation.GetSkill(self._observation.GetMyContextFromRoot(self.context))
+        return Episode(np.asarray(shot, dtype=float), timed_out(result), duration, (status.accepted, status.rejected), skill)

@@ -82,6 +82,10 @@ class ObservationBuilder(LeafSystem):
             raise ValueError(f"ObservationBuilder.SetSkill: w_p must be in [0, 1] and w_s in [-1, 1], got {skill[1:]}")
         context.get_mutable_numeric_parameter(self._skill_index).SetFromVector(skill)
 
+    def GetSkill(self, context) -> np.ndarray:
+        """The episode's skill [y_desired (m), w_p, w_s] (3,) in ``context`` (a copy)."""
+        return context.get_numeric_parameter(self._skill_index).get_value().copy()
+
     def CalcObservation(self, context, output: BasicVector) -> None:
         now = context.get_time()
         estimate = self.ball_state_estimate_port.Eval(context)

@@ -1,0 +1,85 @@
+"""The return-rate evaluation's figures on constructed episodes (analysis/evaluation.py): the
+skill figures (aim, landing spin by w_s, eq. (10) reward) and how episodes are counted."""
+
+import numpy as np
+import pytest
+
+from ace_drake.analysis.evaluation import run_episodes, skill_figures, summarize
+from ace_drake.config import RewardParams
+from ace_drake.play.episode import EpisodeResult, Outcome
+from ace_drake.play.runner import Episode
+from ace_drake.physics.propagate import ContactEvent, ContactKind
+
+SHOT = np.array([1.2, 0.0, 0.3, -8.0, 0.0, 1.0, 0.0, -100.0, 0.0])
+
+
+def _event(kind, state) -> ContactEvent:
+    state = np.asarray(state, dtype=float)
+    return ContactEvent(kind, 0.5, state, state)
+
+
+def returned(y_land: float, topspin: float, skill) -> Episode:
+    """A return landing at y_land (m) flying along +x with ``topspin`` rad/s about the travel
+    frame's y axis (for a ball flying along +x, that is the world's +y), played with ``skill``."""
+    landing = _event(ContactKind.TABLE, [0.7, y_land, 0.02, 6.0, 0.0, -2.0, 0.0, topspin, 0.0])
+    hit = _event(ContactKind.RACKET, [-1.5, 0.0, 0.25, 6.0, 0.0, 2.0, 0.0, topspin, 0.0])
+    result = EpisodeResult(Outcome.RETURNED, "", None, hit, landing)
+    return Episode(SHOT, result, 1.0, (10, 0), np.asarray(skill, dtype=float))
+
+
+def missed(skill=(0.0, 1.0, 0.0)) -> Episode:
+    return Episode(SHOT, EpisodeResult(Outcome.MISSED, "not hit: the ball reached the floor"), 1.0, (10, 0), np.asarray(skill, dtype=float))
+
+
+def test_perfect_aim_has_slope_one_and_no_error_and_an_ignored_aim_slope_zero():
+    skills = [(y, 1.0, 0.0) for y in (-0.6, -0.2, 0.1, 0.5)]
+    perfect = skill_figures([returned(s[0], 0.0, s) for s in skills])["aim"]
+    assert perfect["count"] == 4 and perfect["error_m"]["median"] == pytest.approx(0.0, abs=1e-12)
+    assert perfect["slope"] == pytest.approx(1.0) and perfect["correlation"] == pytest.approx(1.0)
+    ignored = skill_figures([returned(0.3 + 0.01 * i, 0.0, s) for i, s in enumerate(skills)])["aim"]
+    assert abs(ignored["slope"]) < 0.05 and ignored["error_m"]["median"] > 0.2
+    # Returns whose skill does not weigh the position (w_p = 0) are not aimed; one y_desired has no slope.
+    unweighted = skill_figures([returned(0.0, 0.0, (0.5, 0.0, 0.0)), returned(0.4, 0.0, (0.4, 1.0, 0.0))])["aim"]
+    assert unweighted["count"] == 1 and unweighted["slope"] is None
+
+
+def test_landing_spin_is_grouped_by_the_sign_of_w_s():
+    episodes = [returned(0.0, 300.0, (0.0, 0.0, 1.0)), returned(0.0, 250.0, (0.0, 0.0, 0.5)),
+                returned(0.0, 10.0, (0.0, 0.0, 1.0 / 3.0)), returned(0.0, -20.0, (0.0, 0.0, -1.0 / 3.0)),
+                returned(0.0, -200.0, (0.0, 0.0, -1.0)), missed((0.0, 1.0, 1.0))]
+    groups = {group["group"]: group["landing_topspin_rad_s"] for group in skill_figures(episodes)["landing_topspin_rad_s"]}
+    assert groups["topspin"]["count"] == 2 and groups["topspin"]["median"] == pytest.approx(275.0)
+    assert groups["neutral"]["count"] == 2 and groups["neutral"]["median"] == pytest.approx(-5.0)  # |w_s| <= 1/3
+    assert groups["backspin"]["count"] == 1 and groups["backspin"]["median"] == pytest.approx(-200.0)
+
+
+def test_the_mean_reward_is_eq_10_over_the_playable_episodes():
+    params = RewardParams()
+    hit_target = returned(0.2, 400.0, (0.2, 1.0, 1.0))  # return_base + position_reward + 400 * spin_gain
+    expected = (params.return_base + params.position_reward + 400.0 * params.spin_gain + params.miss) / 2
+    invalid = Episode(SHOT, EpisodeResult(Outcome.INVALID, "the shot missed the table"), 0.5, (0, 0), np.array([0.0, 1.0, 0.0]))
+    figures = summarize([hit_target, missed(), invalid])
+    assert figures["skill"]["mean_reward"] == pytest.approx(expected)
+    assert figures["return_rate"]["played"] == 2 and figures["invalid_shots"] == 1
+
+
+class _Runner:
+    """Records the skills it is asked to play with."""
+
+    def __init__(self):
+        self.skills = []
+
+    def run(self, shot, seed=0, serve=False, skill=None):
+        self.skills.append(skill)
+        return missed()
+
+
+def test_run_episodes_plays_each_shot_with_its_skill_and_refuses_a_wrong_shape():
+    runner = _Runner()
+    skills = np.array([[0.1, 1.0, 0.0], [-0.2, 0.5, 1.0]])
+    run_episodes(runner, np.stack([SHOT, SHOT]), np.zeros(2, dtype=bool), skills=skills)
+    np.testing.assert_array_equal(np.array(runner.skills), skills)
+    run_episodes(runner, SHOT[None], np.zeros(1, dtype=bool))
+    assert runner.skills[-1] is None  # the diagram's default
+    with pytest.raises(ValueError, match="one per shot"):
+        run_episodes(runner, np.stack([SHOT, SHOT]), np.zeros(2, dtype=bool), skills=skills[:1])
