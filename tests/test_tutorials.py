@@ -110,6 +110,12 @@ def test_tutorial_05_rally_returns_the_ball_and_writes_its_files(tmp_path):
     assert png.is_file() and png.stat().st_size > 50_000
     html = tmp_path / "rally.html"
     assert html.is_file() and html.stat().st_size > EMPTY_MESHCAT_HTML and "animation" in html.read_text()
+    # Part 4: the skill moves the landing towards y_desired and sets the sign of its spin.
+    skills = re.findall(r"skill \(([+-][\d.]+), 1, ([+-]\d)\): returned, lands at y = ([+-][\d.]+) m with topspin ([+-]\d+) rad/s", run.stdout)
+    assert len(skills) == 3, run.stdout
+    landing = {int(w_s): (float(y_desired), float(y), float(spin)) for y_desired, w_s, y, spin in skills}
+    assert all(abs(y - y_desired) < 0.15 for y_desired, y, _ in landing.values())
+    assert landing[1][2] > landing[0][2] + 50.0 > landing[-1][2] + 100.0
 
 
 def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):

@@ -11,7 +11,10 @@ is the ball's racket. It shows
   2. one rally: an incoming shot from the match data (or a built-in one) returned by the
      model-based returner (``ace_drake/control/returner.py``), the ball and racket plotted from
      the side and from above, the joints against their limits;
-  3. the replay: a self-contained Meshcat HTML file of the rally.
+  3. the replay: a self-contained Meshcat HTML file of the rally;
+  4. the skill (paper, Methods *States*, *Rewards*): the same shot played with other skills
+     [y_desired, w_p, w_s], the returner aiming at y_desired and brushing the ball for topspin
+     (w_s > 0) or backspin (w_s < 0).
 
 Numbers are SI units (m, s, rad). Run it from the repository root:
 
@@ -37,6 +40,7 @@ from pydrake.geometry import Meshcat
 
 from ace_drake.config import JOINT_NAMES, RallyParams
 from ace_drake.diagrams import build_rally_diagram, graphviz_dot
+from ace_drake.learning.rewards import travel_frame_spin
 from ace_drake.physics.flight import make_state
 from ace_drake.play.controllers import DEFAULT_CONTROLLER, make_controller
 from ace_drake.play.runner import RallyRunner
@@ -50,6 +54,9 @@ DATA = REPO_ROOT.parent / "shared" / "data" / "ace_match_events_elite.csv"
 # A return from the human's side when the match data is absent: 7 m/s with topspin.
 BUILT_IN_SHOT = make_state((1.6, 0.2, 0.25), (-7.0, -0.5, 1.8), (0.0, 150.0, 0.0))
 SHOT_INDEX = 1  # which human shot of the match data to play
+# Part 4's skills [y_desired (m), w_p, w_s]: aimed left with topspin, at the centre line with none,
+# aimed right with backspin.
+SKILLS = ((0.3, 1.0, 1.0), (0.0, 1.0, 0.0), (-0.3, 1.0, -1.0))
 
 
 def parse_args() -> argparse.Namespace:
@@ -151,6 +158,20 @@ def main() -> None:
         html = args.out / "rally.html"
         html.write_text(meshcat.StaticHtml())
         print(f"wrote {html}")
+
+    # ------------------------------------------------------------------ 4. the skill
+    # A skill is fixed for an episode: the ObservationBuilder holds it as a parameter of the Context
+    # (``RallyRunner.run(skill=...)`` sets it), and every controller reads it in its observation.
+    # The returner aims its return at y_desired (within +-target_y_limit) and brushes the ball
+    # along the blade by skill_brush * w_s: the spin at landing is what the reward's w_s weighs.
+    # The incoming spin carries over in part (eqs (7)-(8)), so w_s moves the landing's spin up or
+    # down from what a flat stroke gives (for human shot 1: +377, +249 and +69 rad/s).
+    print("\n4. the same shot with other skills [y_desired, w_p, w_s]:")
+    for skill in SKILLS:
+        result = runner.run(shot, seed=0, serve=is_serve, skill=skill).result
+        landing = "" if result.landing is None else (
+            f", lands at y = {result.landing.state_pre[1]:+.2f} m with topspin {travel_frame_spin(result.landing.state_pre):+.0f} rad/s")
+        print(f"   skill ({skill[0]:+.1f}, {skill[1]:.0f}, {skill[2]:+.0f}): {result.outcome.value}{landing}")
 
 
 if __name__ == "__main__":
