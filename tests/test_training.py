@@ -189,6 +189,29 @@ def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
     assert sixth == fifth
 
 
+def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labeller():
+    import json
+
+    import yaml
+
+    from ace_drake.config import to_dict
+    from ace_drake.robot_model import MODELS_DIR
+
+    skill = yaml.safe_load((MODELS_DIR / "train_rally_skill.yaml").read_text())
+    if not Path(skill["evaluation_data"]).is_file():
+        pytest.skip(f"the match data is not at {skill['evaluation_data']} (run from the project root)")
+    braking = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_braking.yaml").read_text())
+    assert braking["returner"].pop("skill_brush") == 0.0 and "skill_brush" not in skill["returner"]  # the default, 2 m/s
+    assert skill.pop("name") == "rally_skill" and skill.pop("seed") != braking.pop("seed")
+    for name in ("demonstrations", "pretrain_updates", "env_steps"):  # a smaller run (README *Following the skill*)
+        assert skill.pop(name) < braking.pop(name)
+    braking.pop("name")
+    assert skill == braking
+    # The shipped artefact was trained with this very config.
+    sidecar = json.loads((MODELS_DIR / "policies" / "rally_skill.json").read_text())
+    assert sidecar["config"] == json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / "train_rally_skill.yaml"))))
+
+
 def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
     second, first = _continuation("train_rally_hit_state_dagger", "train_rally_hit_state")
     assert first.sac.action == "hit_state" and second.sac == first.sac  # initialize_from loads stage 1's learner
@@ -467,12 +490,14 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
 
 @pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state", 4), ("policy:rally_hit_state_meet", 5),
                                             ("policy:rally_hit_state_meet_more", 5), ("policy:rally_hit_state_braking", 5),
+                                            ("policy:rally_skill", 4),
                                             ("returner:hit_state", 5), ("returner:hit_memory", 5)])
 def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # The first 12 recorded shots of Elite A (a training player), cameras, seed 0: 7 are playable;
     # rally_hit_state returned 5 of them, rally_hit_state_meet (the layer meeting the ball) 7,
     # rally_hit_state_meet_more (cloned from more demonstrations) 7, rally_hit_state_braking (cloned
-    # from the labeller whose IK starts where braking would stop the arm) 7,
+    # from the labeller whose IK starts where braking would stop the arm) 7, rally_skill (the same
+    # recipe, the labeller following the skill; default skill here) 5,
     # returner:hit_state (the returner's planned hit states through the layer) 7, returner:hit_memory
     # (the same on an observation that keeps its predicted hit) 5 (6 with the IK from the segment
     # start), rally_sac 3,
