@@ -66,3 +66,20 @@ def test_the_rendered_cameras_are_wired_to_drake_images():
     for name in cameras.camera_names:
         assert diagram.GetSubsystemByName(f"camera_{name}") is not None
         assert cameras.image_ports[name].get_name() == f"color_image_{name}"
+
+
+def test_without_graphviz_the_index_keeps_only_the_svgs_still_current(tmp_path, monkeypatch):
+    import argparse
+    import shutil
+
+    from ace_drake import cli
+
+    monkeypatch.setattr(shutil, "which", lambda program: None)
+    for name in ("ball_diagram", "rally_diagram"):
+        (tmp_path / f"{name}.svg").write_text("<svg/>")
+    (tmp_path / "ball_diagram.dot").write_text((DIAGRAMS_DIR / "ball_diagram.dot").read_text())  # current
+    (tmp_path / "rally_diagram.dot").write_text("digraph { an_older_graph }")  # its graph changed since
+    assert cli.cmd_diagrams(argparse.Namespace(out=str(tmp_path))) == 0
+    index = (tmp_path / "README.md").read_text()
+    assert "ball_diagram.svg" in index and "rally_diagram.svg" not in index and "training_diagram.svg" not in index
+    assert all((tmp_path / f"{name}.dot").read_text() == (DIAGRAMS_DIR / f"{name}.dot").read_text() for name in DOCUMENTED_DIAGRAMS)
