@@ -194,7 +194,7 @@ def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labelle
 
     import yaml
 
-    from ace_drake.config import to_dict
+    from ace_drake.config import from_dict, to_dict
     from ace_drake.robot_model import MODELS_DIR
 
     skill = yaml.safe_load((MODELS_DIR / "train_rally_skill.yaml").read_text())
@@ -209,7 +209,8 @@ def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labelle
     assert skill == braking
     # The shipped artefact was trained with this very config.
     sidecar = json.loads((MODELS_DIR / "policies" / "rally_skill.json").read_text())
-    assert sidecar["config"] == json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / "train_rally_skill.yaml"))))
+    recorded = json.loads(json.dumps(to_dict(from_dict(TrainConfig, sidecar["config"]))))  # fields added since at their defaults
+    assert recorded == json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / "train_rally_skill.yaml"))))
 
 
 def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
@@ -518,8 +519,22 @@ def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     assert rate["played"] >= 5 and rate["returned"] >= at_least, rate
 
 
+def test_a_run_that_only_clones_evaluates_on_the_way_and_draws_its_curve_against_updates(tmp_path):
+    from ace_drake.learning.trainer import cloning_curve, plot_learning_curve
+
+    config = _config(pretrain_updates=8, pretrain_evaluate_every=4, env_steps=1)  # stops after cloning
+    state = Trainer(config, tmp_path / "run", progress=lambda line: None).run()
+    assert state.pretrain_updates == 8 and [e[1] for e in state.evaluations] == [4, 8]  # on the way, then after
+    assert len({e[0] for e in state.evaluations}) == 1
+    assert [updates for updates, _ in cloning_curve(state)] == [4, 8]
+    plot_learning_curve(state, tmp_path / "curve.png", "clone", "1 synthetic shot")
+    assert (tmp_path / "curve.png").stat().st_size > 1000
+    with pytest.raises(ConfigError, match="pretrain_evaluate_every"):
+        _config(pretrain_evaluate_every=-1)
+
+
 def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
-    from ace_drake.learning.trainer import Progress, evaluation_description, evaluation_series, plot_learning_curve
+    from ace_drake.learning.trainer import Progress, cloning_curve, evaluation_description, evaluation_series, plot_learning_curve
 
     assert evaluation_description(TrainConfig(evaluation_episodes=60)) == "60 synthetic shots"
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ace_match_events_elite.csv"
@@ -533,6 +548,7 @@ def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
     assert label == "evaluation: 60 synthetic shots (deterministic actor)" and "started from" in earlier_label
     ((points, _),) = evaluation_series(state)
     assert [e[0] for e in points] == [100, 200]
+    assert cloning_curve(state) is None  # evaluations at several step counts: drawn against steps
     plot_learning_curve(state, tmp_path / "curve.png", "run", "60 synthetic shots", started_at=150)
     assert (tmp_path / "curve.png").stat().st_size > 1000
 

@@ -10,7 +10,9 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
 2. ``ou``: ``ou_episodes`` episodes of Ornstein-Uhlenbeck exploration before learning starts
    (paper; notes.md).
 3. ``pretrain``: ``pretrain_updates`` learner updates on what was collected, with the cloning
-   weight ``pretrain_bc_weight`` (none in the paper's setting).
+   weight ``pretrain_bc_weight`` (none in the paper's setting); the actor is evaluated after them
+   and, with ``pretrain_evaluate_every``, every that many updates on the way (each followed by a
+   checkpoint).
 4. ``learn``: asynchronous collection and learning until ``env_steps`` environment steps: every
    worker always has a task in flight (``episodes_per_task`` episodes with the latest actor); the
    learner updates as long as it is below ``updates_per_step`` updates per collected step and
@@ -68,6 +70,9 @@ class TrainConfig:
     demonstration_files: tuple[str, ...] = ()  # rollout.save_episodes files to use instead
     ou_episodes: int = 100  # OU exploration before learning starts (paper; count not public)
     pretrain_updates: int = 0
+    # Cloning updates between evaluations of the actor during pretraining (0: one, after it), so
+    # that a run that only clones draws a learning curve (return rate against cloning updates).
+    pretrain_evaluate_every: int = 0
     pretrain_bc_weight: float = 10.0
     bc_weight_final: float = 0.0
     actor_lr_final: float | None = None  # the actor's learning rate at the learn phase's end (None: fixed)
@@ -105,7 +110,7 @@ class TrainConfig:
                      "evaluate_every", "evaluation_episodes", "torch_threads"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("demonstrations", "ou_episodes", "pretrain_updates"):
+        for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
@@ -297,6 +302,10 @@ class Trainer:
             self.state.pretrain_updates += chunk
             if self.state.pretrain_updates % (20 * c.update_chunk) < chunk:
                 self._log_line(force=True)
+            every = c.pretrain_evaluate_every
+            if every and self.state.pretrain_updates % every < chunk and self.state.pretrain_updates < c.pretrain_updates:
+                self._evaluate()  # the one after cloning follows the loop
+                self.checkpoint()
         self._advance("learn")
         if c.pretrain_updates:
             self._evaluate()
@@ -574,19 +583,39 @@ def evaluation_series(state: Progress, description: str = "", started_at: int | 
             ([e for e in evaluated if e[0] > started_at], label)]
 
 
+def cloning_curve(state: Progress) -> list[tuple[int, dict]] | None:
+    """A run that only clones (``pretrain_evaluate_every``): its evaluations as (learner updates,
+    figures), when there are several and all came at one environment step count; else None."""
+    evaluated = [(e[0], e[1], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
+    if len(evaluated) < 2 or len({e[0] for e in evaluated}) > 1:
+        return None
+    return [(e[1], e[2]) for e in evaluated]
+
+
 def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None,
                         rollouts: str = "stochastic actor") -> None:
     """Return rate against environment steps: the rollout policy's (last 100 episodes; how it
     acted: ``rollouts``) and the periodic evaluations' (with their 95 % intervals) on
     ``description``'s shots. A run started from another's checkpoint at ``started_at`` steps
     (``initialize_from``) draws the earlier run's evaluations, which may be of other shots, as a
-    separate series."""
+    separate series. A run that only clones (``cloning_curve``) is drawn against learner updates."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     figure, axes = plt.subplots(figsize=(6, 3.5), dpi=100)
+    cloning = cloning_curve(state) if started_at is None else None
+    if cloning is not None:
+        updates = [e[0] for e in cloning]
+        rates = np.array([e[1]["rate"] for e in cloning])
+        low = rates - np.array([e[1]["ci95"][0] for e in cloning])
+        high = np.array([e[1]["ci95"][1] for e in cloning]) - rates
+        label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
+        axes.errorbar(updates, rates, yerr=[low, high], fmt="o-", color="C0", capsize=3, label=label)
+        axes.set_xlabel(f"cloning updates (on {state.evaluations[0][0]:,} environment steps collected)")
+        _finish_curve(figure, axes, title, path)
+        return
     if state.rollout_curve:
         steps, _, rates = zip(*state.rollout_curve)
         axes.plot(steps, rates, color="0.6", label=f"rollouts ({rollouts}, last 100)")
@@ -600,6 +629,12 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
         high = np.array([e[1]["ci95"][1] for e in points]) - rates
         axes.errorbar(steps, rates, yerr=[low, high], fmt="o-", color=color, capsize=3, label=name)
     axes.set_xlabel("environment steps (32 ms)")
+    _finish_curve(figure, axes, title, path)
+
+
+def _finish_curve(figure, axes, title: str, path) -> None:
+    import matplotlib.pyplot as plt
+
     axes.set_ylabel("return rate")
     axes.set_ylim(0.0, 1.0)
     axes.set_title(title)
