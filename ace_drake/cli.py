@@ -509,8 +509,7 @@ def cmd_diagrams(args) -> int:
             subprocess.run([dot_program, "-Tsvg", "-o", str(svg_path)], input=dot, text=True, check=True)
         elif svg_path.is_file() and not unchanged:
             log(f"{svg_path} is out of date (its graph changed) and is left out of the index: install Graphviz to redraw it")
-        # Without Graphviz an SVG drawn from the same DOT text is still current, so it stays indexed.
-        if dot_program is not None or (unchanged and svg_path.is_file()):
+        if svg_path.is_file() and (dot_program is not None or unchanged):  # drawn now, or from the same DOT text
             line += f", [{name}.svg]({name}.svg)\n\n  ![{name}]({name}.svg)"
         index.append(line)
         log(f"wrote {dot_path}" + (" and .svg" if dot_program else ""))

@@ -52,7 +52,7 @@ matplotlib.use("Agg")  # write files only, never open a window
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA = REPO_ROOT.parent / "shared" / "data" / "ace_match_events_elite.csv"
 # A return from the human's side when the match data is absent: 7 m/s with topspin.
-BUILT_IN_SHOT = make_state((1.6, 0.2, 0.25), (-7.0, -0.5, 1.8), (0.0, 150.0, 0.0))
+BUILT_IN_SHOT = make_state((1.6, 0.2, 0.25), (-7.0, -0.5, 1.3), (0.0, 150.0, 0.0))
 SHOT_INDEX = 1  # which human shot of the match data to play
 # Part 4's skills [y_desired (m), w_p, w_s]: aimed left with topspin, at the centre line with none,
 # aimed right with backspin.

@@ -571,6 +571,16 @@ def evaluation_description(config: TrainConfig) -> str:
     return f"first {config.evaluation_episodes} human shots{of}"
 
 
+def _draw_evaluations(axes, points: list, color: str, label: str) -> None:
+    """Evaluations [(x, figures)] as return rates with their 95 % intervals."""
+    if not points:
+        return
+    rates = np.array([e[1]["rate"] for e in points])
+    low = rates - np.array([e[1]["ci95"][0] for e in points])
+    high = np.array([e[1]["ci95"][1] for e in points]) - rates
+    axes.errorbar([e[0] for e in points], rates, yerr=[low, high], fmt="o-", color=color, capsize=3, label=label)
+
+
 def evaluation_series(state: Progress, description: str = "", started_at: int | None = None) -> list[tuple[list, str]]:
     """The learning curve's evaluation series, [(points, label)], points (env_steps, figures):
     one series, or for a run started from another's checkpoint at ``started_at`` steps the
@@ -586,10 +596,10 @@ def evaluation_series(state: Progress, description: str = "", started_at: int | 
 def cloning_curve(state: Progress) -> list[tuple[int, dict]] | None:
     """A run that only clones (``pretrain_evaluate_every``): its evaluations as (learner updates,
     figures), when there are several and all came at one environment step count; else None."""
-    evaluated = [(e[0], e[1], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
+    evaluated = [e for e in state.evaluations if e[2]["rate"] is not None]
     if len(evaluated) < 2 or len({e[0] for e in evaluated}) > 1:
         return None
-    return [(e[1], e[2]) for e in evaluated]
+    return [(updates, figures) for _, updates, figures in evaluated]
 
 
 def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None,
@@ -607,34 +617,17 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     figure, axes = plt.subplots(figsize=(6, 3.5), dpi=100)
     cloning = cloning_curve(state) if started_at is None else None
     if cloning is not None:
-        updates = [e[0] for e in cloning]
-        rates = np.array([e[1]["rate"] for e in cloning])
-        low = rates - np.array([e[1]["ci95"][0] for e in cloning])
-        high = np.array([e[1]["ci95"][1] for e in cloning]) - rates
-        label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
-        axes.errorbar(updates, rates, yerr=[low, high], fmt="o-", color="C0", capsize=3, label=label)
+        ((_, label),) = evaluation_series(state, description)
+        _draw_evaluations(axes, cloning, "C0", label)
         axes.set_xlabel(f"cloning updates (on {state.evaluations[0][0]:,} environment steps collected)")
-        _finish_curve(figure, axes, title, path)
-        return
-    if state.rollout_curve:
-        steps, _, rates = zip(*state.rollout_curve)
-        axes.plot(steps, rates, color="0.6", label=f"rollouts ({rollouts}, last 100)")
-    series = evaluation_series(state, description, started_at)
-    for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
-        if not points:
-            continue
-        steps = [e[0] for e in points]
-        rates = np.array([e[1]["rate"] for e in points])
-        low = rates - np.array([e[1]["ci95"][0] for e in points])
-        high = np.array([e[1]["ci95"][1] for e in points]) - rates
-        axes.errorbar(steps, rates, yerr=[low, high], fmt="o-", color=color, capsize=3, label=name)
-    axes.set_xlabel("environment steps (32 ms)")
-    _finish_curve(figure, axes, title, path)
-
-
-def _finish_curve(figure, axes, title: str, path) -> None:
-    import matplotlib.pyplot as plt
-
+    else:
+        if state.rollout_curve:
+            steps, _, rates = zip(*state.rollout_curve)
+            axes.plot(steps, rates, color="0.6", label=f"rollouts ({rollouts}, last 100)")
+        series = evaluation_series(state, description, started_at)
+        for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
+            _draw_evaluations(axes, points, color, name)
+        axes.set_xlabel("environment steps (32 ms)")
     axes.set_ylabel("return rate")
     axes.set_ylim(0.0, 1.0)
     axes.set_title(title)
