@@ -47,3 +47,31 @@ def test_the_ready_pose_controller_holds_the_ready_pose():
 def test_bad_arguments_are_refused():
     assert main(["bench", "sim", "--seconds", "0"]) == 2
     assert main(["bench", "sim", "--repeats", "0"]) == 2
+
+
+def test_the_ceilings_run_the_ball_and_the_controlled_robot_alone():
+    from ace_drake.analysis.sim_bench import _ceilings
+
+    shots = np.array([make_state((1.2, 0.0, 0.3), (-6.0, 0.0, 1.0), (0.0, 0.0, 0.0))] * 2)
+    said = []
+    ceilings = _ceilings(shots, 0.05, said.append)
+    assert said == ["ceilings: the ball alone", "ceilings: the robot alone under the control stack"]
+    assert all(np.isfinite(rate) and rate > 0.0 for rate in ceilings.values())
+
+
+def test_the_ready_pose_controller_on_the_robot_alone_keeps_it_at_the_ready_pose():
+    from ace_drake.analysis.sim_bench import ReadyPosePolicy
+    from ace_drake.diagrams import build_controlled_robot_diagram, start_controlled_robot
+
+    stack = ControlStack(load_scenario(), ControlParams())
+    diagram = build_controlled_robot_diagram(ReadyPosePolicy(stack))  # observation: [q, v, a]
+    simulator = make_simulator(diagram)
+    context = simulator.get_mutable_context()
+    start_controlled_robot(diagram, context)
+    simulator.AdvanceTo(0.1)
+    supervisor = diagram.GetSubsystemByName("safety_supervisor")
+    status = supervisor.supervisor_state(supervisor.GetMyContextFromRoot(context))
+    assert status.accepted >= 3 and status.rejected == 0  # segments asked and executed
+    joint_plant = diagram.GetSubsystemByName("joint_plant")
+    q = joint_plant.q_port.Eval(joint_plant.GetMyContextFromRoot(context))
+    np.testing.assert_allclose(q, stack.reset_pose, atol=1e-6)

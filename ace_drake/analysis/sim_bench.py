@@ -10,6 +10,11 @@ Measured side by side in one process on one core (issue 6 aims at >= 20 x real t
   ready-pose controller (every 32 ms the control stack steers towards the ready pose:
   ``ControlStack.action_towards``), over the same incoming shots; median over episodes of
   ``seconds`` simulated seconds each;
+- the two ceilings any rally diagram runs below, since it contains both: the ball alone
+  (``diagrams.build_ball_diagram``: the BallPlant in a Simulator, the same shots and seconds) and
+  the robot alone under the same ready-pose controller through the whole control stack
+  (``diagrams.build_controlled_robot_diagram``: the 1 kHz robot interface of DESIGN.md, the
+  segment decisions with their collision checks; no ball, no perception);
 - RallyEnv (the training diagram) environment steps per second with uniformly random actions,
   resets included, and how long its episodes last;
 - a profile of one episode per sensor path attributing wall time to the diagram's systems: a
@@ -43,17 +48,21 @@ SENSOR_PATHS = {"cameras": "analytic cameras + triangulator", "statistical": "st
 RALLY_CASES = (("cameras", "cameras", True), ("statistical", "statistical", True), ("statistical_no_hit_prediction", "statistical", False))
 SYSTEMS_DIR = str(Path(__file__).resolve().parents[1] / "systems")
 OUTSIDE_SYSTEMS = "(Drake C++ and non-system Python)"
+LOG_PERIOD = 0.002  # s, the loggers' period in the ceilings' diagrams: build_rally_diagram's default
 
 
 class ReadyPosePolicy:
     """A controller that always steers towards the ready (reset) pose through the control stack:
-    a policy callable observation -> action for ``build_rally_diagram``."""
+    a policy callable observation -> action for ``build_rally_diagram`` (``layout``: the rally's
+    ObservationLayout) or for ``build_controlled_robot_diagram`` (``layout`` None: the observation
+    is the robot state [q, v, a] itself)."""
 
-    def __init__(self, stack, layout):
+    def __init__(self, stack, layout=None):
         self.stack, self.layout = stack, layout
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
-        q, v, a = np.split(self.layout.part(observation, "robot_state"), 3)
+        robot_state = observation if self.layout is None else self.layout.part(observation, "robot_state")
+        q, v, a = np.split(robot_state, 3)
         try:
             return self.stack.action_towards(q, v, a, self.stack.reset_pose)
         except InfeasibleStartError:  # on a reset outside the invariant set: nothing to ask
@@ -88,6 +97,52 @@ class RallyBench:
         wall, cpu = time.perf_counter(), time.process_time()
         self.runner.simulator.AdvanceTo(seconds)
         return time.perf_counter() - wall, time.process_time() - cpu
+
+
+def _ceilings(shots: np.ndarray, seconds: float, say) -> dict:
+    """The ball alone and the controlled robot alone (module docstring), each over ``seconds``
+    simulated s per episode, one warm-up episode then one per remaining shot: simulated s per CPU
+    s of this process, median."""
+    from ace_drake.diagrams import build_ball_diagram, build_controlled_robot_diagram, make_simulator, start_controlled_robot
+
+    def rate(start, simulator) -> float:
+        start()
+        simulator.Initialize()
+        cpu = time.process_time()
+        simulator.AdvanceTo(simulator.get_context().get_time() + seconds)
+        return seconds / (time.process_time() - cpu)
+
+    say("ceilings: the ball alone")
+    ball_diagram = build_ball_diagram(log_period=LOG_PERIOD)
+    ball = ball_diagram.GetSubsystemByName("ball")
+    ball_simulator = make_simulator(ball_diagram)
+    ball_context = ball_simulator.get_mutable_context()
+
+    def start_ball(shot):
+        ball_context.SetTime(0.0)
+        ball.SetBallState(ball.GetMyMutableContextFromRoot(ball_context), shot)
+
+    ball_rates = [rate(lambda: start_ball(shot), ball_simulator) for shot in shots][1:]
+
+    say("ceilings: the robot alone under the control stack")
+    from ace_drake.control.stack import ControlStack
+    from ace_drake.robot_model import MODELS_DIR, load_scenario
+
+    params = RallyParams()
+    policy = ReadyPosePolicy(ControlStack(load_scenario(MODELS_DIR / params.scenario), params.control))
+    robot_diagram = build_controlled_robot_diagram(policy, log_period=LOG_PERIOD)
+    robot_simulator = make_simulator(robot_diagram)
+    robot_context = robot_simulator.get_mutable_context()
+
+    def start_robot():
+        robot_context.SetTime(0.0)
+        start_controlled_robot(robot_diagram, robot_context)
+
+    robot_rates = [rate(start_robot, robot_simulator) for _ in shots][1:]
+    return {
+        "ball_alone_cpu_real_time_factor_median": float(np.median(ball_rates)),
+        "controlled_robot_alone_cpu_real_time_factor_median": float(np.median(robot_rates)),
+    }
 
 
 def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, seed: int = 0, profile: bool = True, progress: Callable[[str], None] | None = None) -> dict:
@@ -131,6 +186,8 @@ def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, s
     rate = {key: figures[f"rally_{key}"]["real_time_factor_median"] for key, _, _ in RALLY_CASES}
     figures["ratio_statistical_to_cameras"] = rate["statistical"] / rate["cameras"]
     figures["ratio_no_hit_prediction_to_statistical"] = rate["statistical_no_hit_prediction"] / rate["statistical"]
+
+    figures["ceilings"] = _ceilings(shots, seconds, say)
 
     say("RallyEnv (training diagram, statistical sensors), random actions")
     env = RallyEnv(distribution=distribution)
@@ -265,6 +322,11 @@ def print_sim_figures(figures: dict, systems_shown: int = 8) -> None:
         )
     print(f"  statistical / cameras: {figures['ratio_statistical_to_cameras']:.2f}; "
           f"without / with the hit prediction: {figures['ratio_no_hit_prediction_to_statistical']:.2f}")
+    ceilings = figures["ceilings"]
+    print(
+        f"  ceilings (per CPU second): the ball alone {ceilings['ball_alone_cpu_real_time_factor_median']:.2f} x real time; "
+        f"the robot alone under the control stack {ceilings['controlled_robot_alone_cpu_real_time_factor_median']:.2f} x"
+    )
     env = figures["env"]
     print(
         f"RallyEnv, {env['actions']}: {env['steps_per_second']:.1f} steps/s with resets ({env['steps_per_cpu_second']:.1f} per CPU s; "
