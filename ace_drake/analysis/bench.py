@@ -34,6 +34,24 @@ def sample_incoming_balls(n: int, seed: int = 0) -> np.ndarray:
     )
 
 
+def ball_plant_runner(params: BallPhysicsParams | None = None, log_period: float = 0.0) -> Callable[[np.ndarray, float], None]:
+    """The BallPlant in one Simulator (``build_ball_diagram``, logging every ``log_period`` s, 0:
+    every step): returns run(shot, seconds), which starts the ball at ``shot`` (9,) at t = 0 and
+    simulates ``seconds`` s."""
+    diagram = build_ball_diagram(params, log_period=log_period)
+    ball = diagram.GetSubsystemByName("ball")
+    simulator = make_simulator(diagram)
+    context = simulator.get_mutable_context()
+
+    def run(shot: np.ndarray, seconds: float) -> None:
+        context.SetTime(0.0)
+        ball.SetBallState(ball.GetMyMutableContextFromRoot(context), shot)
+        simulator.Initialize()
+        simulator.AdvanceTo(seconds)
+
+    return run
+
+
 def bench_ball(repeats: int = 5, seconds: float = 1.0, batch: int = 1000, progress=None) -> dict:
     """Simulated ball-seconds per wall-second: the RK4 propagator for one ball and for a batch,
     and the BallPlant in a Simulator, each over ``seconds`` of simulated time with contacts."""
@@ -47,19 +65,9 @@ def bench_ball(repeats: int = 5, seconds: float = 1.0, batch: int = 1000, progre
     say(f"propagator, {batch} balls")
     many_median, many_p99 = _median_seconds(lambda: simulate(balls, params, seconds, record=False), max(1, repeats // 2))
 
-    diagram = build_ball_diagram(params)
-    ball = diagram.GetSubsystemByName("ball")
-    simulator = make_simulator(diagram)
-    context = simulator.get_mutable_context()
-
-    def run_plant() -> None:
-        context.SetTime(0.0)
-        ball.SetBallState(ball.GetMyMutableContextFromRoot(context), single[0])
-        simulator.Initialize()
-        simulator.AdvanceTo(seconds)
-
+    run_plant = ball_plant_runner(params)
     say("BallPlant in a Simulator, 1 ball")
-    plant_median, plant_p99 = _median_seconds(run_plant, repeats)
+    plant_median, plant_p99 = _median_seconds(lambda: run_plant(single[0], seconds), repeats)
     rates = {
         "propagator_1_ball": seconds / one_median,
         f"propagator_{batch}_balls": batch * seconds / many_median,

@@ -60,6 +60,15 @@ class ReadyPosePolicy:
     def __init__(self, stack, layout=None):
         self.stack, self.layout = stack, layout
 
+    @staticmethod
+    def for_rally(params: RallyParams, layout=None) -> "ReadyPosePolicy":
+        """The controller over its own stack for the scenario and control of ``params`` (it needs
+        the limits and mapping, not collision checks: the diagram's supervisor checks)."""
+        from ace_drake.control.stack import ControlStack
+        from ace_drake.robot_model import MODELS_DIR, load_scenario
+
+        return ReadyPosePolicy(ControlStack(load_scenario(MODELS_DIR / params.scenario), params.control), layout)
+
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         robot_state = observation if self.layout is None else self.layout.part(observation, "robot_state")
         q, v, a = np.split(robot_state, 3)
@@ -78,16 +87,12 @@ class RallyBench:
 
     @staticmethod
     def build(positions: str, hit_prediction: bool = True) -> "RallyBench":
-        from ace_drake.control.stack import ControlStack
         from ace_drake.diagrams import build_rally_diagram
         from ace_drake.learning.observation import ObservationLayout
         from ace_drake.play.runner import RallyRunner
-        from ace_drake.robot_model import MODELS_DIR, load_scenario
 
         params = RallyParams(perception=PerceptionParams(positions=positions), hit_prediction=hit_prediction)
-        # The policy's own stack: action_towards needs the limits and mapping, not collision checks.
-        stack = ControlStack(load_scenario(MODELS_DIR / params.scenario), params.control)
-        policy = ReadyPosePolicy(stack, ObservationLayout(params.position_history, params.spin_history))
+        policy = ReadyPosePolicy.for_rally(params, ObservationLayout(params.position_history, params.spin_history))
         return RallyBench(positions, RallyRunner(build_rally_diagram(params, policy), params))
 
     def episode(self, shot: np.ndarray, seed: int, seconds: float) -> tuple[float, float]:
@@ -103,42 +108,30 @@ def _ceilings(shots: np.ndarray, seconds: float, say) -> dict:
     """The ball alone and the controlled robot alone (module docstring), each over ``seconds``
     simulated s per episode, one warm-up episode then one per remaining shot: simulated s per CPU
     s of this process, median."""
-    from ace_drake.diagrams import build_ball_diagram, build_controlled_robot_diagram, make_simulator, start_controlled_robot
+    from ace_drake.analysis.bench import ball_plant_runner
+    from ace_drake.diagrams import build_controlled_robot_diagram, make_simulator, start_controlled_robot
 
-    def rate(start, simulator) -> float:
-        start()
-        simulator.Initialize()
+    def rate(run) -> float:
         cpu = time.process_time()
-        simulator.AdvanceTo(simulator.get_context().get_time() + seconds)
+        run()
         return seconds / (time.process_time() - cpu)
 
     say("ceilings: the ball alone")
-    ball_diagram = build_ball_diagram(log_period=LOG_PERIOD)
-    ball = ball_diagram.GetSubsystemByName("ball")
-    ball_simulator = make_simulator(ball_diagram)
-    ball_context = ball_simulator.get_mutable_context()
-
-    def start_ball(shot):
-        ball_context.SetTime(0.0)
-        ball.SetBallState(ball.GetMyMutableContextFromRoot(ball_context), shot)
-
-    ball_rates = [rate(lambda: start_ball(shot), ball_simulator) for shot in shots][1:]
+    run_ball = ball_plant_runner(log_period=LOG_PERIOD)
+    ball_rates = [rate(lambda: run_ball(shot, seconds)) for shot in shots][1:]
 
     say("ceilings: the robot alone under the control stack")
-    from ace_drake.control.stack import ControlStack
-    from ace_drake.robot_model import MODELS_DIR, load_scenario
-
-    params = RallyParams()
-    policy = ReadyPosePolicy(ControlStack(load_scenario(MODELS_DIR / params.scenario), params.control))
-    robot_diagram = build_controlled_robot_diagram(policy, log_period=LOG_PERIOD)
+    robot_diagram = build_controlled_robot_diagram(ReadyPosePolicy.for_rally(RallyParams()), log_period=LOG_PERIOD)
     robot_simulator = make_simulator(robot_diagram)
     robot_context = robot_simulator.get_mutable_context()
 
-    def start_robot():
+    def run_robot() -> None:
         robot_context.SetTime(0.0)
         start_controlled_robot(robot_diagram, robot_context)
+        robot_simulator.Initialize()
+        robot_simulator.AdvanceTo(seconds)
 
-    robot_rates = [rate(start_robot, robot_simulator) for _ in shots][1:]
+    robot_rates = [rate(run_robot) for _ in shots][1:]
     return {
         "ball_alone_cpu_real_time_factor_median": float(np.median(ball_rates)),
         "controlled_robot_alone_cpu_real_time_factor_median": float(np.median(robot_rates)),
