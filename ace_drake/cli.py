@@ -17,7 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams, ConfigError, PerceptionParams, RallyParams, load_config, to_dict
+from ace_drake.config import ConfigError, load_config, to_dict
+from ace_drake.control.params import RallyParams
+from ace_drake.perception.params import PerceptionParams
+from ace_drake.physics.params import BallPhysicsParams
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MODELS = REPO_ROOT / "models"
@@ -52,9 +55,9 @@ def cmd_rally(args) -> int:
     """The main job: rallies of the best shipped controller against the launcher opponent."""
     from pydrake.geometry import Meshcat
 
-    from ace_drake.config import ShotParams
-    from ace_drake.play.controllers import make_controller
-    from ace_drake.play.rallies import play_rallies, rally_rows
+    from ace_drake.evaluation.controllers import make_controller
+    from ace_drake.evaluation.rallies import play_rallies, rally_rows
+    from ace_drake.play.params import ShotParams
 
     params = _rally_params(args)
     controller = make_controller(args.controller, params)
@@ -85,10 +88,10 @@ def cmd_rally(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    """Return-rate evaluation of a controller (``analysis.evaluation``)."""
-    from ace_drake.analysis.evaluation import evaluate
-    from ace_drake.config import ShotParams
-    from ace_drake.play.controllers import NoisyActions, make_controller
+    """Return-rate evaluation of a controller (``evaluation.evaluate``)."""
+    from ace_drake.evaluation.controllers import NoisyActions, make_controller
+    from ace_drake.evaluation.evaluate import evaluate
+    from ace_drake.play.params import ShotParams
     from ace_drake.play.shots import human_shots, make_distribution
 
     if args.episodes is not None and args.episodes < 1:
@@ -125,9 +128,9 @@ def cmd_evaluate(args) -> int:
 def _evaluation_skills(spec: str | None, count: int, params: RallyParams, seed: int) -> tuple[np.ndarray | None, str]:
     """The skills of ``evaluate --skill``: None (the diagram's default), one fixed skill
     "Y,WP,WS" for every shot, or "sampled": one per shot from the training distribution
-    (``learning.rally_env.SkillSampling``) drawn with ``seed``. Returns (skills (count, 3) or None,
+    (``training.env.SkillSampling``) drawn with ``seed``. Returns (skills (count, 3) or None,
     a phrase for the log); raises ConfigError for anything else."""
-    from ace_drake.learning.rally_env import SkillSampling
+    from ace_drake.training.env import SkillSampling
 
     if spec is None:
         return None, "the default skill (y_desired 0 m, w_p 1, w_s 0)"
@@ -182,8 +185,8 @@ def _print_evaluation(figures: dict) -> None:
 
 def cmd_physics_validate(args) -> int:
     """Replay recorded (shot or bounce) -> bounce pairs through the ball model; report errors."""
-    from ace_drake.analysis.match_data import event_pairs, load_match_events
     from ace_drake.analysis.physics_validation import format_summary, predict_pairs, summarize
+    from ace_drake.match_data import event_pairs, load_match_events
 
     params = load_ball_params(args.params)
     pairs = event_pairs(load_match_events(args.data))
@@ -206,9 +209,9 @@ def cmd_physics_fit(args) -> int:
     """Fit aerodynamic and table coefficients on some players, judge on the held-out ones."""
     import yaml
 
-    from ace_drake.analysis.match_data import event_pairs, load_match_events
     from ace_drake.analysis.physics_fit import DEFAULT_FIT_PARAMETERS, fit_physics
     from ace_drake.analysis.physics_validation import format_summary, predict_pairs, summarize
+    from ace_drake.match_data import event_pairs, load_match_events
 
     pairs = event_pairs(load_match_events(args.data))
     players = sorted(set(pairs.players))
@@ -272,9 +275,9 @@ def cmd_sysid(args) -> int:
     """Identify each logged joint's delayed second-order model (paper eq. (9)); write the config."""
     import yaml
 
-    from ace_drake.config import JOINT_NAMES, RobotDynamicsParams
     from ace_drake.control.joint_model import ramp_tracking_lag
     from ace_drake.control.sysid import identify_joint, load_joint_log
+    from ace_drake.robot.params import JOINT_NAMES, RobotDynamicsParams
 
     joint_log = load_joint_log(args.log)
     unknown = sorted(set(joint_log.commands) - set(JOINT_NAMES))
@@ -403,7 +406,7 @@ def _bench_perception(args) -> int:
 
 
 def _bench_sim(args) -> int:
-    from ace_drake.analysis.sim_bench import print_sim_figures, bench_sim
+    from ace_drake.analysis.sim_bench import bench_sim, print_sim_figures
 
     if args.seconds <= 0 or args.repeats < 1:
         raise ConfigError(f"bench sim: --seconds must be > 0 and --repeats >= 1, got {args.seconds} and {args.repeats}")
@@ -433,7 +436,7 @@ def _bench_train(args) -> int:
 
 def _bench_reach(args) -> int:
     from ace_drake.analysis.reach import bench_reach, robot_contact_points
-    from ace_drake.robot_model import RobotModel, load_scenario
+    from ace_drake.robot.model import RobotModel, load_scenario
 
     if not args.data:
         raise ConfigError("bench reach: --data FILE (a match-data CSV with shot_p1 events) is required")
@@ -518,9 +521,9 @@ def cmd_diagrams(args) -> int:
 
 
 def cmd_train(args) -> int:
-    """A training run (``learning.trainer``): resumes from the run directory's checkpoint, trains,
+    """A training run (``training.trainer``): resumes from the run directory's checkpoint, trains,
     exports the policy with its sidecar and learning curve."""
-    from ace_drake.learning.trainer import Trainer, export, load_train_config
+    from ace_drake.training.trainer import Trainer, export, load_train_config
 
     config = load_train_config(args.config)
     run_dir = Path(args.run_dir or REPO_ROOT / "out" / "train" / config.name)
@@ -534,9 +537,9 @@ def cmd_train(args) -> int:
         trainer.run()
     evaluation = None
     if args.evaluate_data:
-        from ace_drake.analysis.evaluation import evaluate
-        from ace_drake.learning.trainer import chosen_policy
+        from ace_drake.evaluation.evaluate import evaluate
         from ace_drake.play.shots import held_out_players, human_shots
+        from ace_drake.training.trainer import chosen_policy
 
         policy = chosen_policy(trainer, args.export)
 
@@ -578,8 +581,9 @@ def cmd_imitation(args) -> int:
     fits = imitation_report(observations, actions, layout, steps=args.steps, seed=args.seed, progress=log)
     sensitivity = None
     if args.sensitivity:
-        from ace_drake.config import PerceptionParams, ReturnerParams
+        from ace_drake.control.params import ReturnerParams
         from ace_drake.control.returner import ModelBasedReturner
+        from ace_drake.perception.params import PerceptionParams
 
         returner = ModelBasedReturner.for_rally(RallyParams(perception=PerceptionParams(positions="statistical")),
                                                 ReturnerParams(memory=False))
@@ -616,7 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
         command.add_argument("--json", action="store_true")
 
-    from ace_drake.play.controllers import DEFAULT_CONTROLLER
+    from ace_drake.evaluation.controllers import DEFAULT_CONTROLLER
 
     rally = commands.add_parser("rally", help="the main job: rallies of the best shipped controller against the launcher; Meshcat replay")
     add_rally_options(rally, DEFAULT_CONTROLLER)
@@ -634,7 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")
-    train.add_argument("config", help="training config YAML (learning.trainer.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
+    train.add_argument("config", help="training config YAML (training.trainer.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
     train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
     train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")

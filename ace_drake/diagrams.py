@@ -8,29 +8,44 @@ the integrator the way the BallPlant's contact timing needs.
 from __future__ import annotations
 
 import dataclasses
-import functools
+import re
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role, SceneGraph
+from pydrake.geometry import (
+    MakeRenderEngineVtk,
+    Meshcat,
+    MeshcatVisualizer,
+    MeshcatVisualizerParams,
+    RenderEngineVtkParams,
+    Role,
+    SceneGraph,
+)
 from pydrake.math import RigidTransform
 from pydrake.multibody.math import SpatialVelocity
-from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import ConstantValueSource, MatrixGain, TrajectorySource, VectorLogSink
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 from pydrake.trajectories import PiecewisePolynomial, Trajectory
 
-from ace_drake.config import BallPhysicsParams, ControlParams, PerceptionParams, RallyParams, RobotScenario
+from ace_drake.config import MODELS_DIR
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.hit_prediction import HitPredictor
-from ace_drake.control.stack import ControlStack
-from ace_drake.learning.observation import ObservationLayout
+from ace_drake.control.params import ControlParams, RallyParams
+from ace_drake.control.stack import ControlStack, make_control_stack
+from ace_drake.perception.cameras import load_cameras
+from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.contact import ResidualModel
-from ace_drake.robot_model import MODELS_DIR, add_robot_to_plant, check_joint_order, load_scenario, racket_reach_box
+from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.robot.model import add_robot_to_plant, check_joint_order, load_scenario, racket_reach_box
+from ace_drake.robot.params import RobotScenario
 from ace_drake.systems.action_mapper import ActionMapper
-from ace_drake.systems.aps_camera_array import ApsCameraArray
+from ace_drake.systems.aps_camera_array import ApsCameraArray, make_rgbd_sensor
 from ace_drake.systems.ball_estimator import BallEstimator
+from ace_drake.systems.ball_geometry import BallGeometry
 from ace_drake.systems.ball_plant import BallPlant
 from ace_drake.systems.ball_visualizer import BallVisualizer, set_court_view
 from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
@@ -83,7 +98,7 @@ def add_ball(
 ) -> BallPlant:
     """Adds the BallPlant as ``ball``; the shared first step of every builder. With the
     ``scenario`` of the robot whose racket it will meet, the ball knows the box the racket stays
-    in (``robot_model.racket_reach_box``), which spares the racket witness most pose reads."""
+    in (``robot.model.racket_reach_box``), which spares the racket witness most pose reads."""
     reach = None if scenario is None else racket_reach_box(scenario)
     return builder.AddNamedSystem("ball", BallPlant(params, perturb=perturb, seed=seed, racket_residual=racket_residual, racket_reach=reach))
 
@@ -145,9 +160,6 @@ def add_perception(builder: DiagramBuilder, ball: BallPlant, params: PerceptionP
     builder.Connect(ball.contact_events_port, spin.contact_events_port)
     cameras = None
     if params.positions == "cameras":
-        from ace_drake.perception.cameras import load_cameras
-        from ace_drake.robot_model import MODELS_DIR
-
         calibration = load_cameras(MODELS_DIR / params.camera.calibration)
         cameras = builder.AddNamedSystem("aps_cameras", ApsCameraArray(calibration, params.camera, seed=params.seed))
         builder.Connect(ball.ball_state_port, cameras.ball_state_port)
@@ -167,13 +179,7 @@ def add_perception(builder: DiagramBuilder, ball: BallPlant, params: PerceptionP
 
 def _add_camera_renders(builder, ball, cameras, calibration, params: PerceptionParams, scene_graph) -> None:
     """The rendered mode's scene: the ball's geometry, a renderer and one RgbdSensor per camera."""
-    from pydrake.geometry import MakeRenderEngineVtk, RenderEngineVtkParams
-    from pydrake.multibody.parsing import Parser
-    from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
 
-    from ace_drake.robot_model import MODELS_DIR
-    from ace_drake.systems.aps_camera_array import make_rgbd_sensor
-    from ace_drake.systems.ball_geometry import BallGeometry
 
     if scene_graph is None:
         court, scene_graph = AddMultibodyPlantSceneGraph(builder, 0.0)
@@ -303,18 +309,6 @@ class ControlSystems:
     spline_qp: SplineQp
     reset_mpc: ResetMpc
     supervisor: SafetySupervisor
-
-
-def make_control_stack(scenario: RobotScenario, control: ControlParams, check_collisions: bool = True) -> ControlStack:
-    """The shared control stack with Drake collision checking of every plan (margin, influence
-    distance and query budget from ``control``), or none when ``check_collisions`` is False."""
-    check = None
-    if check_collisions:
-        from ace_drake.robot_collision import TrajectoryCollisionChecker
-
-        checker = TrajectoryCollisionChecker(scenario, margin=control.collision_margin, influence=control.collision_influence)
-        check = functools.partial(checker.check, max_queries=control.collision_query_budget)
-    return ControlStack(scenario, control, check)
 
 
 def add_control_stack(builder: DiagramBuilder, robot: RobotSystems, stack: ControlStack, policy, observation_size: int) -> ControlSystems:
@@ -455,7 +449,7 @@ def build_rally_diagram(params: RallyParams | None = None, policy=None, meshcat:
 
 
 def build_training_diagram(params: RallyParams | None = None) -> Diagram:
-    """The rally episode of ``add_rally`` for RL training (``learning.rally_env``): no loggers, no
+    """The rally episode of ``add_rally`` for RL training (``training.env``): no loggers, no
     Meshcat, and the action from the diagram's input ``action_request`` (17: action, valid flag)
     read at each policy event. ``params`` default: RallyParams with the training sensors
     (``PerceptionParams(positions="statistical")``); given params are used as they are. Start each
@@ -519,7 +513,6 @@ def graphviz_dot(diagram: Diagram, max_depth: int = 1) -> str:
     text: system ids renumbered from 0 in order of first appearance (Drake's ids are global
     counters that depend on what else the process built; SceneGraph's source ports likewise) and
     the edge lines sorted (Drake emits them in an order that can change between processes)."""
-    import re
 
     dot = diagram.GetGraphvizString(max_depth=max_depth)
     numbering: dict[str, str] = {}

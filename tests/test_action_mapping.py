@@ -6,10 +6,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ace_drake.config import ControlParams, RobotLimits, RobotScenario
 from ace_drake.control.action_mapping import ACTION_SIZE, inverse_map_action, map_action
 from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
+from ace_drake.control.params import ControlParams
 from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.params import RobotLimits, RobotScenario
 
 CONTROL = ControlParams()
 LIMITS = CommandLimits.from_config(RobotLimits(), CONTROL)

@@ -12,8 +12,9 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
-from ace_drake.config import CameraParams, ConfigError
-from ace_drake.perception.cameras import DEFAULT_CALIBRATION, MODELS_DIR, OccluderSphere, load_cameras, project_points, visibility
+from ace_drake.config import MODELS_DIR, ConfigError
+from ace_drake.perception.cameras import DEFAULT_CALIBRATION, OccluderSphere, load_cameras, project_points, visibility
+from ace_drake.perception.params import CameraParams
 from ace_drake.systems.aps_camera_array import ApsCameraArray, make_rgbd_sensor
 from ace_drake.systems.ball_geometry import BallGeometry
 

@@ -9,11 +9,13 @@ import pytest
 from scipy import stats
 
 from ace_drake.analysis.bench import sample_incoming_balls
-from ace_drake.config import BallPhysicsParams, ConfigError, EstimatorParams, from_dict
+from ace_drake.config import ConfigError, from_dict
 from ace_drake.perception.ball_ekf import BallEkf, Observation
 from ace_drake.perception.ekf_evaluation import evaluate, replay, simulate_shots
 from ace_drake.perception.measurements import Measurement
+from ace_drake.perception.params import EstimatorParams
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
 
 PHYSICS = BallPhysicsParams()

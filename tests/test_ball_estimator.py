@@ -12,10 +12,11 @@ from pydrake.multibody.math import SpatialVelocity
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantValueSource
 
-from ace_drake.config import BallPhysicsParams, EstimatorParams, PositionSensorParams, SpinSensorParams
 from ace_drake.diagrams import add_ball, make_simulator
 from ace_drake.perception.ball_ekf import BallEkf
+from ace_drake.perception.params import EstimatorParams, PositionSensorParams, SpinSensorParams
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
 from ace_drake.systems.ball_estimator import BallEstimator
 from ace_drake.systems.gaze_spin_sensor import GazeSpinSensor

@@ -5,10 +5,10 @@ import pytest
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.math import SpatialVelocity
 
-from ace_drake.config import BallPhysicsParams
 from ace_drake.diagrams import StaticRacket, build_ball_diagram, make_simulator
 from ace_drake.physics import contact
 from ace_drake.physics.flight import flight_acceleration, make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, contact_gap, simulate
 from ace_drake.systems.ball_plant import BallPlant
 

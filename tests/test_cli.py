@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from ace_drake.cli import main
-from ace_drake.config import RewardParams
+from ace_drake.learning.params import RewardParams
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "ace_match_events_elite.csv"

@@ -4,11 +4,12 @@ a small safety run that must find no violation (the README's 100,000-case run is
 import numpy as np
 
 from ace_drake.analysis.control_bench import ACTION_KINDS, bench_safety, follow, make_stack, random_action
-from ace_drake.control.stack import random_invariant_state
-from ace_drake.config import RobotScenario
 from ace_drake.control.feasible_set import in_invariant_set
 from ace_drake.control.joint_model import ramp_tracking_lag, simulate_joint
-from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+from ace_drake.control.stack import random_invariant_state
+from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.params import RobotScenario
+from ace_drake.robot.trajectory import JointTrajectory
 
 
 def test_follow_matches_the_joint_model_and_lags_a_ramp_by_its_tracking_lag():

@@ -9,8 +9,8 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
-from ace_drake.config import JointDynamicsParams, RobotDynamicsParams
 from ace_drake.control.joint_model import JointPropagator, ProcessModel, discretize, simulate_joint, step_response
+from ace_drake.robot.params import JointDynamicsParams, RobotDynamicsParams
 from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
 
 PERIOD = 1e-3

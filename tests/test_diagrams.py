@@ -35,8 +35,8 @@ def test_systems_have_stable_names():
 def test_the_perception_diagram_tracks_a_ball_through_either_position_path(positions):
     import numpy as np
 
-    from ace_drake.config import PerceptionParams
     from ace_drake.diagrams import build_perception_diagram, make_simulator
+    from ace_drake.perception.params import PerceptionParams
     from ace_drake.physics.flight import make_state
 
     diagram = build_perception_diagram(PerceptionParams(positions=positions))
@@ -58,8 +58,8 @@ def test_the_perception_diagram_tracks_a_ball_through_either_position_path(posit
 
 
 def test_the_rendered_cameras_are_wired_to_drake_images():
-    from ace_drake.config import CameraParams, PerceptionParams
     from ace_drake.diagrams import build_perception_diagram
+    from ace_drake.perception.params import CameraParams, PerceptionParams
 
     diagram = build_perception_diagram(PerceptionParams(camera=CameraParams(mode="rendered", render_scale=0.1)))
     cameras = diagram.GetSubsystemByName("aps_cameras")

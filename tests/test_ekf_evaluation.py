@@ -5,10 +5,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ace_drake.config import BallPhysicsParams, PositionSensorParams, SpinSensorParams
 from ace_drake.perception.ball_ekf import BallEkf
 from ace_drake.perception.ekf_evaluation import evaluate, replay, simulate_shots
+from ace_drake.perception.params import PositionSensorParams, SpinSensorParams
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
 
 PHYSICS = BallPhysicsParams()

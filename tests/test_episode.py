@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
+from ace_drake.contracts import Outcome
 from ace_drake.physics.propagate import ContactEvent, ContactKind
-from ace_drake.play.episode import Outcome, classify, timed_out
+from ace_drake.play.episode import classify, timed_out
 
 
 def event(kind: ContactKind, time: float, x: float) -> ContactEvent:

@@ -1,13 +1,13 @@
-"""The return-rate evaluation's figures on constructed episodes (analysis/evaluation.py): the
+"""The return-rate evaluation's figures on constructed episodes (evaluation/evaluate.py): the
 skill figures (aim, landing spin by w_s, eq. (10) reward) and how episodes are counted."""
 
 import numpy as np
 import pytest
 
-from ace_drake.analysis.evaluation import run_episodes, skill_figures, summarize
-from ace_drake.config import RewardParams
-from ace_drake.play.episode import EpisodeResult, Outcome
-from ace_drake.play.runner import Episode
+from ace_drake.contracts import EpisodeResult, Outcome
+from ace_drake.evaluation.evaluate import run_episodes, skill_figures, summarize
+from ace_drake.evaluation.runner import Episode
+from ace_drake.learning.params import RewardParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind
 
 SHOT = np.array([1.2, 0.0, 0.3, -8.0, 0.0, 1.0, 0.0, -100.0, 0.0])

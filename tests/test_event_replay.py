@@ -5,9 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from ace_drake.config import RewardParams
-from ace_drake.learning.observation import ObservationLayout
-from ace_drake.learning.rally_env import privileged_slice
+from ace_drake.contracts import EpisodeResult, ObservationLayout, Outcome, privileged_slice
+from ace_drake.learning.params import RewardParams
 from ace_drake.learning.replay import (
     EVENTS,
     EpisodeSummary,
@@ -19,7 +18,6 @@ from ace_drake.learning.replay import (
 )
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.propagate import ContactEvent, ContactKind
-from ace_drake.play.episode import EpisodeResult, Outcome
 
 LAYOUT = ObservationLayout(2, 2)
 PARAMS = RewardParams(return_base=1.0, position_reward=2.0, position_length=0.3, spin_gain=0.01)
@@ -171,9 +169,9 @@ def test_a_real_episode_through_the_replay_and_the_learner():
     import torch
 
     from ace_drake.learning.mirror import JointMirror, Mirror
-    from ace_drake.learning.rally_env import RallyEnv
     from ace_drake.learning.sac import SacConfig, SacLearner
-    from ace_drake.robot_model import RobotModel
+    from ace_drake.robot.model import RobotModel
+    from ace_drake.training.env import RallyEnv
 
     env = RallyEnv()
     learner = SacLearner(SacConfig(actor_hidden=(32,), embedding_size=32, decoder_hidden=(32,), critic_hidden=(32,)))

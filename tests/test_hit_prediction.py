@@ -4,11 +4,13 @@ import numpy as np
 import pytest
 
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
-from ace_drake.config import BallPhysicsParams, ControlParams, ReturnerParams
+from ace_drake.config import MODELS_DIR
+from ace_drake.contracts import HIT_PREDICTION_SIZE
 from ace_drake.control.hit_prediction import HitPredictor, joint_lag
-from ace_drake.learning.observation import HIT_PREDICTION_SIZE
+from ace_drake.control.params import ControlParams, ReturnerParams
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
-from ace_drake.robot_model import MODELS_DIR, load_scenario
+from ace_drake.robot.model import load_scenario
 
 PARAMS = BallPhysicsParams()
 

@@ -11,20 +11,22 @@ import pytest
 import torch
 
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
-from ace_drake.config import BallPhysicsParams, ConfigError, RallyParams, ReturnerParams
+from ace_drake.config import ConfigError
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import ACTION_SIZE, map_action
 from ace_drake.control.feasible_set import feasible_sets
 from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.control.hit_state import HitDriver, HitStateAction, HitStateLayer, hermite
+from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.control.returner import ModelBasedReturner
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.hit_state import HitStateCloning, RacketKinematics
-from ace_drake.learning.observation import ObservationLayout
 from ace_drake.learning.replay import DemonstrationBuffer
-from ace_drake.learning.rollout import ExplorationParams, RolloutWorker
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
-from ace_drake.robot_model import RobotModel
+from ace_drake.robot.model import RobotModel
+from ace_drake.training.rollout import ExplorationParams, RolloutWorker
 
 PARTS = ("positions", "spins", "robot_state", "end_effector", "skill", "estimate", "estimate_status", "hit_prediction")
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32),
@@ -254,7 +256,7 @@ def test_a_hit_state_worker_stores_hit_states_and_labels_planned_hits():
 
 
 def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, monkeypatch):
-    from ace_drake.play import controllers
+    from ace_drake.evaluation import controllers
 
     learner = SacLearner(SMALL)
     save_policy(tmp_path / "hit_state.pt", learner)
@@ -285,7 +287,7 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
 
 def test_the_returners_planned_hit_state_plays_through_the_layer(layer):
     from ace_drake.control.hit_state import PlannedHitState
-    from ace_drake.play import controllers
+    from ace_drake.evaluation import controllers
 
     params = RallyParams()
     planned = controllers.make_controller("returner:hit_state", params)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from ace_drake.analysis.imitation import demonstration_arrays, fit_imitation, label_sensitivity
-from ace_drake.learning.observation import ObservationLayout
+from ace_drake.contracts import ObservationLayout
 from ace_drake.learning.replay import DemonstrationBuffer
 
 LAYOUT = ObservationLayout()

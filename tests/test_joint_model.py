@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from ace_drake.config import ConfigError, JointDynamicsParams, RobotDynamicsParams, from_dict
+from ace_drake.config import ConfigError, from_dict
 from ace_drake.control.joint_model import ProcessModel, discretize, ramp_tracking_lag, simulate_joint, step_response
+from ace_drake.robot.params import JointDynamicsParams, RobotDynamicsParams
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.001, 0.0023, 0.0049])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ace_drake.analysis.match_data import MatchDataError, event_pairs, load_match_events
+from ace_drake.match_data import MatchDataError, event_pairs, load_match_events
 
 HEADER = "player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\n"
 

@@ -6,13 +6,14 @@ import shutil
 import numpy as np
 import pytest
 
-from ace_drake.config import ControlParams
+from ace_drake.config import MODELS_DIR
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import map_action
 from ace_drake.control.feasible_set import feasible_sets, in_invariant_set
+from ace_drake.control.params import ControlParams
 from ace_drake.control.trajectory import CommandLimits
 from ace_drake.learning.mirror import JointMirror, Mirror
-from ace_drake.learning.observation import ObservationLayout
-from ace_drake.robot_model import MODELS_DIR, RobotModel, load_scenario
+from ace_drake.robot.model import RobotModel, load_scenario
 
 LAYOUT = ObservationLayout(3, 2)
 # gantry_x, gantry_y, shoulder_yaw, shoulder_pitch, elbow, wrist_1, wrist_2, wrist_3
@@ -152,9 +153,10 @@ def test_the_environment_is_mirror_symmetric_with_a_symmetric_robot_and_quiet_se
     noise for both episodes, which is not the mirrored noise; latencies and dropouts, drawn
     alike, are symmetric. (Nearly off: the EKF weighs measurements by the sensors' noise, which
     must not be zero: 10 um and 1e-3 rad/s leave differences far below the tolerances.)"""
-    from ace_drake.config import PerceptionParams, PositionSensorParams, RallyParams, SpinSensorParams
-    from ace_drake.learning.rally_env import RallyEnv, RallyEnvParams
+    from ace_drake.control.params import RallyParams
+    from ace_drake.perception.params import PerceptionParams, PositionSensorParams, SpinSensorParams
     from ace_drake.physics.flight import make_state
+    from ace_drake.training.env import RallyEnv, RallyEnvParams
 
     text = (MODELS_DIR / "scenario.yaml").read_text()
     assert "robot_model: ace_robot.sdf" in text and "ready_pose: [-0.45, -0.15," in text

@@ -5,12 +5,14 @@ import pytest
 from pydrake.common.value import AbstractValue
 
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
-from ace_drake.config import BallPhysicsParams, ControlParams
+from ace_drake.config import MODELS_DIR
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.hit_prediction import HitPredictor
-from ace_drake.learning.observation import ObservationLayout
+from ace_drake.control.params import ControlParams
 from ace_drake.perception.measurements import Measurement, MeasurementHistory
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
-from ace_drake.robot_model import MODELS_DIR, load_scenario
+from ace_drake.robot.model import load_scenario
 from ace_drake.systems.observation_builder import ObservationBuilder
 
 
@@ -97,7 +99,7 @@ def test_builder_fills_the_hit_prediction_from_the_estimate():
 
 
 def test_the_rally_diagram_predicts_the_hit_unless_told_not_to():
-    from ace_drake.config import RallyParams
+    from ace_drake.control.params import RallyParams
     from ace_drake.diagrams import build_rally_diagram
 
     for on in (True, False):

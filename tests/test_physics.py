@@ -6,9 +6,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ace_drake.config import AeroParams, BallPhysicsParams, ConfigError, from_dict
+from ace_drake.config import ConfigError, from_dict
 from ace_drake.physics import contact
-from ace_drake.physics.flight import flight_acceleration, magnus_coefficient, make_state, one_ball_flight_acceleration, rk4_step, rk4_step_numpy
+from ace_drake.physics.flight import (
+    flight_acceleration,
+    magnus_coefficient,
+    make_state,
+    one_ball_flight_acceleration,
+    rk4_step,
+    rk4_step_numpy,
+)
+from ace_drake.physics.params import AeroParams, BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, simulate
 
 PARAMS = BallPhysicsParams()

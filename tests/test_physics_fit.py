@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from ace_drake.analysis.match_data import EventPairs
+from ace_drake.analysis.bench import sample_incoming_balls
 from ace_drake.analysis.physics_fit import fit_physics, get_value, with_values
 from ace_drake.analysis.physics_validation import predict_pairs, summarize
-from ace_drake.analysis.bench import sample_incoming_balls
-from ace_drake.config import BallPhysicsParams
+from ace_drake.match_data import EventPairs
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
 
 TRUE = with_values(

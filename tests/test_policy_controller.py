@@ -7,7 +7,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
-from ace_drake.config import ControlParams
+from ace_drake.control.params import ControlParams
 from ace_drake.systems.policy_controller import PolicyController
 
 
@@ -117,7 +117,7 @@ def test_with_a_policy_there_is_no_request_port():
 
 def test_noisy_actions_add_seeded_gaussian_noise_in_the_box():
     from ace_drake.config import ConfigError
-    from ace_drake.play.controllers import NoisyActions
+    from ace_drake.evaluation.controllers import NoisyActions
 
     resets = []
 

@@ -9,8 +9,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from ace_drake.config import BallPhysicsParams
 from ace_drake.physics.contact import racket_contact_features, racket_impact, racket_restitution
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.racket_residual import (
     RacketResidualMLP,
     fit_racket_residual,

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from ace_drake.config import ConfigError, RewardParams
+from ace_drake.config import ConfigError
+from ace_drake.contracts import PRIVILEGED_PARTS, Outcome, privileged_slice
+from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import return_reward
-from ace_drake.learning.rally_env import PRIVILEGED_PARTS, RallyEnv, RallyEnvParams, SkillSampling, privileged_slice
 from ace_drake.physics.flight import make_state
-from ace_drake.play.episode import Outcome
 from ace_drake.play.shots import ShotDistribution
+from ace_drake.training.env import RallyEnv, RallyEnvParams, SkillSampling
 
 # Bounces on the robot's half 0.64 m behind the net and flies on past the robot's end, wide of
 # the racket in the ready pose (blade centre at (-1.84, 0, 0.25), facing +x).

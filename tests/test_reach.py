@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ace_drake.analysis.reach import HIT_HEIGHT, fastest_swing, reach_coverage, robot_contact_points, swing_through
-from ace_drake.robot_model import RobotModel
+from ace_drake.robot.model import RobotModel
 
 HEADER = "player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\n"
 

@@ -7,7 +7,6 @@ import pytest
 from pydrake.geometry import Meshcat
 
 from ace_drake.analysis.ball_demo import run_shots, spin_comparison_shots
-from ace_drake.analysis.match_data import MatchEvent, load_match_events
 from ace_drake.analysis.replay import (
     LOG_PERIOD,
     compare_bounces,
@@ -16,6 +15,7 @@ from ace_drake.analysis.replay import (
     replay_rally,
     select_rally,
 )
+from ace_drake.match_data import MatchEvent, load_match_events
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.propagate import ContactEvent, ContactKind
 

@@ -9,9 +9,11 @@ import ruckig
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from ace_drake.config import JOINT_NAMES, ControlParams, RobotLimits, RobotScenario
+from ace_drake.control.params import ControlParams
 from ace_drake.control.reset import ResetPlanner, is_reset_safe, plan_reset, plan_stop, sample_profiles, stop_pad
-from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.params import JOINT_NAMES, RobotLimits, RobotScenario
+from ace_drake.robot.trajectory import JointTrajectory
 
 CONTROL = ControlParams()
 LIMITS = CommandLimits.from_config(RobotLimits(), CONTROL)

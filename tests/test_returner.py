@@ -4,23 +4,20 @@ actions on constructed observations, and one episode through the full rally diag
 import numpy as np
 import pytest
 
+import ace_drake.control.returner as returner_module
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
-from ace_drake.config import RETURNER_MEMORY_PARTS, BallPhysicsParams, ConfigError, RallyParams, ReturnerParams
+from ace_drake.config import ConfigError
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import map_action
 from ace_drake.control.feasible_set import feasible_sets
-import ace_drake.control.returner as returner_module
-from ace_drake.control.returner import (
-    ModelBasedReturner,
-    contact_frame,
-    invert_racket_contact,
-    racket_plans,
-    solve_return,
-)
 from ace_drake.control.hit_state import hermite
+from ace_drake.control.params import RETURNER_MEMORY_PARTS, RallyParams, ReturnerParams
+from ace_drake.control.returner import ModelBasedReturner, racket_plans
 from ace_drake.control.stack import ControlStack
-from ace_drake.learning.observation import ObservationLayout
-from ace_drake.physics.contact import racket_impact, racket_restitution
+from ace_drake.physics.contact import racket_impact
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.physics.racket_inverse import contact_frame
 
 PARAMS = BallPhysicsParams()
 RADIUS = PARAMS.aero.ball_radius
@@ -42,55 +39,6 @@ def observation(layout: ObservationLayout, estimate, valid=True, q=None, skill=(
         positions=empty, spins=empty, robot_state=np.concatenate([q, np.zeros(16)]), end_effector=np.zeros(13),
         skill=skill, estimate=estimate if valid else np.zeros(9), estimate_status=[1.0 if valid else 0.0, 1.0 if valid else 0.0, 0.01 if valid else -1.0],
     )
-
-
-def test_the_inversion_of_a_head_on_hit_is_hand_worked():
-    # No spin, straight along x: the normal is x and the normal law of eq. (7) alone sets the speed.
-    v_in, v_out = np.array([-5.0, 0.0, 0.0]), np.array([4.0, 0.0, 0.0])
-    normal, v_racket = invert_racket_contact(v_in, np.zeros(3), v_out, PARAMS.racket, RADIUS)
-    np.testing.assert_allclose(normal, [1.0, 0.0, 0.0], atol=1e-12)
-    speed = v_racket[0]
-    eps = racket_restitution(-5.0 - speed, PARAMS.racket)
-    assert 4.0 - speed == pytest.approx(-eps * (-5.0 - speed), abs=1e-9)  # v_out.n - s = -eps (v_in.n - s)
-    # By hand: eps(4.887 m/s) = 0.8901 exp(-0.011418 * 4.887) = 0.8418, s = (4 - 5 eps) / (1 + eps):
-    # the ball would come back at 4.2 m/s off a still racket, so the racket gives way a little.
-    assert speed == pytest.approx(-0.1135, abs=2e-4)
-
-
-@pytest.mark.parametrize("brush_speed", [0.0, 2.5])
-def test_the_inversion_reproduces_the_outgoing_velocity_through_eqs_7_8(brush_speed):
-    rng = np.random.default_rng(3)
-    for _ in range(20):
-        v_in = np.array([-7.0, 0.0, -1.0]) + rng.normal(size=3) * [2.0, 1.5, 1.5]
-        w_in = rng.normal(size=3) * 250.0
-        v_out = np.array([6.0, 0.0, 2.0]) + rng.normal(size=3) * [1.5, 1.0, 1.0]
-        normal, v_racket = invert_racket_contact(v_in, w_in, v_out, PARAMS.racket, RADIUS, brush_speed)
-        v_post, _ = racket_impact(v_in, w_in, v_racket, contact_frame(normal), PARAMS.racket, RADIUS)
-        np.testing.assert_allclose(v_post, v_out, atol=1e-9)
-        assert np.linalg.norm(normal) == pytest.approx(1.0) and normal[0] > 0.0  # the forehand faces the opponent
-        tangential = v_racket - (v_racket @ normal) * normal
-        assert np.linalg.norm(tangential) == pytest.approx(brush_speed, abs=1e-9)
-        assert tangential[2] >= -1e-12  # brushing upwards
-
-
-def test_a_solved_return_lands_on_the_target_over_the_net():
-    target = np.array([0.8, -0.3])
-    shot = solve_return(APEX_BALL, target, 0.55, PARAMS)
-    assert shot is not None
-    flight = simulate(np.concatenate([APEX_BALL[:3], shot.v_out, shot.w_out]), PARAMS, 2.0, stop_on=(ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR))
-    landing = flight.stop_events[0]
-    assert landing.kind == ContactKind.TABLE
-    assert landing.time == pytest.approx(0.55, abs=2e-3)
-    np.testing.assert_allclose(landing.state_pre[:2], target, atol=0.01)
-    assert shot.net_clearance > 0.04
-
-
-def test_a_diverging_return_solve_gives_up_instead_of_raising(monkeypatch):
-    # A non-finite iterate (seen in training: a near-singular Jacobian) and a singular Jacobian.
-    assert solve_return(APEX_BALL, np.array([0.8, 0.0]), 0.55, PARAMS, v_guess=np.array([np.inf, 0.0, 1.0])) is None
-    flat = simulate(np.tile(APEX_BALL, (4, 1)), PARAMS, 0.55, kinds=())  # every perturbed ball lands alike
-    monkeypatch.setattr(returner_module, "simulate", lambda *args, **kwargs: flat)
-    assert solve_return(APEX_BALL, np.array([0.8, 0.0]), 0.55, PARAMS) is None
 
 
 def test_racket_plans_send_the_predicted_ball_to_the_target_through_the_contact_model():
@@ -153,8 +101,8 @@ def test_the_returner_follows_the_skill_aiming_at_y_desired_and_brushing_by_w_s(
     # Paper, *Rewards*: y_desired is where the return should land, w_s weighs its topspin at
     # landing. The returner aims at y_desired (clipped to target_y_limit) and brushes the ball along
     # the blade by skill_brush * w_s: up for topspin, down for backspin.
-    from ace_drake.control.returner import _blade_up
     from ace_drake.learning.rewards import travel_frame_spin
+    from ace_drake.physics.racket_inverse import _blade_up
 
     estimate = simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0]
     plans = {}
@@ -305,7 +253,7 @@ def test_the_returner_plays_a_ball_with_any_part_of_its_memory_forgotten(returne
 
 
 def test_forget_names_parts_of_the_memory():
-    from ace_drake.play.controllers import make_controller
+    from ace_drake.evaluation.controllers import make_controller
 
     with pytest.raises(ConfigError, match="unknown memory part"):
         ReturnerParams(forget=("everything",))
@@ -318,10 +266,10 @@ def test_forget_names_parts_of_the_memory():
 
 @pytest.mark.parametrize("name", ["returner", "returner:memoryless", "returner:forget=" + "+".join(RETURNER_MEMORY_PARTS)])
 def test_an_easy_shot_is_returned_through_the_full_rally_diagram(name):
+    from ace_drake.contracts import Outcome
     from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.play.controllers import make_controller
-    from ace_drake.play.episode import Outcome
-    from ace_drake.play.runner import RallyRunner
+    from ace_drake.evaluation.controllers import make_controller
+    from ace_drake.evaluation.runner import RallyRunner
 
     params = RallyParams()  # cameras, triangulation, EKF, perturbations: the full stack
     dut = make_controller(name, params)
@@ -336,10 +284,10 @@ def test_an_easy_shot_is_returned_through_the_full_rally_diagram(name):
 
 def test_the_returner_plays_the_same_episode_without_the_observations_hit_prediction():
     # It predicts the ball itself, so the CLI builds its diagram without the part (faster):
-    # play.controllers.diagram_params_for. The episode must not change.
-    from ace_drake.config import PerceptionParams
+    # evaluation.controllers.diagram_params_for. The episode must not change.
     from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.play.runner import RallyRunner
+    from ace_drake.evaluation.runner import RallyRunner
+    from ace_drake.perception.params import PerceptionParams
 
     results = []
     for on in (True, False):

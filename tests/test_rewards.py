@@ -5,11 +5,12 @@ import math
 import numpy as np
 import pytest
 
-from ace_drake.config import ConfigError, RewardParams
+from ace_drake.config import ConfigError
+from ace_drake.contracts import EpisodeResult, Outcome
+from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import position_term, return_reward, terminal_reward, travel_frame_spin
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.propagate import ContactEvent, ContactKind
-from ace_drake.play.episode import EpisodeResult, Outcome
 
 PARAMS = RewardParams()
 INCOMING = make_state((1.0, 0.0, 0.2), (-6.0, 0.0, -1.0), (0.0, 0.0, 0.0))

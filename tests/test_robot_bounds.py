@@ -9,9 +9,9 @@ from pydrake.geometry import Box, Capsule, Cylinder, Sphere
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.tree import BodyIndex
 
-from ace_drake.config import ControlParams
-from ace_drake.robot_bounds import Shape, sin_cos, sphere_cover
-from ace_drake.robot_collision import DISTANCE_ERROR, TrajectoryCollisionChecker, _motion_bounds
+from ace_drake.control.params import ControlParams
+from ace_drake.robot.bounds import Shape, sin_cos, sphere_cover
+from ace_drake.robot.collision import DISTANCE_ERROR, TrajectoryCollisionChecker, _motion_bounds
 
 MARGIN = ControlParams().collision_margin
 PERIOD = 0.001
@@ -193,7 +193,7 @@ def test_bounds_over_an_interval_never_exceed_the_distance_between_its_samples(d
 
 
 def test_no_point_strays_further_from_its_chord_than_its_deviation(dut):
-    # The deviation bound of robot_bounds: h^2 / 8 sum_j rho_j (A_j + V_j (V_j + 4 U_j)), checked
+    # The deviation bound of robot.bounds: h^2 / 8 sum_j rho_j (A_j + V_j (V_j + 4 U_j)), checked
     # on points of every moving geometry along fast Hermite intervals.
     rng = np.random.default_rng(6)
     plant, inspector = dut.plant, dut.inspector

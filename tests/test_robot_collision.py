@@ -10,13 +10,20 @@ from pydrake.geometry import Box, Capsule, Cylinder, Sphere
 from pydrake.planning import RobotDiagramBuilder, SceneGraphCollisionChecker
 
 from ace_drake.analysis.control_bench import ACTION_KINDS, make_stack, random_action
+from ace_drake.control.params import ControlParams
 from ace_drake.control.stack import random_invariant_state
-from ace_drake.config import JOINT_NAMES, ControlParams
-from ace_drake.control.trajectory import JointTrajectory
-from ace_drake.robot_collision import (
-    DISTANCE_ERROR, PROOF_TOLERANCE, CollisionReport, TrajectoryCollisionChecker, interpolate, joint_acceleration_bounds, joint_speed_bounds,
+from ace_drake.robot.collision import (
+    DISTANCE_ERROR,
+    PROOF_TOLERANCE,
+    CollisionReport,
+    TrajectoryCollisionChecker,
+    interpolate,
+    joint_acceleration_bounds,
+    joint_speed_bounds,
 )
-from ace_drake.robot_model import add_robot_to_plant, load_scenario
+from ace_drake.robot.model import add_robot_to_plant, load_scenario
+from ace_drake.robot.params import JOINT_NAMES
+from ace_drake.robot.trajectory import JointTrajectory
 
 PERIOD = 0.001
 MARGIN = ControlParams().collision_margin

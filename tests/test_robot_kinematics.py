@@ -7,7 +7,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.trajectories import PiecewisePolynomial
 
 from ace_drake.diagrams import build_swing_diagram, make_simulator
-from ace_drake.robot_model import RobotModel, add_robot_to_plant, load_scenario
+from ace_drake.robot.model import RobotModel, add_robot_to_plant, load_scenario
 from ace_drake.systems.robot_kinematics import RobotKinematics
 
 

@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from pydrake.geometry import Box, Role
 
-from ace_drake.config import JOINT_NAMES, BallPhysicsParams, ConfigError, JointLimits, RobotScenario, from_dict
-from ace_drake.robot_model import DEFAULT_SCENARIO, RobotModel, load_scenario, racket_reach_box
+from ace_drake.config import ConfigError, from_dict
+from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.robot.model import DEFAULT_SCENARIO, RobotModel, load_scenario, racket_reach_box
+from ace_drake.robot.params import JOINT_NAMES, JointLimits, RobotScenario
 
 
 @pytest.fixture(scope="module")

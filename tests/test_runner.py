@@ -1,13 +1,14 @@
-"""Rally episodes on the rally diagram (diagrams.add_rally, play/runner.py)."""
+"""Rally episodes on the rally diagram (diagrams.add_rally, evaluation/runner.py)."""
 
 import numpy as np
 import pytest
 
-from ace_drake.config import PerceptionParams, RallyParams
+from ace_drake.contracts import Outcome
+from ace_drake.control.params import RallyParams
 from ace_drake.diagrams import build_rally_diagram
+from ace_drake.evaluation.runner import RallyRunner
+from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.flight import make_state
-from ace_drake.play.episode import Outcome
-from ace_drake.play.runner import RallyRunner
 
 # Bounces on the robot's half 0.64 m behind the net and flies on past the robot's end.
 SHOT = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (0.0, -80.0, 0.0))

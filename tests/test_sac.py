@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from ace_drake.contracts import privileged_slice
 from ace_drake.learning.networks import BALL_STATE_SCALE, squashed_gaussian_log_prob
-from ace_drake.learning.rally_env import privileged_slice
 from ace_drake.learning.sac import PRIVILEGED_SIZE, SacConfig, SacLearner, soft_target
-
 
 
 @pytest.fixture(autouse=True)

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 
-from ace_drake.config import RobotScenario
-from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+from ace_drake.control.trajectory import CommandLimits
 from ace_drake.diagrams import build_controlled_robot_diagram, start_controlled_robot
-from ace_drake.robot_collision import TrajectoryCollisionChecker
+from ace_drake.robot.collision import TrajectoryCollisionChecker
+from ace_drake.robot.params import RobotScenario
+from ace_drake.robot.trajectory import JointTrajectory
 
 # Found with RobotModel.solve_racket_pose_ik: the blade centre at (-1.1, 0, 0), in the table top.
 IN_THE_TABLE = np.array([0.398, -0.112, -0.043, 0.423, 0.333, -0.002, -0.748, 0.04])

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from ace_drake.analysis.scripted_swing import INCOMING_BALL, plan_scripted_swing, run_scripted_swing
-from ace_drake.config import BallPhysicsParams
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
-from ace_drake.robot_model import RobotModel
+from ace_drake.robot.model import RobotModel
 
 
 @pytest.fixture(scope="module")

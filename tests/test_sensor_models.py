@@ -7,16 +7,17 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from ace_drake.config import ConfigError, PositionSensorParams, SpinSensorParams, from_dict
+from ace_drake.config import ConfigError, from_dict
 from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.params import PositionSensorParams, SpinSensorParams
 from ace_drake.perception.sensor_models import (
-    rotate,
     PendingMeasurement,
     draw_spin_bias,
     first_spin_capture_time,
     insert_pending,
     racket_tracking_loss,
     release_due,
+    rotate,
     sample_position_measurements,
     sample_spin_measurements,
     spin_at_times,

@@ -5,12 +5,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ace_drake.analysis.match_data import MatchDataError
-from ace_drake.config import BallPhysicsParams, ConfigError, ShotParams, from_dict
+from ace_drake.config import ConfigError, from_dict
+from ace_drake.match_data import MatchDataError
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
 from ace_drake.play import shots
 from ace_drake.play.opponent import Launcher
+from ace_drake.play.params import ShotParams
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data/ace_match_events_elite.csv"
 MISSING_DATA = f"recorded match data not found at {DATA} (../shared/data beside the repository)"

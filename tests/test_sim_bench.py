@@ -5,12 +5,12 @@ import pytest
 
 from ace_drake.analysis.sim_bench import ReadyPosePolicy, profile_by_system
 from ace_drake.cli import main
-from ace_drake.config import ControlParams
+from ace_drake.contracts import ObservationLayout
+from ace_drake.control.params import ControlParams
 from ace_drake.control.stack import ControlStack
 from ace_drake.diagrams import build_ball_diagram, make_simulator
-from ace_drake.learning.observation import ObservationLayout
 from ace_drake.physics.flight import make_state
-from ace_drake.robot_model import load_scenario
+from ace_drake.robot.model import load_scenario
 
 
 def test_the_profile_charges_the_ball_diagrams_time_to_the_ball():

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from pydrake.systems.framework import DiagramBuilder
 
-from ace_drake.config import BallPhysicsParams, PositionSensorParams
 from ace_drake.diagrams import add_ball, make_simulator
+from ace_drake.perception.params import PositionSensorParams
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
 from ace_drake.systems.statistical_position_sensor import StatisticalPositionSensor
 

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from ace_drake.cli import main
-from ace_drake.config import RobotDynamicsParams, load_config
+from ace_drake.config import load_config
 from ace_drake.control.joint_model import ProcessModel
 from ace_drake.control.sysid import JointLogError, identify_joint, load_joint_log, synthetic_joint_log, write_joint_log
+from ace_drake.robot.params import RobotDynamicsParams
 
 PLANTED = {
     "gantry_x": ProcessModel(1.0, 420.0, 0.85, 0.0032),

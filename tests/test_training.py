@@ -13,9 +13,9 @@ import torch
 from ace_drake.config import ConfigError
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
-from ace_drake.learning.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
-from ace_drake.learning.trainer import TrainConfig, Trainer, chosen_actor, evaluation_series, export, load_train_config
+from ace_drake.training.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
+from ace_drake.training.trainer import TrainConfig, Trainer, chosen_actor, evaluation_series, export, load_train_config
 
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
 
@@ -129,7 +129,7 @@ def _config(**overrides) -> TrainConfig:
 
 
 def test_the_shipped_training_config_loads():
-    from ace_drake.robot_model import MODELS_DIR
+    from ace_drake.config import MODELS_DIR
 
     config = load_train_config(MODELS_DIR / "train_rally.yaml")
     assert config.name == "rally_sac" and config.demonstrations > 0 and config.learn_mode == "dagger"
@@ -142,8 +142,7 @@ def _continuation(name: str, first: str) -> tuple[TrainConfig, TrainConfig]:
     match data the configs name."""
     import yaml
 
-    from ace_drake.config import from_dict
-    from ace_drake.robot_model import MODELS_DIR
+    from ace_drake.config import MODELS_DIR, from_dict
 
     data = yaml.safe_load((MODELS_DIR / f"{name}.yaml").read_text())
     if not Path(data["evaluation_data"]).is_file():
@@ -163,7 +162,7 @@ def test_the_shipped_second_stage_config_continues_the_first():
 def test_the_shipped_stage_5_config_continues_stage_4():
     import yaml
 
-    from ace_drake.robot_model import MODELS_DIR
+    from ace_drake.config import MODELS_DIR
 
     fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
     fourth = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
@@ -176,7 +175,7 @@ def test_the_shipped_stage_5_config_continues_stage_4():
 def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
     import yaml
 
-    from ace_drake.robot_model import MODELS_DIR
+    from ace_drake.config import MODELS_DIR
 
     sixth = yaml.safe_load((MODELS_DIR / "train_rally_human_memoryless.yaml").read_text())
     fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
@@ -194,8 +193,7 @@ def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labelle
 
     import yaml
 
-    from ace_drake.config import from_dict, to_dict
-    from ace_drake.robot_model import MODELS_DIR
+    from ace_drake.config import MODELS_DIR, from_dict, to_dict
 
     skill = yaml.safe_load((MODELS_DIR / "train_rally_skill.yaml").read_text())
     if not Path(skill["evaluation_data"]).is_file():
@@ -225,9 +223,9 @@ def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
 def test_the_meeting_config_is_stage_1_with_more_demonstrations_and_the_ball_meeting_layer():
     import dataclasses
 
-    from ace_drake.robot_model import MODELS_DIR
-
     import yaml
+
+    from ace_drake.config import MODELS_DIR
 
     source = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_meet.yaml").read_text())["env"]["shots"]["source"]
     if not Path(source).is_file():  # both configs name it; loading them checks that it exists
@@ -252,7 +250,7 @@ def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations
 
 
 def test_the_workers_label_with_the_configured_returner():
-    from ace_drake.config import ReturnerParams
+    from ace_drake.control.params import ReturnerParams
 
     dut = RolloutWorker(sac=SMALL, seed=5, index=0, returner=ReturnerParams(memory=False))
     assert dut.returner.params.memory is False
@@ -262,7 +260,7 @@ def test_the_workers_label_with_the_configured_returner():
 
 
 def test_the_trainer_hands_its_returner_config_to_the_workers(tmp_path):
-    from ace_drake.config import ReturnerParams
+    from ace_drake.control.params import ReturnerParams
 
     trainer = Trainer(_config(returner=ReturnerParams(memory=False)), tmp_path / "run", progress=lambda line: None)
     assert trainer._workers()._workers[0].returner.params.memory is False
@@ -308,14 +306,14 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
     policy = load_policy(tmp_path / "policies" / "tiny.pt")
     obs = torch.randn(3, again.learner.observation_size)
     torch.testing.assert_close(policy(obs), again.learner.policy()(obs))
-    from ace_drake.learning.trainer import chosen_policy
+    from ace_drake.training.trainer import chosen_policy
 
     torch.testing.assert_close(chosen_policy(again, "final")(obs), policy(obs))  # what --evaluate-data evaluates
     export(again, tmp_path / "best", "best")
     torch.testing.assert_close(chosen_policy(again, "best")(obs), load_policy(tmp_path / "best" / "tiny.pt")(obs))
 
-    from ace_drake.config import RallyParams
-    from ace_drake.play import controllers
+    from ace_drake.control.params import RallyParams
+    from ace_drake.evaluation import controllers
 
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path / "policies")
     assert "policy:tiny" in controllers.controller_names()
@@ -377,7 +375,7 @@ def test_save_policy_round_trip(tmp_path):
 
 def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
     """The Ray backend and the single-process mode run the same worker code on the same seeds."""
-    from ace_drake.learning.workers import WorkerPool
+    from ace_drake.training.workers import WorkerPool
 
     args = {"sac": SMALL, "seed": 21}
     local = WorkerPool(1, args, "local")
@@ -462,7 +460,7 @@ def test_a_run_can_take_up_another_runs_demonstrations_phase(tmp_path):
 
 
 def _exploration():
-    from ace_drake.learning.rollout import ExplorationParams
+    from ace_drake.training.rollout import ExplorationParams
 
     return ExplorationParams()
 
@@ -477,9 +475,9 @@ def test_policy_std_scale_narrows_the_sampled_actions():
 
 
 def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
-    from ace_drake.config import RallyParams
-    from ace_drake.learning.observation import ObservationLayout
-    from ace_drake.play import controllers
+    from ace_drake.contracts import ObservationLayout
+    from ace_drake.control.params import RallyParams
+    from ace_drake.evaluation import controllers
 
     names = [name for name in controllers.controller_names() if name.startswith("policy:")]
     assert names, "no policy ships in models/policies"
@@ -507,9 +505,9 @@ def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # start), rally_sac 3,
     # still 0 (measured). A behaviour, not a benchmark (README *Training: the hit-state actor*
     # has the measured rates).
-    from ace_drake.analysis.evaluation import evaluate
-    from ace_drake.config import RallyParams
-    from ace_drake.play import controllers
+    from ace_drake.control.params import RallyParams
+    from ace_drake.evaluation.evaluate import evaluate
+    from ace_drake.evaluation import controllers
     from ace_drake.play.shots import human_shots
 
     data = Path(__file__).resolve().parents[2] / "shared/data/ace_match_events_elite.csv"
@@ -523,7 +521,7 @@ def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
 
 
 def test_a_run_that_only_clones_evaluates_on_the_way_and_draws_its_curve_against_updates(tmp_path):
-    from ace_drake.learning.trainer import cloning_curve, plot_learning_curve
+    from ace_drake.training.trainer import cloning_curve, plot_learning_curve
 
     config = _config(pretrain_updates=8, pretrain_evaluate_every=4, env_steps=1)  # stops after cloning
     state = Trainer(config, tmp_path / "run", progress=lambda line: None).run()
@@ -537,7 +535,7 @@ def test_a_run_that_only_clones_evaluates_on_the_way_and_draws_its_curve_against
 
 
 def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
-    from ace_drake.learning.trainer import Progress, cloning_curve, evaluation_description, evaluation_series, plot_learning_curve
+    from ace_drake.training.trainer import Progress, cloning_curve, evaluation_description, evaluation_series, plot_learning_curve
 
     assert evaluation_description(TrainConfig(evaluation_episodes=60)) == "60 synthetic shots"
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ace_match_events_elite.csv"
@@ -557,8 +555,8 @@ def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
 
 
 def test_a_policy_reading_the_hit_prediction_needs_a_diagram_that_computes_it(tmp_path, monkeypatch):
-    from ace_drake.config import RallyParams
-    from ace_drake.play import controllers
+    from ace_drake.control.params import RallyParams
+    from ace_drake.evaluation import controllers
 
     parts = (*SMALL.actor_observation_parts, "hit_prediction")
     save_policy(tmp_path / "hit.pt", SacLearner(dataclasses.replace(SMALL, actor_observation_parts=parts)))
@@ -572,8 +570,8 @@ def test_a_policy_reading_the_hit_prediction_needs_a_diagram_that_computes_it(tm
 
 
 def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_it(tmp_path, monkeypatch):
-    from ace_drake.config import RallyParams
-    from ace_drake.play import controllers
+    from ace_drake.control.params import RallyParams
+    from ace_drake.evaluation import controllers
 
     parts = (*SMALL.actor_observation_parts, "hit_prediction")
     save_policy(tmp_path / "hit.pt", SacLearner(dataclasses.replace(SMALL, actor_observation_parts=parts)))
@@ -592,8 +590,8 @@ def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_
 
 
 def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_path, monkeypatch):
-    from ace_drake.config import RallyParams
-    from ace_drake.play import controllers
+    from ace_drake.control.params import RallyParams
+    from ace_drake.evaluation import controllers
 
     hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
     save_policy(tmp_path / "forgetful.pt", SacLearner(hit_state))
@@ -612,7 +610,7 @@ def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_pat
         RallyParams(hit_prediction=False, hit_memory=True)
     with pytest.raises(ConfigError, match="must agree"):
         _config(sac=dataclasses.replace(SMALL, hit_memory=True))
-    from ace_drake.learning.rally_env import RallyEnvParams, training_rally_params
+    from ace_drake.training.env import RallyEnvParams, training_rally_params
 
     env = RallyEnvParams(rally=dataclasses.replace(training_rally_params(), hit_memory=True))
     assert _config(sac=dataclasses.replace(SMALL, hit_memory=True), env=env).env.rally.hit_memory

@@ -7,11 +7,12 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
-from ace_drake.config import BallPhysicsParams, CameraParams
 from ace_drake.diagrams import add_ball, make_simulator
 from ace_drake.perception.cameras import DEFAULT_CALIBRATION, DetectionFrame, load_cameras, project_points
 from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.params import CameraParams
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.systems.aps_camera_array import ApsCameraArray
 from ace_drake.systems.triangulator import Triangulator
 

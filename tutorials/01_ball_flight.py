@@ -35,11 +35,11 @@ from matplotlib.patches import Patch
 from pydrake.geometry import Meshcat
 
 from ace_drake.analysis.ball_demo import run_shots, spin_comparison_shots, summarize_shots
-from ace_drake.analysis.match_data import load_match_events
 from ace_drake.analysis.replay import longest_rallies, replay_rally
-from ace_drake.config import BallPhysicsParams
+from ace_drake.match_data import load_match_events
 from ace_drake.physics.contact import table_alpha, table_restitution
 from ace_drake.physics.flight import flight_acceleration
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
 
 matplotlib.use("Agg")  # write files only, never open a window

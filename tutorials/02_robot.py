@@ -42,12 +42,13 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from ace_drake.analysis.reach import robot_contact_points
 from ace_drake.analysis.scripted_swing import INCOMING_BALL, plan_scripted_swing, run_scripted_swing
-from ace_drake.config import JOINT_NAMES, BallPhysicsParams
 from ace_drake.control.joint_model import ProcessModel, ramp_tracking_lag, step_response
 from ace_drake.diagrams import build_swing_diagram, make_simulator
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
-from ace_drake.robot_model import RobotModel, load_scenario
+from ace_drake.robot.model import RobotModel, load_scenario
+from ace_drake.robot.params import JOINT_NAMES
 from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
 
 matplotlib.use("Agg")  # write files only, never open a window

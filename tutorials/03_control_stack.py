@@ -49,12 +49,14 @@ import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 
-from ace_drake.config import JOINT_NAMES, ControlParams
 from ace_drake.control.action_mapping import inverse_map_action, map_action
 from ace_drake.control.feasible_set import feasible_sets, in_invariant_set, invariant_bounds, ramp_time
-from ace_drake.diagrams import build_controlled_robot_diagram, make_control_stack, start_controlled_robot
-from ace_drake.robot_collision import TrajectoryCollisionChecker
-from ace_drake.robot_model import load_scenario
+from ace_drake.control.params import ControlParams
+from ace_drake.control.stack import make_control_stack
+from ace_drake.diagrams import build_controlled_robot_diagram, start_controlled_robot
+from ace_drake.robot.collision import TrajectoryCollisionChecker
+from ace_drake.robot.model import load_scenario
+from ace_drake.robot.params import JOINT_NAMES
 
 matplotlib.use("Agg")  # write files only, never open a window
 

@@ -37,15 +37,16 @@ import numpy as np
 from pydrake.geometry import Cylinder, Meshcat, Rgba, Sphere
 from pydrake.math import RigidTransform, RotationMatrix
 
-from ace_drake.analysis.match_data import load_match_events
-from ace_drake.config import BallPhysicsParams, PerceptionParams, PositionSensorParams
+from ace_drake.config import MODELS_DIR
 from ace_drake.diagrams import build_perception_diagram, make_simulator
+from ace_drake.match_data import load_match_events
 from ace_drake.perception.ball_ekf import BallEkf
 from ace_drake.perception.cameras import load_cameras
 from ace_drake.perception.ekf_evaluation import evaluate, simulate_shots
+from ace_drake.perception.params import PerceptionParams, PositionSensorParams
 from ace_drake.perception.placement import coverage, play_volume_points
 from ace_drake.physics.flight import make_state
-from ace_drake.robot_model import MODELS_DIR
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.systems.ball_visualizer import draw_table
 
 matplotlib.use("Agg")  # write files only, never open a window

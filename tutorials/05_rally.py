@@ -38,14 +38,15 @@ import matplotlib.pyplot as plt
 import numpy as np
 from pydrake.geometry import Meshcat
 
-from ace_drake.config import JOINT_NAMES, RallyParams
+from ace_drake.control.params import RallyParams
 from ace_drake.diagrams import build_rally_diagram, graphviz_dot
+from ace_drake.evaluation.controllers import DEFAULT_CONTROLLER, make_controller
+from ace_drake.evaluation.runner import RallyRunner
 from ace_drake.learning.rewards import travel_frame_spin
 from ace_drake.physics.flight import make_state
-from ace_drake.play.controllers import DEFAULT_CONTROLLER, make_controller
-from ace_drake.play.runner import RallyRunner
 from ace_drake.play.shots import human_shots
-from ace_drake.robot_model import RobotModel
+from ace_drake.robot.model import RobotModel
+from ace_drake.robot.params import JOINT_NAMES
 
 matplotlib.use("Agg")  # write files only, never open a window
 

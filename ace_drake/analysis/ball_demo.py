@@ -13,9 +13,9 @@ import dataclasses
 import numpy as np
 from pydrake.geometry import Meshcat
 
-from ace_drake.config import BallPhysicsParams
 from ace_drake.diagrams import build_ball_diagram, make_simulator
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind
 
 # A drive from the robot's side: struck 1.6 m behind the net, 0.25 m above the table.

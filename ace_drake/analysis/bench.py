@@ -7,9 +7,9 @@ from typing import Callable
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams
 from ace_drake.diagrams import build_ball_diagram, make_simulator
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
 
 

@@ -15,14 +15,20 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
+import torch
 
-from ace_drake.config import ControlParams, RobotScenario
+from ace_drake.analysis.reach import swing_through
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.feasible_set import InfeasibleStartError
 from ace_drake.control.joint_model import discretize
+from ace_drake.control.params import ControlParams
 from ace_drake.control.spline_qp import SegmentQp
-from ace_drake.control.stack import ControlStack, plan_state, random_invariant_state
-from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+from ace_drake.control.stack import ControlStack, make_control_stack, plan_state, random_invariant_state
+from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.collision import TrajectoryCollisionChecker
+from ace_drake.robot.model import RobotModel, load_scenario
+from ace_drake.robot.params import RobotScenario
+from ace_drake.robot.trajectory import JointTrajectory
 
 # The actor network's size for the latency budget: the observation of issue 7's actor (ball
 # position and spin histories with timestamps, robot state, skill state: about 128 numbers) through
@@ -32,7 +38,6 @@ ACTOR_LAYERS = (128, 256, 256, 256, ACTION_SIZE)
 
 def actor_network(seed: int = 0):
     """A torch MLP of ACTOR_LAYERS (ReLU, tanh output): the policy's cost per call."""
-    import torch
 
     torch.manual_seed(seed)
     layers = []
@@ -44,8 +49,6 @@ def actor_network(seed: int = 0):
 
 def make_stack(scenario: RobotScenario | None = None, control: ControlParams | None = None, check_collisions: bool = True) -> ControlStack:
     """The control stack with the Drake collision checker, as the diagrams build it."""
-    from ace_drake.diagrams import make_control_stack
-    from ace_drake.robot_model import load_scenario
 
     return make_control_stack(scenario or load_scenario(), control or ControlParams(), check_collisions)
 
@@ -89,8 +92,6 @@ def hitting_states(stack: ControlStack, rng: np.random.Generator, count: int) ->
     opponent, clear of the court), the fastest +x swing through it (``reach.swing_through``), its
     run-up start and where it would carry on to in 0.15 s, both pulled back towards q_hit until
     the robot is 2 cm clear of the court and itself there; clipped to the command limits."""
-    from ace_drake.analysis.reach import swing_through
-    from ace_drake.robot_model import RobotModel
 
     model = RobotModel(stack.scenario)
     limits = stack.limits
@@ -151,7 +152,6 @@ def bench_control(steps: int = 1000, seed: int = 0, qp_comparisons: int = 200, s
     configurations at the data's contact points, with noise); or "random", the states a uniformly
     random policy visits from the ready pose in episodes of 20 steps (a stress test: it flails the
     racket into the floor and the robot's own carriage, where collision checks take longest)."""
-    import torch
 
     if states not in STATE_SOURCES:
         raise ValueError(f"bench_control: states must be one of {STATE_SOURCES}, got {states!r}")
@@ -386,7 +386,6 @@ def _discretized(joints, period: float):
 
 def _safety_worker(arguments) -> dict:
     cases, seed, check_collisions = arguments
-    from ace_drake.robot_collision import TrajectoryCollisionChecker
 
     stack = make_stack()
     checker = TrajectoryCollisionChecker(stack.scenario, margin=0.0) if check_collisions else None

@@ -25,8 +25,11 @@ import dataclasses
 from collections.abc import Callable, Sequence
 
 import numpy as np
+import torch
 
-from ace_drake.learning.observation import ObservationLayout
+from ace_drake.contracts import ObservationLayout
+from ace_drake.learning.networks import mlp, observation_scale
+from ace_drake.learning.replay import DemonstrationBuffer
 
 SWING_TIME = 0.1  # s: rows whose predicted hit is nearer than this are the swing's
 # The actor inputs of the shipped policy (models/train_rally.yaml): the paper's s_t and the estimate.
@@ -58,9 +61,7 @@ def demonstration_arrays(checkpoint) -> tuple[np.ndarray, np.ndarray, Observatio
     """(observations (N, n), the returner's actions (N, 16), the observation layout of the run's
     learner) of a training checkpoint's demonstration buffer, in collection order. Raises
     ValueError when it holds none."""
-    import torch
 
-    from ace_drake.learning.replay import DemonstrationBuffer
 
     payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
     if "demonstrations" not in payload:
@@ -94,9 +95,7 @@ def fit_imitation(
     """Fits tanh(MLP(scaled parts)) to the actions of the rows before the held-out tail (their
     first ``fit_fraction``) by ``steps`` Adam steps on minibatches, seeded; scores it (module
     docstring). Inputs are scaled as the actor's (``networks.observation_scale``)."""
-    import torch
 
-    from ace_drake.learning.networks import mlp, observation_scale
 
     observations, actions = np.asarray(observations, np.float32), np.asarray(actions, np.float32)
     if observations.ndim != 2 or observations.shape[1] != layout.size or actions.shape != (len(observations), 16):

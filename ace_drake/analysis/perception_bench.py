@@ -19,15 +19,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ace_drake.analysis.match_data import load_match_events
-from ace_drake.config import CameraParams
+from ace_drake.config import MODELS_DIR
+from ace_drake.match_data import load_match_events
 from ace_drake.perception.ball_ekf import BallEkf
 from ace_drake.perception.cameras import load_cameras, simulate_detections
 from ace_drake.perception.ekf_evaluation import SimulatedShot, evaluate, simulate_shots
+from ace_drake.perception.params import CameraParams
 from ace_drake.perception.placement import coverage, play_volume_points
 from ace_drake.perception.sensor_models import PendingMeasurement, insert_pending
 from ace_drake.perception.triangulation import triangulate
-from ace_drake.robot_model import MODELS_DIR
 
 CAMERA_STREAM = 21  # random stream of the camera detections under the seed
 

@@ -9,14 +9,15 @@ estimated recordings from dominating. Fit on some players, judge on the others.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from ace_drake.analysis.match_data import EventPairs
 from ace_drake.analysis.physics_validation import predict_pairs
-from ace_drake.config import BallPhysicsParams
+from ace_drake.match_data import EventPairs
+from ace_drake.physics.params import BallPhysicsParams
 
 # name -> (lower, upper): the coefficients the fit may change, and the box it keeps them in.
 FIT_BOUNDS = {
@@ -175,7 +176,6 @@ def fit_physics(
 
 def _best_grid_start(x0, cost0, names, cost):
     """The START_GRID combination (or x0) with the lowest cost, for the coefficients ``names``."""
-    import itertools
 
     grids = [START_GRID.get(name, (value,)) for name, value in zip(names, x0)]
     best, best_cost = np.asarray(x0, dtype=float), cost0

@@ -14,9 +14,9 @@ import dataclasses
 
 import numpy as np
 
-from ace_drake.analysis.match_data import EventPairs
-from ace_drake.config import BallPhysicsParams
+from ace_drake.match_data import EventPairs
 from ace_drake.physics.flight import SPIN, VELOCITY
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
 
 PREDICTION_MARGIN = 0.5  # s beyond the recorded flight time before a prediction counts as missing

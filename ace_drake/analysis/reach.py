@@ -16,9 +16,8 @@ from collections.abc import Callable
 import numpy as np
 from scipy.optimize import differential_evolution
 
-from ace_drake.analysis.match_data import load_match_events
-from ace_drake.robot_model import RobotModel
-
+from ace_drake.match_data import load_match_events
+from ace_drake.robot.model import RobotModel
 
 # Racket-centre heights above the playing surface at which the swing speed is measured, m: the
 # recorded robot contact points lie 0.10-0.42 m above the table.

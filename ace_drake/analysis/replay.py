@@ -17,10 +17,10 @@ import numpy as np
 from pydrake.geometry import Meshcat, Rgba, Sphere
 from pydrake.math import RigidTransform
 
-from ace_drake.analysis.match_data import MatchEvent
-from ace_drake.config import BallPhysicsParams
 from ace_drake.diagrams import build_ball_diagram, make_simulator
+from ace_drake.match_data import MatchEvent
 from ace_drake.physics.flight import POSITION
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind
 
 TAIL_DURATION = 0.5  # s simulated after the rally's last recorded event

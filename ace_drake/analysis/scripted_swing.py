@@ -10,7 +10,7 @@ through the control stack). The plan, from the true incoming ball state:
    the racket contact model (paper eqs (7)-(8)): ``control.returner.racket_plans``, the model-based
    returner's racket planning;
 3. inverse kinematics for that racket pose, and the joint velocities that give the racket that
-   velocity (``control.returner.racket_joint_velocities``: velocity-limit-weighted least squares
+   velocity (``robot.ik.racket_joint_velocities``: velocity-limit-weighted least squares
    on the racket Jacobian);
 4. a cubic Hermite joint trajectory from the ready pose at rest through (q_hit, v_hit) at the hit
    time, then braking to rest, within the position, velocity and acceleration limits;
@@ -26,12 +26,15 @@ import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.trajectories import PiecewisePolynomial
 
-from ace_drake.config import BallPhysicsParams, RobotScenario
 from ace_drake.control.joint_model import feedforward_command
-from ace_drake.control.returner import RacketPlan, racket_joint_velocities, racket_plans
+from ace_drake.control.returner import RacketPlan, racket_plans
+from ace_drake.diagrams import build_swing_diagram, make_simulator
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind, simulate
-from ace_drake.robot_model import RobotModel
+from ace_drake.robot.ik import racket_joint_velocities
+from ace_drake.robot.model import RobotModel
+from ace_drake.robot.params import RobotScenario
 
 # An incoming ball from the human's side: it bounces on the robot's half 0.64 m behind the net
 # (0.45 s after the human's hit) and reaches the top of its bounce above the robot's end line
@@ -114,7 +117,6 @@ def run_scripted_swing(
     ``ball_state`` and the robot at rest at its ready pose; returns the ball's contact events and
     the logs {"time", "ball" (T, 9), "joint_time", "joints" (T, 16)}. With ``meshcat`` the run is
     recorded and published."""
-    from ace_drake.diagrams import build_swing_diagram, make_simulator
 
     diagram = build_swing_diagram(swing.command, scenario, params, meshcat)
     context = diagram.CreateDefaultContext()

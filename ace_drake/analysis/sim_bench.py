@@ -39,9 +39,20 @@ from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import PerceptionParams, RallyParams, ShotParams
+from ace_drake.analysis.bench import ball_plant_runner
+from ace_drake.config import MODELS_DIR
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.feasible_set import InfeasibleStartError
+from ace_drake.control.params import RallyParams
+from ace_drake.control.stack import ControlStack
+from ace_drake.diagrams import build_controlled_robot_diagram, build_rally_diagram, make_simulator, start_controlled_robot
+from ace_drake.evaluation.runner import RallyRunner
+from ace_drake.perception.params import PerceptionParams
+from ace_drake.play.params import ShotParams
+from ace_drake.play.shots import make_distribution
+from ace_drake.robot.model import load_scenario
+from ace_drake.training.env import RallyEnv
 
 SENSOR_PATHS = {"cameras": "analytic cameras + triangulator", "statistical": "statistical position sensor"}
 # The rally rows: (key, position sensor, hit prediction on).
@@ -64,8 +75,6 @@ class ReadyPosePolicy:
     def for_rally(params: RallyParams, layout=None) -> "ReadyPosePolicy":
         """The controller over its own stack for the scenario and control of ``params`` (it needs
         the limits and mapping, not collision checks: the diagram's supervisor checks)."""
-        from ace_drake.control.stack import ControlStack
-        from ace_drake.robot_model import MODELS_DIR, load_scenario
 
         return ReadyPosePolicy(ControlStack(load_scenario(MODELS_DIR / params.scenario), params.control), layout)
 
@@ -87,10 +96,6 @@ class RallyBench:
 
     @staticmethod
     def build(positions: str, hit_prediction: bool = True) -> "RallyBench":
-        from ace_drake.diagrams import build_rally_diagram
-        from ace_drake.learning.observation import ObservationLayout
-        from ace_drake.play.runner import RallyRunner
-
         params = RallyParams(perception=PerceptionParams(positions=positions), hit_prediction=hit_prediction)
         policy = ReadyPosePolicy.for_rally(params, ObservationLayout(params.position_history, params.spin_history))
         return RallyBench(positions, RallyRunner(build_rally_diagram(params, policy), params))
@@ -108,8 +113,6 @@ def _ceilings(shots: np.ndarray, seconds: float, say) -> dict:
     """The ball alone and the controlled robot alone (module docstring), each over ``seconds``
     simulated s per episode, one warm-up episode then one per remaining shot: simulated s per CPU
     s of this process, median."""
-    from ace_drake.analysis.bench import ball_plant_runner
-    from ace_drake.diagrams import build_controlled_robot_diagram, make_simulator, start_controlled_robot
 
     def rate(run) -> float:
         cpu = time.process_time()
@@ -143,8 +146,6 @@ def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, s
     ``episodes``: timed rally episodes per sensor path (after one warm-up); ``env_episodes``:
     RallyEnv episodes with random actions (after one warm-up); ``profile``: add the per-system
     profile."""
-    from ace_drake.learning.rally_env import RallyEnv
-    from ace_drake.play.shots import make_distribution
 
     say = progress or (lambda _: None)
     if seconds <= 0 or episodes < 1 or env_episodes < 1:

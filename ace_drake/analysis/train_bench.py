@@ -20,11 +20,15 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import torch
+
+from ace_drake.learning.replay import EventReplay
+from ace_drake.learning.sac import SacConfig, SacLearner
+from ace_drake.training.workers import WorkerPool
 
 
 def _collect(workers: int, seconds: float, episodes: int, seed: int, progress) -> tuple[float, list]:
     """Steps per wall second of ``workers`` Ray workers over ``seconds``, and the episodes."""
-    from ace_drake.learning.workers import WorkerPool
 
     pool = WorkerPool(workers, {"seed": seed}, "ray")
     try:
@@ -52,10 +56,7 @@ def _collect(workers: int, seconds: float, episodes: int, seed: int, progress) -
 def bench_train(seconds: float = 60.0, episodes: int = 2, updates: int = 200, seed: int = 0, progress=print) -> dict:
     """The figures of the module docstring (keys ``env_steps_per_s`` {1, 2}, ``worker_speedup``,
     ``updates_per_s``, ``updates_per_env_step``)."""
-    import torch
 
-    from ace_drake.learning.replay import EventReplay
-    from ace_drake.learning.sac import SacConfig, SacLearner
 
     rates, episodes_played = {}, []
     for workers in (1, 2):

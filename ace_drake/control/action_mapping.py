@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ace_drake.config import JOINT_NAMES
 from ace_drake.control.feasible_set import FeasibleSets
+from ace_drake.robot.params import JOINT_NAMES
 
 ACTION_SIZE = 2 * len(JOINT_NAMES)
 

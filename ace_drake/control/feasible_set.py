@@ -46,8 +46,9 @@ import functools
 
 import numpy as np
 
-from ace_drake.config import JOINT_NAMES, ControlParams
+from ace_drake.control.params import ControlParams
 from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.params import JOINT_NAMES
 
 
 class InfeasibleStartError(ValueError):

@@ -3,7 +3,7 @@ estimate, sampled at the instants the joints can hit it, and the preferred hit a
 
 The model-based returner (``control.returner``, steps 1-2 of its docstring) plans its hits on this
 prediction, and the ``ObservationBuilder`` gives a learned actor the same preferred hit as an
-observation part (``learning.observation``, ``hit_prediction``): the ball's state at the segment
+observation part (``contracts``, ``hit_prediction``): the ball's state at the segment
 boundary nearest the top of its bounce where the racket may meet it, and how far ahead that is.
 Judged from each estimate alone, that hit jumps by a segment whenever the estimated top of the
 bounce crosses the midpoint between two boundaries; the returner with memory keeps the hit it
@@ -22,11 +22,13 @@ import dataclasses
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams, ControlParams, ReturnerParams, RobotScenario
+from ace_drake.contracts import HIT_PREDICTION_SIZE
 from ace_drake.control.joint_model import ramp_tracking_lag
-from ace_drake.learning.observation import HIT_PREDICTION_SIZE
+from ace_drake.control.params import ControlParams, ReturnerParams
 from ace_drake.physics.flight import rk4_step
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.robot.params import RobotScenario
 
 IMMINENT_MARGIN = 0.01  # s: a bounce predicted within one segment + this is remembered as happening
 KEEP_TOLERANCE = 1e-6  # s: a candidate this close to a remembered hit time is that hit (sample times are exact multiples)

@@ -35,7 +35,7 @@ centre sits 3.3 cm (median; 9.4 cm at the 90th percentile, against a blade radiu
 (README, *Training: the hit-state actor*).
 
 ``PlannedHitState`` is the memoryless returner's planned hit state as such an action: the
-demonstrator and the labels of a hit-state actor (``learning.rollout``), and with the layer a
+demonstrator and the labels of a hit-state actor (``training.rollout``), and with the layer a
 controller (``returner:hit_state``: the layer's ceiling, what an actor that imitated the returner's
 hit states perfectly would do).
 
@@ -51,10 +51,14 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from ace_drake.config import MODELS_DIR, ConfigError
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import inverse_map_action
 from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets
-from ace_drake.control.stack import ControlStack
-from ace_drake.learning.observation import ObservationLayout
+from ace_drake.control.hit_prediction import HitPredictor
+from ace_drake.control.stack import ControlStack, make_control_stack
+from ace_drake.physics.contact import blade_standoff
+from ace_drake.robot.model import RobotModel, load_scenario
 
 HIT_STATE_SIZE = 16  # [y_q (8), y_v (8)]
 
@@ -177,7 +181,7 @@ class HitStateAction:
 def _like(array: np.ndarray, reference):
     """``array`` as a tensor of ``reference``'s dtype when that is a torch tensor, else itself."""
     if type(reference).__module__.startswith("torch"):
-        import torch
+        import torch  # lazy: only a torch caller (the cloning loss) reaches here; control is NumPy
 
         return torch.as_tensor(array, dtype=reference.dtype)
     return array
@@ -191,7 +195,7 @@ def steps_to_hit(hit_time, lead: float, lag: float, segment: float):
     round half to even."""
     ratio = (hit_time - lead - lag) / segment
     if type(hit_time).__module__.startswith("torch"):
-        import torch
+        import torch  # lazy: only a torch caller (the cloning loss) reaches here; control is NumPy
 
         return torch.round(ratio)
     return np.rint(np.asarray(ratio)).astype(int)
@@ -220,18 +224,13 @@ class HitStateLayer:
     @classmethod
     def for_rally(cls, rally, meet_ball: bool = False) -> HitStateLayer:
         """The layer for the rally diagram of ``rally`` (a RallyParams): the supervisor's stack
-        (``diagrams.make_control_stack``), its layout, and the lead and lag of the diagram's own
+        (``control.stack.make_control_stack``), its layout, and the lead and lag of the diagram's own
         hit predictor (``diagrams``: ``HitPredictor.for_robot`` with default ReturnerParams);
         ``meet_ball``: the layer meets the ball (module docstring). Raises ConfigError if
         ``rally`` does not compute the observation's hit prediction, which the layer plays."""
-        from ace_drake.config import ConfigError
-        from ace_drake.control.hit_prediction import HitPredictor
 
         if not rally.hit_prediction:
             raise ConfigError("the hit-state layer plays the observation's predicted hit: build its diagram with RallyParams.hit_prediction true")
-        from ace_drake.diagrams import make_control_stack
-        from ace_drake.physics.contact import blade_standoff
-        from ace_drake.robot_model import MODELS_DIR, RobotModel, load_scenario
 
         scenario = load_scenario(MODELS_DIR / rally.scenario)
         predictor = HitPredictor.for_robot(scenario, rally.control, rally.physics)

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.linalg import expm
 from scipy.signal import lfilter, ss2tf
 
-from ace_drake.config import JointDynamicsParams
+from ace_drake.robot.params import JointDynamicsParams
 
 
 @dataclasses.dataclass(frozen=True)

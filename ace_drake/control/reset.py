@@ -50,8 +50,10 @@ import weakref
 import numpy as np
 import ruckig
 
-from ace_drake.config import JOINT_NAMES, ControlParams
-from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+from ace_drake.control.params import ControlParams
+from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.params import JOINT_NAMES
+from ace_drake.robot.trajectory import JointTrajectory
 
 _DOFS = len(JOINT_NAMES)
 _SUCCESS = (ruckig.Result.Working, ruckig.Result.Finished)

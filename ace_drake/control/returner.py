@@ -3,7 +3,7 @@ choose a hitting point and racket state, solve for the motion) behind a policy's
 
 ``ModelBasedReturner`` is a callable observation -> action (16,) in [-1, 1] | None, called by the
 ``PolicyController`` every T = 32 ms on the observation built 5 ms before the segment it commands
-starts (``learning.observation``); its actions go through the same eq. (12) mapping, spline QP,
+starts (``contracts``); its actions go through the same eq. (12) mapping, spline QP,
 reset and safety supervisor as a learned policy's. Each call replans from the ball estimator's
 latest estimate (the estimate improves as the ball flies):
 
@@ -61,7 +61,7 @@ prediction, the bounce time and the hit plan): the memory is dropped when the es
 matching the last prediction (> 0.3 m), i.e. for a new ball; ``reset`` drops it explicitly.
 
 With ``ReturnerParams.memory`` False it remembers nothing, so that its action is a function of
-the observation alone (the labels a learner imitates must be: ``learning.rollout``): each call
+the observation alone (the labels a learner imitates must be: ``training.rollout``): each call
 finds whether the ball has bounced by following its flight back in time (``bounce_behind``),
 takes the preferred hit of step 2 afresh (the same grid of hit instants every call, so the choice
 holds while the estimate does), follows through when that hit falls in the segment being
@@ -79,24 +79,22 @@ import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
-from pydrake.multibody.inverse_kinematics import InverseKinematics
-from pydrake.solvers import SnoptSolver, Solve
 
-from ace_drake.config import BallPhysicsParams, ControlParams, RacketParams, RallyParams, ReturnerParams, RobotScenario
+from ace_drake.config import MODELS_DIR
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.feasible_set import in_invariant_set
 from ace_drake.control.hit_prediction import Flight, HitPredictor, Prediction
 from ace_drake.control.hit_state import HitDriver, hermite_peak_acceleration
-from ace_drake.control.stack import ControlStack
-from ace_drake.learning.observation import ObservationLayout
-from ace_drake.physics.contact import blade_standoff, racket_impact, racket_restitution
-from ace_drake.physics.propagate import simulate
-from ace_drake.robot_model import MODELS_DIR, IkResult, RobotModel, load_scenario
+from ace_drake.control.params import ControlParams, RallyParams, ReturnerParams
+from ace_drake.control.stack import ControlStack, make_control_stack
+from ace_drake.physics.contact import blade_standoff
+from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.physics.racket_inverse import solve_return
+from ace_drake.robot.ik import racket_joint_velocities, refine_hit_ik, solve_hit_ik
+from ace_drake.robot.model import RobotModel, load_scenario
+from ace_drake.robot.params import RobotScenario
 
-_UP = np.array([0.0, 0.0, 1.0])
 SAME_BALL_DISTANCE = 0.3  # m: an estimate this far from the last prediction is a different ball
-# SNOPT's major iterations per IK solve: a solve that converges takes 10-50; a few wander for a
-# second before converging, and 100 bounds them to ~60 ms (measured) at no loss of success.
-IK_MAJOR_ITERATIONS = 100
 
 
 def _no_action() -> None:
@@ -124,170 +122,6 @@ class RacketPlan:
     ball_out: np.ndarray
     predicted_landing: np.ndarray
     flight_time: float
-
-
-def contact_frame(normal: np.ndarray) -> np.ndarray:
-    """R_WC (..., 3, 3) of a contact frame with z along ``normal`` (..., 3) and x in the normal's
-    vertical plane (the racket model is isotropic in the blade's plane, so any x will do)."""
-    normal = np.asarray(normal, dtype=float)
-    x_axis = np.cross(np.cross(normal, _UP), normal)
-    x_axis /= np.linalg.norm(x_axis, axis=-1, keepdims=True)
-    return np.stack([x_axis, np.cross(normal, x_axis), normal], axis=-1)
-
-
-def invert_racket_contact(
-    v_in: np.ndarray,
-    w_in: np.ndarray,
-    v_out: np.ndarray,
-    racket: RacketParams,
-    radius: float,
-    brush_speed: float = 0.0,
-    iterations: int = 20,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The blade normals n (..., 3) and racket velocities v_WR (..., 3) with which the racket
-    contact model (paper eqs (7)-(8), as ``physics.contact.racket_impact``) sends a ball arriving
-    with velocity v_in (3,; m/s) and spin w_in (3,; rad/s) off at velocities v_out (..., 3; m/s).
-
-    The racket moves along its normal at speed s plus ``brush_speed`` b (m/s) along the blade's
-    upward tangent t (v_WR = s n + b t; b > 0 brushes up: topspin). In the contact frame, eq. (7)
-    splits into the blade's plane and its normal (k = tangential_k, r the ball radius):
-
-        v_out_t = (1 - k) v_in_t + k b t - k r (n x w_in)                    (tangential)
-        v_out.n - s = -eps (v_in.n - s),  eps = eps_racket(|v_in.n - s|)      (normal)
-
-    so a + k r (n x w_in), with a = v_out - (1 - k) v_in - k b t, has no tangential part: it is
-    lambda n, lambda = n.a > 0 (the ball reverses). With W the cross-product matrix of w_in that
-    is (lambda I + k r W) n = a; |n| = 1 fixes lambda^2 as the positive root of
-    mu^2 + (C - |a|^2) mu - (a.w_hat)^2 C = 0, C = (k r |w_in|)^2 (W is skew, so
-    |(lambda I + k r W)^-1 a|^2 = (a.w_hat)^2 / lambda^2 + |a_perp|^2 / (lambda^2 + C)). The
-    tangent t depends on n, so with b != 0 this repeats to a fixed point. Then
-    s = (v_out.n + eps v_in.n) / (1 + eps), eps iterated to consistency. Raises ValueError if
-    some v_out cannot be made: the ball would not meet the blade (v_out.n <= v_in.n), or the spin
-    turns it more than the racket can undo (no root mu > 0)."""
-    v_in, w_in, v_out = (np.asarray(x, dtype=float) for x in (v_in, w_in, v_out))
-    k = racket.tangential_k
-    coupling = k * radius * w_in  # k r w
-    cross = np.array([[0.0, -coupling[2], coupling[1]], [coupling[2], 0.0, -coupling[0]], [-coupling[1], coupling[0], 0.0]])
-    spin_squared = float(coupling @ coupling)  # C
-    normal = v_out - v_in
-    normal = normal / np.linalg.norm(normal, axis=-1, keepdims=True)
-    for _ in range(iterations if brush_speed else 1):
-        a = v_out - (1.0 - k) * v_in - k * brush_speed * _blade_up(normal)
-        a_squared = np.sum(a * a, axis=-1)
-        if spin_squared > 0.0:
-            along_squared = (a @ coupling) ** 2 / spin_squared
-            linear = spin_squared - a_squared
-            mu = 0.5 * (-linear + np.sqrt(linear**2 + 4.0 * along_squared * spin_squared))
-        else:
-            mu = a_squared
-        if np.any(mu <= 1e-12):
-            raise ValueError("invert_racket_contact: the ball's spin turns it more than any racket state can undo")
-        system = np.sqrt(mu)[..., None, None] * np.eye(3) + cross
-        updated = np.linalg.solve(system, a[..., None])[..., 0]
-        updated /= np.linalg.norm(updated, axis=-1, keepdims=True)
-        converged = np.max(np.abs(updated - normal)) < 1e-12
-        normal = updated
-        if converged:
-            break
-    v_in_n, v_out_n = normal @ v_in, np.sum(v_out * normal, axis=-1)
-    if np.any(v_out_n <= v_in_n):
-        raise ValueError(f"invert_racket_contact: the ball would not meet the blade (v_out.n = {v_out_n} <= v_in.n = {v_in_n} m/s)")
-    speed = v_in_n  # s; eps at the relative normal speed |v_in.n - s|
-    for _ in range(10):
-        eps = racket_restitution(v_in_n - speed, racket)
-        speed = (v_out_n + eps * v_in_n) / (1.0 + eps)
-    return normal, speed[..., None] * normal + brush_speed * _blade_up(normal)
-
-
-def _blade_up(normal: np.ndarray) -> np.ndarray:
-    """The blade's upward tangent (..., 3): world z projected onto the blade's plane, normalised."""
-    tangent = _UP - normal[..., 2:3] * normal
-    return tangent / np.linalg.norm(tangent, axis=-1, keepdims=True)
-
-
-@dataclasses.dataclass(frozen=True)
-class ReturnShot:
-    """A solved return: the ball's velocity and spin just after the hit (3 each), the blade normal
-    and racket velocity that produce them, where the ball lands (2; m) after ``flight_time`` (s),
-    and the clearance of the ball's bottom over the net cord (m)."""
-
-    v_out: np.ndarray
-    w_out: np.ndarray
-    normal: np.ndarray
-    racket_velocity: np.ndarray
-    landing: np.ndarray
-    flight_time: float
-    net_clearance: float
-
-
-def solve_return(
-    ball: np.ndarray,
-    target: np.ndarray,
-    flight_time: float,
-    params: BallPhysicsParams,
-    brush_speed: float = 0.0,
-    v_guess: np.ndarray | None = None,
-    steps: int = 8,
-    iterations: int = 8,
-    tolerance: float = 5e-3,
-) -> ReturnShot | None:
-    """The return of the ball ``ball`` (9,; the state just before the hit) that lands at
-    ``target`` (x, y) (m) ``flight_time`` s after the hit. Newton's method on the outgoing
-    velocity v_out (from ``v_guess``, m/s, or the ballistic one): the landing (ball centre one
-    radius above the table plane) from the flight model (eq. (1), RK4 in ``steps`` steps: within
-    1e-5 m of a 0.5 ms step), finite-difference Jacobians from one batch of four balls per
-    iteration, and each ball's spin from the racket state that makes its v_out
-    (``invert_racket_contact``, then ``racket_impact``: eqs (7)-(8)). None if it does not
-    converge to ``tolerance`` (m), an iterate leaves the finite numbers (a near-singular
-    Jacobian), or no racket state makes the velocity."""
-    ball = np.asarray(ball, dtype=float)
-    p_hit, v_in, w_in = ball[:3], ball[3:6], ball[6:9]
-    radius = params.aero.ball_radius
-    goal = np.array([target[0], target[1], radius])
-    if v_guess is None:  # ballistic, without air
-        v_guess = (goal - p_hit) / flight_time + np.array([0.0, 0.0, 0.5 * params.aero.gravity * flight_time])
-    v_out = np.asarray(v_guess, dtype=float)
-    step = 0.01  # m/s, finite-difference step
-    for _ in range(iterations):
-        # The nominal v_out and three perturbed copies, each with the spin its own racket state
-        # gives it (the spin moves with v_out by up to ~50 rad/s per m/s: it belongs in the Jacobian).
-        velocities = v_out + np.vstack([np.zeros(3), step * np.eye(3)])
-        try:
-            normals, racket_velocities = invert_racket_contact(v_in, w_in, velocities, params.racket, radius, brush_speed)
-        except ValueError:
-            return None
-        _, spins = racket_impact(v_in, w_in, racket_velocities, contact_frame(normals), params.racket, radius)  # paper eqs (7)-(8)
-        starts = np.hstack([np.broadcast_to(p_hit, (4, 3)), velocities, spins])
-        if not np.all(np.isfinite(starts)):
-            return None
-        flight = simulate(starts, params, flight_time, dt=flight_time / steps, kinds=())
-        ends = flight.final_state[:, :3]
-        residual = ends[0] - goal
-        if np.linalg.norm(residual) < tolerance:
-            return ReturnShot(v_out, spins[0], normals[0], racket_velocities[0], ends[0, :2].copy(), flight_time, _net_clearance(flight.states[:, 0], params))
-        jacobian = (ends[1:] - ends[0]).T / step
-        try:
-            v_out = v_out - np.linalg.solve(jacobian, residual)
-        except np.linalg.LinAlgError:
-            return None
-    return None
-
-
-def _net_clearance(states: np.ndarray, params: BallPhysicsParams) -> float:
-    """Height of the ball's bottom over the net cord where the sampled flight ``states`` (T, 9)
-    crosses x = 0 (linear interpolation), m; -inf if it never crosses or dips to the table first."""
-    x = states[:, 0]
-    radius = params.aero.ball_radius
-    crossing = np.flatnonzero((x[:-1] < 0.0) & (x[1:] >= 0.0))
-    if crossing.size == 0:
-        return -np.inf
-    i = crossing[0]
-    over_robot_half = (states[: i + 1, 0] > -0.5 * params.table.length) & (np.abs(states[: i + 1, 1]) < 0.5 * params.table.width)
-    if np.any(states[: i + 1, 2][over_robot_half] < radius):
-        return -np.inf
-    fraction = -x[i] / (x[i + 1] - x[i])
-    z = states[i, 2] + fraction * (states[i + 1, 2] - states[i, 2])
-    return float(z - radius - params.net.height)
 
 
 def racket_plans(
@@ -331,86 +165,6 @@ def racket_plans(
         )
 
 
-def racket_joint_velocities(model: RobotModel, q: np.ndarray, v_WR: np.ndarray) -> np.ndarray:
-    """Joint velocities (8,) that give the blade centre the velocity v_WR (3,; m/s) at q: the
-    least-squares solution weighted by each joint's squared speed limit, so that fast joints do
-    more of the work; the blade's angular velocity is left free."""
-    jacobian = model.racket_jacobian(q)[3:]
-    weights = np.diag(model.velocity_limit**2)
-    return weights @ jacobian.T @ np.linalg.solve(jacobian @ weights @ jacobian.T, np.asarray(v_WR, dtype=float))
-
-
-def solve_hit_ik(
-    model: RobotModel,
-    p_WR: np.ndarray,
-    normal_W: np.ndarray,
-    q_nominal: np.ndarray,
-    seeds: list[np.ndarray],
-    clearance: float,
-    position_tolerance: float = 1e-3,
-    angle_tolerance: float = np.radians(0.5),
-) -> IkResult:
-    """A configuration for a hit: the blade centre at ``p_WR`` (m) and the forehand normal along
-    ``normal_W`` (the constraints of ``RobotModel.solve_racket_pose_ik``: joint limits, blade free
-    to roll about its normal, ``clearance`` (m) between all robot and court geometry), nearest
-    ``q_nominal`` in the metric sum (q - q_nominal)^2 / A_j (A_j: each joint's acceleration
-    limit), i.e. preferring the joints that get there soonest (a joint needs ~ 2 sqrt(|dq| / A)
-    for a move from rest to rest), the slow gantry least. Drake's InverseKinematics, from each
-    seed in turn until one succeeds."""
-    start = time.perf_counter()
-    plant, world = model.plant, model.plant.world_frame()
-    tolerance = np.full(3, position_tolerance)
-    weights = np.diag(1.0 / model.acceleration_limit)
-    result = None
-    for attempt, seed in enumerate(seeds, start=1):
-        ik = InverseKinematics(plant, model.plant_context, with_joint_limits=True)
-        ik.AddPositionConstraint(model.racket_frame, np.zeros(3), world, p_WR - tolerance, p_WR + tolerance)
-        ik.AddAngleBetweenVectorsConstraint(world, normal_W, model.racket_frame, [0.0, 0.0, 1.0], 0.0, angle_tolerance)
-        ik.AddMinimumDistanceLowerBoundConstraint(clearance, clearance + 0.05)
-        ik.prog().AddQuadraticErrorCost(weights, q_nominal, ik.q())
-        ik.prog().SetSolverOption(SnoptSolver().solver_id(), "Major iterations limit", IK_MAJOR_ITERATIONS)
-        result = Solve(ik.prog(), seed)
-        if result.is_success():
-            return IkResult(True, result.GetSolution(ik.q()), time.perf_counter() - start, attempt)
-    q = result.GetSolution(ik.q()) if result is not None else np.asarray(q_nominal, dtype=float)
-    return IkResult(False, q, time.perf_counter() - start, len(seeds))
-
-
-def refine_hit_ik(
-    model: RobotModel,
-    q: np.ndarray,
-    p_WR: np.ndarray,
-    normal_W: np.ndarray,
-    iterations: int = 3,
-    position_tolerance: float = 1e-3,
-    angle_tolerance: float = np.radians(0.5),
-) -> np.ndarray | None:
-    """Moves a hit configuration q (8,) onto a nearby racket target (``solve_hit_ik``'s blade
-    centre and normal) by Gauss-Newton steps on the racket Jacobian, each the step of least
-    sum dq^2 / A_j that removes the position error and the normal's tilt error (the roll about
-    the normal is free). Returns None if it is not within the tolerances after ``iterations``
-    steps or leaves the joint limits: the caller then solves the full IK (clearance included;
-    a small correction of a clear configuration keeps most of its clearance)."""
-    q = np.asarray(q, dtype=float).copy()
-    inverse_weights = np.diag(model.acceleration_limit)
-    for _ in range(iterations + 1):
-        X_WR = model.racket_pose(q)
-        normal = X_WR.rotation().matrix()[:, 2]
-        position_error = p_WR - X_WR.translation()
-        tilt = np.cross(normal, normal_W)  # rotation vector (small angles) taking normal to normal_W
-        if np.linalg.norm(position_error) < position_tolerance and np.linalg.norm(tilt) < np.sin(angle_tolerance):
-            return q
-        jacobian = model.racket_jacobian(q)
-        blade_plane = np.eye(3) - np.outer(normal, normal)  # rotations about the normal are free
-        rows = np.vstack([jacobian[3:], blade_plane @ jacobian[:3]])
-        error = np.concatenate([position_error, tilt])
-        gram = rows @ inverse_weights @ rows.T + 1e-9 * np.eye(6)
-        q = q + inverse_weights @ rows.T @ np.linalg.solve(gram, error)
-        if np.any(q < model.lower) or np.any(q > model.upper):
-            return None
-    return None
-
-
 # ---------------------------------------------------------------------------------------------
 # The controller
 # ---------------------------------------------------------------------------------------------
@@ -452,12 +206,10 @@ class ModelBasedReturner:
         ``physics``, and ``ObservationLayout(position_history, spin_history)``), the returner's
         own parameters, and optionally a RobotModel to share. ``stack``: the control stack whose
         proposals it checks its actions with (``ControlStack.propose``); by default, with
-        ``self_check``, one like the supervisor's (``diagrams.make_control_stack``: collision
+        ``self_check``, one like the supervisor's (``control.stack.make_control_stack``: collision
         checking on), else the maths only (no check: every action is sent as planned)."""
         self.model = model or RobotModel(scenario)
         if stack is None and self_check:
-            from ace_drake.diagrams import make_control_stack  # the supervisor's own stack: the same checks
-
             stack = make_control_stack(self.model.scenario, control or ControlParams())
         self.stack = stack or ControlStack(self.model.scenario, control, None)
         self.driver = HitDriver(self.stack)  # step 5 and the check of step 6

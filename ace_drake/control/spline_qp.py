@@ -29,7 +29,8 @@ import dataclasses
 import daqp
 import numpy as np
 
-from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.trajectory import JointTrajectory
 
 EQUALITY = 5  # DAQP's sense flag for an equality row
 
@@ -167,6 +168,7 @@ class SegmentQp:
         return solution, "daqp: solved"
 
     def _solve_program(self, linear, lower, upper):
+        # Lazy: Drake's solvers serve only the solver='clarabel' reference; control is NumPy + DAQP.
         from pydrake.solvers import ClarabelSolver
 
         if self._program is None:
@@ -183,7 +185,7 @@ class SegmentQp:
 
     def _build_program(self) -> None:
         """The same QP for all eight joints as one MathematicalProgram (block-diagonal)."""
-        from pydrake.solvers import MathematicalProgram
+        from pydrake.solvers import MathematicalProgram  # lazy, as in _solve_program
 
         N = self.knots
         program = MathematicalProgram()

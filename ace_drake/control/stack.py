@@ -16,17 +16,20 @@ within the command limits that ends at rest.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 
 import numpy as np
 
-from ace_drake.config import ControlParams, RobotScenario
 from ace_drake.control.action_mapping import inverse_map_action, map_action
 from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
+from ace_drake.control.params import ControlParams
 from ace_drake.control.reset import ResetPlanner
 from ace_drake.control.spline_qp import SegmentQp
-from ace_drake.control.trajectory import CommandLimits, JointTrajectory
+from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.params import RobotScenario
+from ace_drake.robot.trajectory import JointTrajectory
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +62,7 @@ class ControlStack:
     """The mapping, segment QP, reset planner and collision check, built once.
 
     ``collision_check`` is any callable taking a JointTrajectory and returning a
-    ``robot_collision.CollisionReport`` (``TrajectoryCollisionChecker.check``); None checks nothing
+    ``robot.collision.CollisionReport`` (``TrajectoryCollisionChecker.check``); None checks nothing
     (for studies of the maths alone). Joint vectors are in JOINT_NAMES order.
     """
 
@@ -201,3 +204,17 @@ def plan_state(plan: JointTrajectory, index: int) -> tuple[np.ndarray, np.ndarra
     if index < 0:
         raise ValueError(f"plan_state: sample index must be >= 0, got {index}")
     return plan.state(min(index, plan.samples))
+
+
+def make_control_stack(scenario: RobotScenario, control: ControlParams, check_collisions: bool = True) -> ControlStack:
+    """The shared control stack with Drake collision checking of every plan (margin, influence
+    distance and query budget from ``control``), or none when ``check_collisions`` is False."""
+    check = None
+    if check_collisions:
+        # Drake's collision checker is imported only when plans are checked: the rest of the
+        # control stack is NumPy and SciPy.
+        from ace_drake.robot.collision import TrajectoryCollisionChecker
+
+        checker = TrajectoryCollisionChecker(scenario, margin=control.collision_margin, influence=control.collision_influence)
+        check = functools.partial(checker.check, max_queries=control.collision_query_budget)
+    return ControlStack(scenario, control, check)

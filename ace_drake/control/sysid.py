@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from ace_drake.config import JointDynamicsParams
 from ace_drake.control.joint_model import ProcessModel, simulate_joint
+from ace_drake.robot.params import JointDynamicsParams
 
 DELAY_GRID_STEP = 0.25e-3  # s
 MAX_DELAY = 0.02  # s

@@ -34,10 +34,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ace_drake.config import RallyParams
+from ace_drake.config import MODELS_DIR
+from ace_drake.contracts import ObservationLayout
+from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.control.hit_state import HitStateAction, steps_to_hit
-from ace_drake.learning.observation import ObservationLayout
-from ace_drake.robot_model import RobotModel
+from ace_drake.control.params import RallyParams
+from ace_drake.control.trajectory import CommandLimits
+from ace_drake.robot.model import RobotModel, load_scenario
 
 
 def _rotation_about(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
@@ -106,10 +109,6 @@ class HitStateCloning:
     command limits and timing) and observation ``layout``. ``scales`` (s_p m, s_n, s_u m/s)."""
 
     def __init__(self, rally: RallyParams, layout: ObservationLayout, scales: tuple[float, float, float], consistency_weight: float):
-        from ace_drake.control.hit_prediction import HitPredictor
-        from ace_drake.control.trajectory import CommandLimits
-        from ace_drake.robot_model import MODELS_DIR, load_scenario
-
         scenario = load_scenario(MODELS_DIR / rally.scenario)
         limits = CommandLimits.from_config(scenario.limits, rally.control)
         predictor = HitPredictor.for_robot(scenario, rally.control, rally.physics)

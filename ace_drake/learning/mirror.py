@@ -39,9 +39,9 @@ import dataclasses
 
 import numpy as np
 
-from ace_drake.config import JOINT_NAMES
-from ace_drake.learning.observation import HISTORY_COLUMNS, ObservationLayout
-from ace_drake.learning.rally_env import privileged_slice
+from ace_drake.contracts import HISTORY_COLUMNS, ObservationLayout, privileged_slice
+from ace_drake.robot.model import RobotModel
+from ace_drake.robot.params import JOINT_NAMES
 
 POLAR = np.array([1.0, -1.0, 1.0])  # M: positions, velocities
 AXIAL = np.array([-1.0, 1.0, -1.0])  # -M: angular velocities, spins
@@ -65,7 +65,7 @@ class JointMirror:
 
     @staticmethod
     def from_model(model) -> "JointMirror":
-        """The rule of the module docstring applied to each joint of a ``robot_model.RobotModel``
+        """The rule of the module docstring applied to each joint of a ``robot.model.RobotModel``
         at q = 0. Raises ValueError for a joint whose axis is neither in nor normal to the plane."""
         plant, context = model.plant, model.plant.CreateDefaultContext()
         plant.SetPositions(context, np.zeros(len(JOINT_NAMES)))
@@ -145,13 +145,11 @@ class Mirror:
 
     @staticmethod
     def from_robot(model=None, layout: ObservationLayout | None = None, tolerance: float = 1e-9) -> "Mirror":
-        """The mirror of a ``robot_model.RobotModel`` (default: the shipped robot), after checking
+        """The mirror of a ``robot.model.RobotModel`` (default: the shipped robot), after checking
         the joint mirror by forward kinematics and the mirrored joints' limits. Raises ValueError
         naming the failure when the robot is not mirror-symmetric (then no per-joint mirror of
         its states and actions is exact)."""
         if model is None:
-            from ace_drake.robot_model import RobotModel
-
             model = RobotModel()
         joints = JointMirror.from_model(model)
         position_error, angle_error = joints.fk_error(model)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ace_drake.learning.observation import HISTORY_COLUMNS, ObservationLayout
+from ace_drake.contracts import HISTORY_COLUMNS, ObservationLayout
 
 BALL_STATE_SIZE = 9  # [p (m), v (m/s), w (rad/s)]
 # Typical magnitudes (the divisors) of a ball state's position, velocity and spin.
@@ -139,9 +139,9 @@ class DeterministicPolicy(nn.Module):
     part selection and input scaling included, so that it can be saved and loaded alone.
     ``action``: what the output is (``sac.SacConfig.action``); for "hit_state", ``hit_state`` is
     its ``control.hit_state.HitStateAction`` and the policy plays through
-    ``play.controllers.hit_state_controller``, whose layer meets the ball if ``meet_ball``
+    ``evaluation.controllers.hit_state_controller``, whose layer meets the ball if ``meet_ball``
     (``sac.SacConfig.meet_ball``); ``hit_memory``: it reads an observation whose predicted hit is
-    kept from step to step (``sac.SacConfig.hit_memory``, ``play.controllers.diagram_params_for``)."""
+    kept from step to step (``sac.SacConfig.hit_memory``, ``evaluation.controllers.diagram_params_for``)."""
 
     def __init__(self, actor: Actor, index: torch.Tensor, scale: torch.Tensor, action: str = "terminal", hit_state=None,
                  meet_ball: bool = False, hit_memory: bool = False):

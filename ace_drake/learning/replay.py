@@ -41,11 +41,9 @@ import dataclasses
 
 import numpy as np
 
-from ace_drake.config import RewardParams
-from ace_drake.learning.observation import ObservationLayout
-from ace_drake.learning.rally_env import privileged_slice
+from ace_drake.contracts import EpisodeResult, ObservationLayout, Outcome, privileged_slice
+from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import return_reward, travel_frame_spin
-from ace_drake.play.episode import EpisodeResult, Outcome
 
 TRANSITION_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 EVENTS = ("all", "miss", "near_miss", "hit", "return", "high_speed_return", "high_topspin_return", "high_backspin_return")

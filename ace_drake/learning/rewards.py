@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ace_drake.config import RewardParams
-from ace_drake.play.episode import EpisodeResult, Outcome
+from ace_drake.contracts import EpisodeResult, Outcome
+from ace_drake.learning.params import RewardParams
 
 UP = np.array([0.0, 0.0, 1.0])
 

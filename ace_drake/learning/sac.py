@@ -45,11 +45,18 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import os
+from pathlib import Path
 
 import numpy as np
 import torch
 
+from ace_drake.config import from_dict
+from ace_drake.contracts import PRIVILEGED_PARTS, ObservationLayout, privileged_slice
 from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.control.hit_state import HitStateAction
+from ace_drake.control.params import RallyParams
+from ace_drake.learning.hit_state import HitStateCloning
 from ace_drake.learning.networks import (
     BALL_STATE_SCALE,
     Actor,
@@ -58,8 +65,6 @@ from ace_drake.learning.networks import (
     observation_scale,
     privileged_scale,
 )
-from ace_drake.learning.observation import ObservationLayout
-from ace_drake.learning.rally_env import PRIVILEGED_PARTS, privileged_slice
 
 ACTIONS = ("terminal", "hit_state")
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
@@ -106,7 +111,7 @@ class SacConfig:
     meet_ball: bool = False
     # The actor reads an observation whose predicted hit is kept from step to step (RallyParams.
     # hit_memory; this project's): the training env's diagram must be built with it (TrainConfig
-    # checks), and the policy's diagram is (play.controllers.diagram_params_for).
+    # checks), and the policy's diagram is (evaluation.controllers.diagram_params_for).
     hit_memory: bool = False
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
@@ -230,9 +235,6 @@ class SacLearner:
     def hit_cloning(self):
         """The hit-state cloning loss (``learning.hit_state.HitStateCloning``), built on first use."""
         if self._hit_cloning is None:
-            from ace_drake.config import RallyParams
-            from ace_drake.learning.hit_state import HitStateCloning
-
             c = self.config
             self._hit_cloning = HitStateCloning(self.rally or RallyParams(), c.layout, c.hit_loss_scales, c.consistency_weight)
         return self._hit_cloning
@@ -351,8 +353,6 @@ POLICY_FORMAT = 1
 def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> None:
     """Writes a policy artefact: the SacConfig (as a dict) and the actor's weights
     (``actor_state``, default the learner's actor), atomically. A few hundred kB."""
-    import os
-    from pathlib import Path
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -366,7 +366,6 @@ def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> N
 
 def load_policy(path) -> DeterministicPolicy:
     """The DeterministicPolicy of a ``save_policy`` artefact (what ``policy:<name>`` runs)."""
-    from ace_drake.config import from_dict
 
     try:
         payload = torch.load(path, weights_only=False)
@@ -376,7 +375,6 @@ def load_policy(path) -> DeterministicPolicy:
         raise ValueError(f"{path}: not a policy artefact (format {POLICY_FORMAT})")
     hit_state_action = None
     if "hit_state" in payload:  # the hit-state parameterisation it was trained with, not today's default
-        from ace_drake.control.hit_state import HitStateAction
 
         hit_state_action = HitStateAction.from_dict(payload["hit_state"])
     learner = SacLearner(from_dict(SacConfig, payload["sac_config"]), hit_state_action=hit_state_action)

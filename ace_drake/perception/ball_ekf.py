@@ -65,9 +65,10 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 from scipy import stats
 
-from ace_drake.config import BallPhysicsParams, EstimatorParams
 from ace_drake.perception.measurements import Measurement
+from ace_drake.perception.params import EstimatorParams
 from ace_drake.physics.flight import flight_acceleration, rk4_step
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import DEFAULT_KINDS, contact_gap, contact_gap_lower_bound, simulate
 
 STATE_SIZE = 9

@@ -23,13 +23,13 @@ import cv2
 import numpy as np
 import yaml
 
-from ace_drake.config import ConfigError, TableParams
+from ace_drake.config import MODELS_DIR, ConfigError
+from ace_drake.physics.params import TableParams
 
 SENSOR_WIDTH_PX = 1440  # paper, *Ball triangulation*: 1,440 x 1,080 pixel images
 SENSOR_HEIGHT_PX = 1080
 PIXEL_PITCH = 3.45e-6  # m, Sony IMX273 (paper, main text: the APS cameras' sensor)
 BALL_RADIUS = 0.02  # m (DESIGN.md)
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 DEFAULT_CALIBRATION = MODELS_DIR / "cameras.yaml"
 ORTHONORMAL_TOLERANCE = 1e-6  # max |R^T R - I| entry accepted for a rotation read from a file
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)  # the coefficient counts OpenCV accepts

@@ -17,9 +17,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams, PositionSensorParams, SpinSensorParams
 from ace_drake.perception.ball_ekf import BallEkf, BallEstimate, EkfState
 from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.params import PositionSensorParams, SpinSensorParams
 from ace_drake.perception.sensor_models import (
     PendingMeasurement,
     draw_spin_bias,
@@ -32,6 +32,7 @@ from ace_drake.perception.sensor_models import (
     spin_at_times,
     spin_capture_times,
 )
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind, simulate
 
 # Random streams under the seed; one generator per shot and stream.

@@ -38,7 +38,6 @@ from pathlib import Path
 import cma
 import numpy as np
 
-from ace_drake.config import TableParams
 from ace_drake.perception.cameras import (
     BALL_RADIUS,
     PIXEL_PITCH,
@@ -54,6 +53,7 @@ from ace_drake.perception.cameras import (
     visibility,
 )
 from ace_drake.perception.triangulation import position_covariance
+from ace_drake.physics.params import TableParams
 
 GENES_PER_CAMERA = 4  # lens, mounting height, heading offset, elevation
 
@@ -472,6 +472,7 @@ def write_coverage_plot(
     heights of each grid column, with the cameras, their mounting heights and optical axes, and a
     side view (x-z) of the fewest views across y; points under ``min_views`` are hatched. Uses
     matplotlib's Agg canvas (no display)."""
+    # Lazy: plotting only; the placement maths does not need matplotlib.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

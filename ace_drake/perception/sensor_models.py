@@ -24,8 +24,8 @@ from collections.abc import Iterable
 import numba
 import numpy as np
 
-from ace_drake.config import PositionSensorParams, SpinSensorParams
 from ace_drake.perception.measurements import Measurement, MeasurementHistory
+from ace_drake.perception.params import PositionSensorParams, SpinSensorParams
 
 ZERO_SPIN = 1e-9  # rad/s: below this the true spin has no axis, and a random one is measured
 

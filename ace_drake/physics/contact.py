@@ -10,7 +10,7 @@ from typing import Callable
 
 import numpy as np
 
-from ace_drake.config import FloorParams, NetParams, RacketParams, TableParams
+from ace_drake.physics.params import FloorParams, NetParams, RacketParams, TableParams
 
 # (features (N, 8), -> corrections (N, 6)) in the contact frame; see racket_residual.py.
 ResidualModel = Callable[[np.ndarray], np.ndarray]

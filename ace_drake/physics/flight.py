@@ -14,7 +14,7 @@ import math
 import numba
 import numpy as np
 
-from ace_drake.config import AeroParams
+from ace_drake.physics.params import AeroParams
 
 POSITION = slice(0, 3)
 VELOCITY = slice(3, 6)

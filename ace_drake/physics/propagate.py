@@ -14,9 +14,9 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams
 from ace_drake.physics import contact
 from ace_drake.physics.flight import POSITION, SPIN, VELOCITY, rk4_step
+from ace_drake.physics.params import BallPhysicsParams
 
 EVENT_TIME_TOLERANCE = 1e-10  # s, width of the final bracket around a contact time
 MAX_EVENTS_PER_STEP = 8

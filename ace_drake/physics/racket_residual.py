@@ -26,9 +26,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from ace_drake.config import BallPhysicsParams
 from ace_drake.physics.contact import racket_contact_features, racket_impact
 from ace_drake.physics.flight import SPIN, VELOCITY
+from ace_drake.physics.params import BallPhysicsParams
 
 N_FEATURES = 8  # [v_rel_C (3), w_C (3), contact offset (2)]
 N_OUTPUTS = 6  # [delta v+_C (3), delta w+_C (3)]

@@ -19,40 +19,10 @@ resolve (a time limit) with ``timed_out``.
 from __future__ import annotations
 
 import dataclasses
-import enum
 from collections.abc import Sequence
 
+from ace_drake.contracts import EpisodeResult, Outcome
 from ace_drake.physics.propagate import ContactEvent, ContactKind
-
-
-class Outcome(str, enum.Enum):
-    IN_PLAY = "in_play"
-    RETURNED = "returned"
-    NOT_RETURNED = "not_returned"
-    MISSED = "missed"
-    INVALID = "invalid"
-
-
-@dataclasses.dataclass(frozen=True)
-class EpisodeResult:
-    """How an episode stands: its outcome, why (a short phrase), and the events that decided it:
-    the incoming ball's bounce on the robot's half, the robot's hit, and where the return landed
-    (the first table contact after the hit), each None until it happens."""
-
-    outcome: Outcome
-    reason: str = ""
-    bounce: ContactEvent | None = None
-    hit: ContactEvent | None = None
-    landing: ContactEvent | None = None
-
-    @property
-    def done(self) -> bool:
-        return self.outcome is not Outcome.IN_PLAY
-
-    @property
-    def bounce_to_hit_time(self) -> float | None:
-        """Time from the bounce on the robot's half to the hit, s (None without both)."""
-        return None if self.bounce is None or self.hit is None else self.hit.time - self.bounce.time
 
 
 def _robot_half(event: ContactEvent) -> bool:

@@ -32,11 +32,12 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from ace_drake.analysis.match_data import MatchDataError, load_match_events
-from ace_drake.config import BallPhysicsParams, ShotParams
+from ace_drake.match_data import MatchDataError, load_match_events
 from ace_drake.physics.flight import make_state
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import DEFAULT_KINDS, ContactEvent, ContactKind, contact_gap, simulate
 from ace_drake.play.episode import classify
+from ace_drake.play.params import ShotParams
 
 SERVE, RETURN = "serve", "return"
 SERVE_FRACTION = 0.3  # serves : returns = 3 : 7 (paper, *Initial state training distribution*)
@@ -264,7 +265,7 @@ def human_shots(path: str | Path, players: Sequence[str] = ()) -> tuple[np.ndarr
 
     Returns states (n, 9), [p (m), v (m/s), w (rad/s)] just after the hit, and serve (n,) bool:
     the shot is a serve, the first shot of its rally (rallies are recorded from their first event,
-    in order; ``analysis.match_data``). Raises MatchDataError for a missing or malformed file or a
+    in order; ``match_data``). Raises MatchDataError for a missing or malformed file or a
     player the file does not contain.
     """
     events = load_match_events(path)

@@ -15,9 +15,9 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import CameraInfo, ImageRgba8U, RgbdSensor
 
-from ace_drake.config import CameraParams
 from ace_drake.perception.cameras import BALL_RADIUS, Camera, DetectionFrame, Occluder, simulate_detections, table_occluder
 from ace_drake.perception.detection import BallColorThreshold, detect_ball
+from ace_drake.perception.params import CameraParams
 
 RENDER_CLIPPING = (0.05, 40.0)  # m, near and far planes of the rendering cameras
 RENDER_DEPTH_RANGE = (0.06, 39.0)  # m, the (unused) depth camera's range, inside the clipping

@@ -8,9 +8,10 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem, ValueProducer
 
-from ace_drake.config import BallPhysicsParams, EstimatorParams
 from ace_drake.perception.ball_ekf import BallEkf, BallEstimate, EkfState
 from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.params import EstimatorParams
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
 
 STATUS_SIZE = 3

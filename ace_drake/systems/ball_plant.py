@@ -15,10 +15,10 @@ from pydrake.systems.framework import (
     WitnessFunctionDirection,
 )
 
-from ace_drake.config import BallPhysicsParams
 from ace_drake.physics import contact
 from ace_drake.physics.contact import ResidualModel
 from ace_drake.physics.flight import one_ball_flight_acceleration
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, is_contact
 
 # m: a witness returns a cheap lower bound on its gap while that bound exceeds this (far above the
@@ -57,7 +57,7 @@ class BallPlant(LeafSystem):
     (``physics.propagate.contact_gap_lower_bound``; for the racket, the distance between the ball's
     and the blade's centres less the ball's radius and the blade's half-diagonal), and otherwise
     the exact gap: every sign, hence every contact time, is the exact gap's. Given the box the
-    blade's centre never leaves (``racket_reach``, from ``robot_model.racket_reach_box``), the
+    blade's centre never leaves (``racket_reach``, from ``robot.model.racket_reach_box``), the
     racket witness first bounds the gap by the ball's distance to that box, which needs no racket
     pose (and so no joint propagation and kinematics): for most of a ball's flight on the far side.
     """

@@ -7,7 +7,7 @@ from pydrake.geometry import Box, Meshcat, Rgba, Sphere
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
 
-from ace_drake.config import BallPhysicsParams
+from ace_drake.physics.params import BallPhysicsParams
 
 TABLE_COLOR = Rgba(0.05, 0.2, 0.45, 1.0)
 LINE_COLOR = Rgba(0.95, 0.95, 0.95, 1.0)

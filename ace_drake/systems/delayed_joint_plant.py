@@ -8,8 +8,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from ace_drake.config import JOINT_NAMES, RobotDynamicsParams
 from ace_drake.control.joint_model import JointPropagator
+from ace_drake.robot.params import JOINT_NAMES, RobotDynamicsParams
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,8 +9,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ace_drake.config import SpinSensorParams
 from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.params import SpinSensorParams
 from ace_drake.perception.sensor_models import (
     SpinBias,
     draw_spin_bias,

@@ -6,8 +6,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ace_drake.control.hit_prediction import HitPredictor
-from ace_drake.learning.observation import (
+from ace_drake.contracts import (
     END_EFFECTOR_SIZE,
     ESTIMATE_SIZE,
     ESTIMATE_STATUS_SIZE,
@@ -15,13 +14,14 @@ from ace_drake.learning.observation import (
     SKILL_SIZE,
     ObservationLayout,
 )
+from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.perception.measurements import MeasurementHistory
 
 DEFAULT_SKILL = (0.0, 1.0, 0.0)  # y_desired 0 m (the centre line), w_p = 1, w_s = 0
 
 
 class ObservationBuilder(LeafSystem):
-    """Builds s_t (paper, Methods *States*; layout in ``learning.observation``) on demand, at
+    """Builds s_t (paper, Methods *States*; layout in ``contracts``) on demand, at
     whatever time the PolicyController evaluates it (5 ms before its segment starts).
 
     Input ports:

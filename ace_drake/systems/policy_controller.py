@@ -8,17 +8,19 @@ from collections.abc import Callable
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ace_drake.config import ControlParams
 from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.control.params import ControlParams
 
 
 def as_policy(policy) -> Callable[[np.ndarray], np.ndarray | None]:
     """A callable observation (n,) -> action (16,) or None from a Python callable or a
     ``torch.nn.Module`` (run without gradients on a float32 batch of one; its output is the
     action)."""
+    # Lazy: torch costs about a second to import, and diagrams whose policy is a plain callable
+    # (the returner, scripted controllers) never need it.
     try:
         import torch
-    except ImportError:  # torch is a dependency, but the controller does not need it for callables
+    except ImportError:
         torch = None
     if torch is not None and isinstance(policy, torch.nn.Module):
         module = policy.eval()

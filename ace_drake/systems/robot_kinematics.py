@@ -9,8 +9,8 @@ from pydrake.multibody.math import SpatialVelocity
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import LeafSystem
 
-from ace_drake.config import JOINT_NAMES
-from ace_drake.robot_model import RACKET_FRAME, ROBOT_MODEL_NAME
+from ace_drake.robot.model import RACKET_FRAME, ROBOT_MODEL_NAME
+from ace_drake.robot.params import JOINT_NAMES
 
 END_EFFECTOR_STATE_SIZE = 13
 
@@ -31,7 +31,7 @@ class RobotKinematics(LeafSystem):
     State: none. All outputs are direct feedthrough of joint_state.
 
     The plant must be finalized and have the robot's positions in JOINT_NAMES order
-    (``robot_model.check_joint_order``). The system keeps a private plant context as scratch space
+    (``robot.model.check_joint_order``). The system keeps a private plant context as scratch space
     for the kinematics; it holds nothing between evaluations (every output sets it from the input).
     """
 

@@ -10,9 +10,9 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 
-from ace_drake.config import JOINT_NAMES
 from ace_drake.control.stack import ControlStack, Stage, plan_state
-from ace_drake.control.trajectory import JointTrajectory
+from ace_drake.robot.params import JOINT_NAMES
+from ace_drake.robot.trajectory import JointTrajectory
 from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
 
 STATUS_SIZE = 4

@@ -8,8 +8,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ace_drake.config import PositionSensorParams
 from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.params import PositionSensorParams
 from ace_drake.perception.sensor_models import PendingMeasurement, insert_pending, release_due, sample_position_measurements
 
 POSITION_STREAM = 1  # random stream of this sensor under its seed (the spin sensor has its own)

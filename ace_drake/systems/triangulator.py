@@ -9,9 +9,9 @@ from collections.abc import Sequence
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 
-from ace_drake.config import CameraParams
 from ace_drake.perception.cameras import Camera, DetectionFrame
 from ace_drake.perception.measurements import Measurement, MeasurementHistory
+from ace_drake.perception.params import CameraParams
 from ace_drake.perception.triangulation import triangulate
 
 

@@ -1,4 +1,10 @@
-"""The observation a rally controller reads every 32 ms, and where each part lies in its vector.
+"""The contracts that layers above share: the observation a rally controller reads every 32 ms
+(``ObservationLayout``), the critic's privileged observation (``PRIVILEGED_PARTS``), and how an
+episode ended (``Outcome``, ``EpisodeResult``, ``END_CONDITIONS``). Plain Python and NumPy, at the
+bottom of the layers (docs/architecture.md), so that controllers, systems, learners and
+applications agree on them without importing each other.
+
+The observation.
 
 Paper, Methods *States*: s_t = [s_ball, s_robot, s_skill]: the last N noisy ball positions and
 spins with their time stamps, the robot's joint state (q, v, a) and end-effector state (pose and
@@ -27,8 +33,13 @@ Layout (all SI units; ages in s, -1 where the history has fewer entries):
 from __future__ import annotations
 
 import dataclasses
+import enum
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # a type only: physics sits above the contracts (docs/architecture.md)
+    from ace_drake.physics.propagate import ContactEvent
 
 ROBOT_STATE_SIZE = 24
 END_EFFECTOR_SIZE = 13
@@ -102,3 +113,59 @@ class ObservationLayout:
                 raise ValueError(f"ObservationLayout.assemble: {name} has {vector.size} values, expected {size}")
             vectors.append(vector)
         return np.concatenate(vectors)
+
+
+# ----------------------------------------------------------------------------------------------
+# The critic's privileged observation (asymmetric actor-critic; training.env.RallyEnv's info)
+# ----------------------------------------------------------------------------------------------
+
+# The critic's privileged observation, in order: part -> size.
+PRIVILEGED_PARTS = {"ball_state": 9, "joint_state": 16, "skill": 3}
+
+
+def privileged_slice(part: str) -> slice:
+    """Where ``part`` (a key of PRIVILEGED_PARTS) lies in ``info["privileged"]``."""
+    start = 0
+    for name, size in PRIVILEGED_PARTS.items():
+        if name == part:
+            return slice(start, start + size)
+        start += size
+    raise KeyError(f"privileged_slice: no part {part!r}; parts are {list(PRIVILEGED_PARTS)}")
+
+
+# ----------------------------------------------------------------------------------------------
+# How an episode ended (play.episode classifies; training and evaluation read it)
+# ----------------------------------------------------------------------------------------------
+
+# The conditions that end a training episode (training.env.RallyEnv; DESIGN.md *One episode*).
+END_CONDITIONS = ("out_of_play", "time_limit", "hit", "passed", "collision")
+
+
+class Outcome(str, enum.Enum):
+    IN_PLAY = "in_play"
+    RETURNED = "returned"
+    NOT_RETURNED = "not_returned"
+    MISSED = "missed"
+    INVALID = "invalid"
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeResult:
+    """How an episode stands: its outcome, why (a short phrase), and the events that decided it:
+    the incoming ball's bounce on the robot's half, the robot's hit, and where the return landed
+    (the first table contact after the hit), each None until it happens."""
+
+    outcome: Outcome
+    reason: str = ""
+    bounce: ContactEvent | None = None
+    hit: ContactEvent | None = None
+    landing: ContactEvent | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.outcome is not Outcome.IN_PLAY
+
+    @property
+    def bounce_to_hit_time(self) -> float | None:
+        """Time from the bounce on the robot's half to the hit, s (None without both)."""
+        return None if self.bounce is None or self.hit is None else self.hit.time - self.bounce.time

@@ -1,5 +1,5 @@
 """The robot's forward kinematics and swept bounding boxes of its collision geometry: the broad
-phase of the trajectory collision check (``robot_collision``).
+phase of the trajectory collision check (``robot.collision``).
 
 Why. Drake's SceneGraph answers one configuration per call (10-40 us). A rally plan is 300-500
 samples at 1 kHz that keep most geometry pairs far apart, and proving that with SceneGraph,
@@ -27,7 +27,7 @@ court's axis-aligned boxes: the box itself).
 Motion between samples. A point x of a geometry g deviates from the chord between its positions
 at the two samples of an interval of length h by at most h^2 / 8 max |xddot| (the linear
 interpolation error of a C^2 curve). With x's lever arms rho_j(g) about the joints (its largest
-distance from joint j's axis; 1 for a prismatic joint; ``robot_collision._Kinematics``), dx/dq_j
+distance from joint j's axis; 1 for a prismatic joint; ``robot.collision._Kinematics``), dx/dq_j
 has norm at most rho_j, and d2x/dq_i dq_j at most 2 rho_j for a joint i upstream of a revolute
 joint j (it is (a_i x a_j) x w + a_j x (a_i x w), w from j's axis to x), rho_j for i = j, 1 for a
 revolute joint upstream of a prismatic one, 0 for a prismatic one upstream of anything; so

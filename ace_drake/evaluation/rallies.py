@@ -14,9 +14,14 @@ from collections.abc import Callable
 import numpy as np
 from pydrake.geometry import Meshcat
 
-from ace_drake.config import RallyParams, ShotParams
-from ace_drake.play.episode import Outcome
-from ace_drake.play.runner import Episode, RallyRunner
+from ace_drake.contracts import Outcome
+from ace_drake.control.params import RallyParams
+from ace_drake.diagrams import build_rally_diagram
+from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller
+from ace_drake.evaluation.runner import Episode, RallyRunner
+from ace_drake.play.opponent import Launcher
+from ace_drake.play.params import ShotParams
+from ace_drake.play.shots import make_distribution
 
 PAUSE = 0.5  # s between two rallies in the replay
 
@@ -35,11 +40,7 @@ def play_rallies(
     ``meshcat``, the robot, court and ball are drawn and recorded (publish the recording and
     take ``meshcat.StaticHtml()`` for a self-contained replay). The diagram computes the
     observation's hit prediction only if the controller reads it
-    (``play.controllers.diagram_params_for``)."""
-    from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.play.controllers import diagram_params_for, hit_state_controller
-    from ace_drake.play.opponent import Launcher
-    from ace_drake.play.shots import make_distribution
+    (``evaluation.controllers.diagram_params_for``)."""
 
     controller = hit_state_controller(controller, params)
     params = diagram_params_for(controller, params)

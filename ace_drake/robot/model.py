@@ -24,9 +24,10 @@ from pydrake.multibody.tree import JacobianWrtVariable, ModelInstanceIndex
 from pydrake.planning import RobotDiagramBuilder
 from pydrake.solvers import Solve
 
-from ace_drake.config import JOINT_NAMES, BallPhysicsParams, ConfigError, Pose, RobotScenario, load_config
+from ace_drake.config import MODELS_DIR, ConfigError, load_config
+from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.robot.params import JOINT_NAMES, Pose, RobotScenario
 
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 DEFAULT_SCENARIO = MODELS_DIR / "scenario.yaml"
 ROBOT_MODEL_NAME = "ace_robot"
 RACKET_FRAME = "racket_blade"  # origin at the blade centre, z along the forehand normal

@@ -76,36 +76,25 @@ import dataclasses
 import gymnasium
 import numpy as np
 
-from ace_drake.config import (
-    JOINT_NAMES,
-    ConfigError,
-    PerceptionParams,
-    RallyParams,
-    RewardParams,
-    ShotParams,
-)
-from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.config import ConfigError
+from ace_drake.contracts import EpisodeResult, Outcome
+from ace_drake.control.action_mapping import ACTION_SIZE, inverse_map_action
+from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets
+from ace_drake.control.params import RallyParams
 from ace_drake.control.stack import random_invariant_state
+from ace_drake.diagrams import build_training_diagram, make_simulator, start_rally
+from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import terminal_reward
-from ace_drake.play.episode import EpisodeResult, Outcome, classify, timed_out
+from ace_drake.perception.params import PerceptionParams
+from ace_drake.play.episode import classify, timed_out
+from ace_drake.play.params import ShotParams
+from ace_drake.play.shots import make_distribution
+from ace_drake.robot.params import JOINT_NAMES
 
-END_CONDITIONS = ("out_of_play", "time_limit", "hit", "passed", "collision")
-# The critic's privileged observation, in order: part -> size.
-PRIVILEGED_PARTS = {"ball_state": 9, "joint_state": 16, "skill": 3}
 PRISMATIC_JOINTS = [JOINT_NAMES.index("gantry_x"), JOINT_NAMES.index("gantry_y")]
 COLLISION_REASON = "collision predicted"  # the supervisor's reason for a refused, colliding plan
 # The MISSED result's reason for the end conditions that stop an episode whose ball is in play.
 UNHIT_REASONS = {"passed": "not hit: the ball passed the racket", "collision": "not hit: the commanded motion would collide"}
-
-
-def privileged_slice(part: str) -> slice:
-    """Where ``part`` (a key of PRIVILEGED_PARTS) lies in ``info["privileged"]``."""
-    start = 0
-    for name, size in PRIVILEGED_PARTS.items():
-        if name == part:
-            return slice(start, start + size)
-        start += size
-    raise KeyError(f"privileged_slice: no part {part!r}; parts are {list(PRIVILEGED_PARTS)}")
 
 
 def training_rally_params() -> RallyParams:
@@ -239,7 +228,6 @@ class RallyEnv(gymnasium.Env):
         """Args: params (default RallyEnvParams()); distribution, a ``play.shots.ShotDistribution``
         to draw shots from (default: ``make_distribution(params.shots)``, fitted at the first reset
         that needs a shot, ~4 s for the synthetic set; share one between environments)."""
-        from ace_drake.diagrams import build_training_diagram, make_simulator
 
         super().__init__()
         self.params = params or RallyEnvParams()
@@ -296,7 +284,6 @@ class RallyEnv(gymnasium.Env):
             q, v, a, start = self._draw_robot_state(start)
         diagram_seed = int(self.np_random.integers(2**31 - 1))
 
-        from ace_drake.diagrams import start_rally
 
         self.context.SetTimeStateAndParametersFrom(self._default_context)
         start_rally(self.diagram, self.context, shot, seed=diagram_seed, skill=skill, q=q)
@@ -356,8 +343,6 @@ class RallyEnv(gymnasium.Env):
         start; clipped onto the box): what "no new segment" does, for a controller that has no
         action to give (``learning.demonstrations``). Zeros when the plan's start lies outside the
         control-invariant set."""
-        from ace_drake.control.action_mapping import inverse_map_action
-        from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets
 
         status = self._supervisor_state()
         plan = status.plan
@@ -437,8 +422,6 @@ class RallyEnv(gymnasium.Env):
         """The next shot of the current batch, drawing a new batch when it is used up."""
         if not self._shots:
             if self._distribution is None:
-                from ace_drake.play.shots import make_distribution
-
                 self._distribution = make_distribution(self.params.shots, self.params.rally.physics)
             sample = self._distribution.draw(self.np_random, self.params.shot_batch)
             self._shots = list(zip(sample.states, (bool(s) for s in sample.serve)))

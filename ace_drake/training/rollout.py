@@ -39,13 +39,20 @@ linearly interpolated relative position (the ball moves ~0.3 m in 32 ms; the rac
 from __future__ import annotations
 
 import dataclasses
+import os
+import pickle
 import time
+from pathlib import Path
 
 import numpy as np
+import torch
 
 from ace_drake.control.action_mapping import ACTION_SIZE
-from ace_drake.learning.rally_env import RallyEnv, RallyEnvParams
+from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
+from ace_drake.control.returner import ModelBasedReturner
 from ace_drake.learning.replay import TRANSITION_KEYS, EpisodeSummary
+from ace_drake.learning.sac import SacConfig, SacLearner
+from ace_drake.training.env import RallyEnv, RallyEnvParams
 
 MODES = ("policy", "ou", "demonstrator", "dagger")
 
@@ -122,9 +129,6 @@ class Episode:
 
 def save_episodes(path, episodes: list[Episode]) -> None:
     """Writes episodes to ``path`` (pickle), atomically (a temporary file renamed into place)."""
-    import os
-    import pickle
-    from pathlib import Path
 
     path = Path(path)
     temporary = path.with_name(path.name + ".tmp")
@@ -135,7 +139,6 @@ def save_episodes(path, episodes: list[Episode]) -> None:
 
 def load_episodes(path) -> list[Episode]:
     """Reads the episodes ``save_episodes`` wrote."""
-    import pickle
 
     with open(path, "rb") as stream:
         episodes = pickle.load(stream)
@@ -156,9 +159,6 @@ class RolloutWorker:
 
     def __init__(self, env_params: RallyEnvParams | None = None, sac=None, seed: int = 0, index: int = 0,
                  exploration: ExplorationParams | None = None, distribution=None, returner=None):
-        import torch
-
-        from ace_drake.learning.sac import SacConfig, SacLearner
 
         self.env = RallyEnv(env_params, distribution)
         self.index = index
@@ -186,16 +186,12 @@ class RolloutWorker:
     def layer(self):
         """The hit-state layer (``control.hit_state.HitStateLayer``) of the env's rally diagram."""
         if self._layer is None:
-            from ace_drake.control.hit_state import HitStateLayer
-
             self._layer = HitStateLayer.for_rally(self.env.params.rally, meet_ball=self.learner.config.meet_ball)
         return self._layer
 
     @property
     def returner(self):
         if self._returner is None:
-            from ace_drake.control.returner import ModelBasedReturner
-
             self._returner = ModelBasedReturner.for_rally(self.env.params.rally, self._returner_params)
         return self._returner
 
@@ -280,8 +276,6 @@ class RolloutWorker:
         fallback for a missing action is left to the one caller that plays it (a collision check
         per step saved in DAgger mode)."""
         if self._planned is None:
-            from ace_drake.control.hit_state import PlannedHitState
-
             self._planned = PlannedHitState(self.returner, self.layer, hit_memory=self.learner.config.hit_memory)
         planned, at_prediction, action = self._planned.plan(obs)
         label = planned if planned is not None and at_prediction else np.full(ACTION_SIZE, np.nan)

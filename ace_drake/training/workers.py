@@ -16,6 +16,10 @@ from __future__ import annotations
 
 from collections import deque
 
+import ray
+
+from ace_drake.training.rollout import RolloutWorker
+
 BACKENDS = ("ray", "local")
 
 
@@ -37,9 +41,6 @@ class WorkerPool:
         self._actor_state = None
         self._pending: dict = {}  # ray: object ref -> worker index; local: deque of (index, task)
         if backend == "ray":
-            import ray
-
-            from ace_drake.learning.rollout import RolloutWorker
 
             if not ray.is_initialized():
                 if address:
@@ -49,16 +50,12 @@ class WorkerPool:
             remote = ray.remote(num_cpus=1)(RolloutWorker)
             self._workers = [remote.remote(**worker_args, index=i) for i in range(count)]
         else:
-            from ace_drake.learning.rollout import RolloutWorker
-
             self._workers = [RolloutWorker(**worker_args, index=0)]
             self._queue: deque = deque()
 
     def publish(self, actor_state: dict) -> None:
         """Fresh actor weights for the tasks submitted from now on."""
         if self.backend == "ray":
-            import ray
-
             self._actor_ref = ray.put(actor_state)
         else:
             self._actor_state = actor_state
@@ -81,8 +78,6 @@ class WorkerPool:
     def wait(self, timeout: float | None = None):
         """(worker index, episodes) of the first finished task, or None after ``timeout`` s."""
         if self.backend == "ray":
-            import ray
-
             if not self._pending:
                 raise RuntimeError("WorkerPool.wait: no task in flight")
             done, _ = ray.wait(list(self._pending), num_returns=1, timeout=timeout)
@@ -100,8 +95,6 @@ class WorkerPool:
     def shutdown(self) -> None:
         """Stops the workers (and a local Ray cluster this pool started)."""
         if self.backend == "ray":
-            import ray
-
             for worker in self._workers:
                 ray.kill(worker)
             self._pending.clear()

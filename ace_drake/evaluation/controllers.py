@@ -11,10 +11,18 @@ whose actor outputs hit states (``sac.SacConfig.action``) plays through ``HitSta
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from ace_drake.config import ConfigError, RallyParams, ReturnerParams
-from ace_drake.robot_model import MODELS_DIR
+from ace_drake.config import MODELS_DIR, ConfigError
+from ace_drake.contracts import ObservationLayout
+from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
+from ace_drake.control.params import RallyParams, ReturnerParams
+from ace_drake.control.returner import ModelBasedReturner
+from ace_drake.learning.networks import DeterministicPolicy
+from ace_drake.learning.sac import load_policy
+from ace_drake.systems.policy_controller import as_policy
 
 DEFAULT_CONTROLLER = "returner"  # the best shipped controller: what ``ace-drake rally`` plays with
 POLICIES_DIR = MODELS_DIR / "policies"
@@ -34,7 +42,6 @@ class NoisyActions:
     def __init__(self, controller, sigma: float, seed: int = 0):
         if not sigma >= 0.0:
             raise ConfigError(f"action noise must be >= 0, got {sigma}")
-        from ace_drake.systems.policy_controller import as_policy
 
         self.controller, self._call, self.sigma = controller, as_policy(controller), sigma
         self.rng = np.random.default_rng(seed)
@@ -57,8 +64,6 @@ class HitStatePolicy:
     ``controller(observation) -> action (16,) | None``."""
 
     def __init__(self, policy, layer):
-        from ace_drake.systems.policy_controller import as_policy
-
         if policy.hit_state is not None and not layer.parameterisation.matches(policy.hit_state):
             raise ConfigError("this hit-state policy was trained with other command limits than the rally diagram's "
                               "(its hit-state parameterisation differs)")
@@ -78,11 +83,8 @@ def hit_state_controller(controller, params: RallyParams):
     wrapped in ``HitStatePolicy`` with the layer it was trained for (meeting the ball or not;
     raises ConfigError if ``params`` does not compute the observation's hit prediction, which it
     needs: ``HitStateLayer.for_rally``), anything else unchanged."""
-    from ace_drake.learning.networks import DeterministicPolicy
 
     if isinstance(controller, DeterministicPolicy) and controller.action == "hit_state":
-        from ace_drake.control.hit_state import HitStateLayer
-
         return HitStatePolicy(controller, HitStateLayer.for_rally(params, meet_ball=controller.meet_ball))
     return controller
 
@@ -100,25 +102,17 @@ def make_controller(name: str, params: RallyParams):
     if name == "still":
         return still
     if name in ("returner", "returner:memoryless"):
-        from ace_drake.control.returner import ModelBasedReturner
-
         return ModelBasedReturner.for_rally(params, ReturnerParams(memory=name == "returner"))
     if name.startswith("returner:forget="):
-        from ace_drake.control.returner import ModelBasedReturner
-
         # The returner with memory, some of it forgotten (ReturnerParams.forget: a study of its memory).
         return ModelBasedReturner.for_rally(params, ReturnerParams(forget=tuple(name.removeprefix("returner:forget=").split("+"))))
     if name in ("returner:hit_state", "returner:hit_memory"):
-        from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
-        from ace_drake.control.returner import ModelBasedReturner
-
         return PlannedHitState(ModelBasedReturner.for_rally(params, ReturnerParams(memory=False)), HitStateLayer.for_rally(params),
                                hit_memory=name == "returner:hit_memory")
     if name.startswith("policy:"):
         path = POLICIES_DIR / f"{name.removeprefix('policy:')}.pt"
         if not path.is_file():
             raise ConfigError(f"no shipped policy {path.name} in {POLICIES_DIR}; choose one of {', '.join(controller_names())}")
-        from ace_drake.learning.sac import load_policy
 
         policy = load_policy(path)
         if policy.index.numel() and int(policy.index.max()) >= _observation_size(params):
@@ -130,8 +124,6 @@ def make_controller(name: str, params: RallyParams):
 
 
 def _observation_size(params: RallyParams) -> int:
-    from ace_drake.learning.observation import ObservationLayout
-
     return ObservationLayout(params.position_history, params.spin_history).size
 
 
@@ -145,13 +137,9 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
     Their observation then has zeros there: the same episodes, simulated ~1.4 x faster on the
     statistical path (``ace-drake bench sim``; a returner's own planning dominates its
     evaluation, ~1.1 x faster, README *Speed*). Any other callable keeps ``params`` as given."""
-    import dataclasses
 
-    from ace_drake.control.hit_state import PlannedHitState
-    from ace_drake.control.returner import ModelBasedReturner
 
     inner = controller.controller if isinstance(controller, NoisyActions) else controller
-    from ace_drake.learning.networks import DeterministicPolicy
 
     if inner is still or isinstance(inner, ModelBasedReturner):
         reads, memory = False, False
@@ -168,7 +156,6 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
 def reads_hit_prediction(policy, params: RallyParams) -> bool:
     """Whether a loaded policy (``sac.load_policy``) reads the ``hit_prediction`` part of the
     observation of ``params``' rally diagram."""
-    from ace_drake.learning.observation import ObservationLayout
 
     part = ObservationLayout(params.position_history, params.spin_history).indices(["hit_prediction"])
     return bool(np.isin(policy.index.numpy(), part).any())

@@ -27,7 +27,7 @@ temporary file renamed over the old one), so a killed run loses only the work si
 ``train`` on the same directory resumes from it (the workers are reseeded from the run's seed
 and the number of resumptions, so a resumed run is reproducible but not identical to an
 uninterrupted one). Every ``evaluate_every`` steps the deterministic actor is evaluated in the
-rally diagram (``analysis.evaluation.evaluate``) on ``evaluation_episodes`` shots; the best
+rally diagram (``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best
 evaluated actor is kept. Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
 the ``progress`` callable. ``export`` writes a policy artefact (``models/policies/<name>.pt``),
 its sidecar JSON and the learning curve PNG.
@@ -43,12 +43,22 @@ from collections import deque
 from pathlib import Path
 
 import numpy as np
+import torch
+import yaml
+from matplotlib.figure import Figure
+from torch.utils.tensorboard import SummaryWriter
 
-from ace_drake.config import ConfigError, PerceptionParams, RallyParams, ReturnerParams, from_dict, to_dict
-from ace_drake.learning.rally_env import RallyEnvParams
+from ace_drake.config import ConfigError, from_dict, to_dict
+from ace_drake.control.params import RallyParams, ReturnerParams
+from ace_drake.evaluation.evaluate import evaluate
+from ace_drake.learning.mirror import Mirror
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
-from ace_drake.learning.rollout import Episode, ExplorationParams, load_episodes
-from ace_drake.learning.sac import SacConfig, SacLearner
+from ace_drake.learning.sac import SacConfig, SacLearner, save_policy
+from ace_drake.perception.params import PerceptionParams
+from ace_drake.play.shots import human_shots, make_distribution
+from ace_drake.training.env import RallyEnvParams
+from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
+from ace_drake.training.workers import WorkerPool
 
 PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
 CHECKPOINT = "checkpoint.pt"
@@ -101,7 +111,7 @@ class TrainConfig:
     replay: ReplayConfig = dataclasses.field(default_factory=ReplayConfig)
     env: RallyEnvParams = dataclasses.field(default_factory=RallyEnvParams)
     exploration: ExplorationParams = dataclasses.field(default_factory=ExplorationParams)
-    # The model-based returner that demonstrates and labels (``learning.rollout``); ``memory: false``
+    # The model-based returner that demonstrates and labels (``training.rollout``); ``memory: false``
     # makes its labels a function of the observation alone (``control.returner`` docstring).
     returner: ReturnerParams = dataclasses.field(default_factory=ReturnerParams)
 
@@ -145,7 +155,6 @@ class TrainConfig:
 def load_train_config(path) -> TrainConfig:
     """A TrainConfig from a YAML file (missing fields keep their defaults). Raises ConfigError
     naming the field for unknown names, wrong types and rejected values."""
-    import yaml
 
     path = Path(path)
     if not path.is_file():
@@ -189,8 +198,6 @@ class Trainer:
     from the checkpoint if there is one) and returns the final Progress."""
 
     def __init__(self, config: TrainConfig, run_dir, progress=print):
-        import torch
-
         self.config = config
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -199,8 +206,6 @@ class Trainer:
         self.learner = SacLearner(config.sac, config.env.rally)
         augment = ()
         if config.mirror:
-            from ace_drake.learning.mirror import Mirror
-
             augment = (Mirror.from_robot().transitions,)
         self.replay = EventReplay(dataclasses.replace(config.replay, seed=config.seed), config.sac.layout, config.env.reward, augment)
         self.demonstrations = DemonstrationBuffer(seed=config.seed + 1)
@@ -221,7 +226,6 @@ class Trainer:
     # ------------------------------------------------------------------------------ the run
     def run(self):
         c = self.config
-        from torch.utils.tensorboard import SummaryWriter
 
         self._writer = SummaryWriter(str(self.run_dir / "tensorboard"))
         try:
@@ -250,8 +254,6 @@ class Trainer:
 
     def _workers(self):
         if self._pool is None:
-            from ace_drake.learning.workers import WorkerPool
-
             c = self.config
             args = {"env_params": c.env, "sac": c.sac, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
                     "returner": c.returner}
@@ -399,7 +401,6 @@ class Trainer:
 
     def _evaluate(self) -> None:
         """Evaluates the deterministic actor in the rally diagram (module docstring)."""
-        from ace_drake.analysis.evaluation import evaluate
 
         c, s = self.config, self.state
         if s.env_steps >= s.next_evaluation:  # the next periodic one is due evaluate_every from here
@@ -427,7 +428,6 @@ class Trainer:
     # ------------------------------------------------------------------------------ checkpoints
     def checkpoint(self) -> None:
         """Writes the whole learner state atomically (module docstring)."""
-        import torch
 
         self.state.wall_time += self._elapsed()
         self._started = time.perf_counter()
@@ -445,8 +445,6 @@ class Trainer:
         os.replace(temporary, path)
 
     def _load(self, path: Path) -> None:
-        import torch
-
         payload = torch.load(path, weights_only=False)
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
@@ -469,7 +467,6 @@ class Trainer:
         run on to this config's totals. Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and
         chooses among its own evaluations."""
-        import torch
 
         payload = torch.load(path, weights_only=False)
         self.learner.load_state_dict(payload["learner"])
@@ -485,15 +482,12 @@ class Trainer:
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")
 
     def _save_config(self) -> None:
-        import yaml
-
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(self.config))), sort_keys=False))
 
 
 def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
     """The periodic evaluation's shots: the first ``evaluation_episodes`` shot_p2 shots of
     ``evaluation_data``, else as many from the synthetic distribution (seeded by the run's seed)."""
-    from ace_drake.play.shots import human_shots, make_distribution
 
     if config.evaluation_data:
         shots, serve = human_shots(config.evaluation_data, config.evaluation_players)
@@ -509,7 +503,6 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     figures) and ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best"
     (the best evaluated actor) or "final"; ``provenance``: e.g. the command line and date.
     Returns the sidecar."""
-    from ace_drake.learning.sac import save_policy
 
     s, c = trainer.state, trainer.config
     actor, chosen = chosen_actor(trainer, which)
@@ -609,12 +602,8 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     ``description``'s shots. A run started from another's checkpoint at ``started_at`` steps
     (``initialize_from``) draws the earlier run's evaluations, which may be of other shots, as a
     separate series. A run that only clones (``cloning_curve``) is drawn against learner updates."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axes = plt.subplots(figsize=(6, 3.5), dpi=100)
+    figure = Figure(figsize=(6, 3.5), dpi=100)  # no pyplot: no display, no global figure state
+    axes = figure.subplots()
     cloning = cloning_curve(state) if started_at is None else None
     if cloning is not None:
         ((_, label),) = evaluation_series(state, description)
@@ -635,4 +624,3 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     axes.legend(loc="upper left", fontsize=7)
     figure.tight_layout()
     figure.savefig(path)
-    plt.close(figure)

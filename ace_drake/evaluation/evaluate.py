@@ -24,10 +24,13 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import binomtest
 
-from ace_drake.config import RallyParams, RewardParams
+from ace_drake.contracts import Outcome
+from ace_drake.control.params import RallyParams
+from ace_drake.diagrams import build_rally_diagram
+from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller
+from ace_drake.evaluation.runner import Episode, RallyRunner
+from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import terminal_reward, travel_frame_spin
-from ace_drake.play.episode import Outcome
-from ace_drake.play.runner import Episode, RallyRunner
 
 SPEED_BINS = (0.0, 6.0, 8.0, 10.0, 12.0, 14.0, np.inf)  # m/s, the shot's speed just after the hit
 SPIN_BINS = (0.0, 100.0, 200.0, 300.0, 400.0, np.inf)  # rad/s, its spin rate
@@ -149,10 +152,8 @@ def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarr
              skills: np.ndarray | None = None) -> dict:
     """Evaluates ``controller`` (a policy callable or torch module) on ``shots`` with the rally
     diagram of ``params`` (without the observation's hit prediction when the controller does not
-    read it: ``play.controllers.diagram_params_for``), each shot with its skill of ``skills``
+    read it: ``evaluation.controllers.diagram_params_for``), each shot with its skill of ``skills``
     (``run_episodes``): the figures of ``summarize`` plus the wall time."""
-    from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.play.controllers import diagram_params_for, hit_state_controller
 
     controller = hit_state_controller(controller, params)
     params = diagram_params_for(controller, params)

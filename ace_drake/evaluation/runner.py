@@ -14,8 +14,10 @@ import numpy as np
 from pydrake.systems.framework import Diagram
 from pydrake.systems.primitives import VectorLogSink
 
-from ace_drake.config import RallyParams
-from ace_drake.play.episode import EpisodeResult, classify, timed_out
+from ace_drake.contracts import EpisodeResult
+from ace_drake.control.params import RallyParams
+from ace_drake.diagrams import make_simulator, start_rally
+from ace_drake.play.episode import classify, timed_out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,7 +39,6 @@ class RallyRunner:
     def __init__(self, diagram: Diagram, params: RallyParams):
         """Args: diagram, a rally diagram (any builder over ``diagrams.add_rally``); params, the
         RallyParams it was built with (its time limit ends episodes)."""
-        from ace_drake.diagrams import make_simulator
 
         self.diagram = diagram
         self.params = params
@@ -57,7 +58,6 @@ class RallyRunner:
         starts an episode from ``shot`` (see ``diagrams.start_rally``) at ``start_time`` (s; a
         multiple of the 32 ms policy period, so that a replay can run episodes one after another
         on one time line)."""
-        from ace_drake.diagrams import start_rally
 
         shot = np.asarray(shot, dtype=float)
         if shot.shape != (9,) or not np.all(np.isfinite(shot)):

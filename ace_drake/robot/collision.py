@@ -19,7 +19,7 @@ magnitudes, and its acceleration is linear, so |qddot| is at most the larger of 
 ends; both bounds also cover motion with linear acceleration between consistent sampled a_k,
 a_{k+1} (``joint_speed_bounds``, ``joint_acceleration_bounds``). Each joint therefore strays at
 most h^2 / 8 max |qddot| from the chord between its samples, and each point of the robot, by the
-same argument, at most its ``robot_bounds`` deviation (~0.3 mm at full speed).
+same argument, at most its ``robot.bounds`` deviation (~0.3 mm at full speed).
 
 Why three stages, cheapest first. In a rally most pairs stay far apart over the whole plan and a
 few come within centimetres for a few milliseconds. Conservative advancement on exact distances
@@ -43,7 +43,7 @@ left out.
    is clear for that pair. ``certified`` names the pairs proven clear over the whole box. The
    handle, 3 cm from the forearm at the ready pose and touching it below wrist_2 = -1 rad, costs
    nothing unless the wrist gets there.
-2. Swept bounding boxes (``robot_bounds.SweptBounds``), for the other pairs of boxes, spheres,
+2. Swept bounding boxes (``robot.bounds.SweptBounds``), for the other pairs of boxes, spheres,
    capsules and cylinders: per block of ``BLOCK_SAMPLES`` intervals, then per interval, the
    distance between the boxes that the two geometries (or the spheres covering one of them)
    sweep, from their poses at the samples padded by their deviation, is a lower bound on the
@@ -133,10 +133,11 @@ from pydrake.math import RigidTransform
 from pydrake.multibody.tree import BodyIndex
 from pydrake.planning import RobotDiagramBuilder, SceneGraphCollisionChecker
 
-from ace_drake.config import JOINT_NAMES, RobotScenario
-from ace_drake.control.trajectory import JointTrajectory
-from ace_drake.robot_bounds import Shape, SweptBounds
-from ace_drake.robot_model import MODELS_DIR, _joint_vector, add_robot_to_plant, check_joint_order, load_scenario
+from ace_drake.config import MODELS_DIR
+from ace_drake.robot.bounds import Shape, SweptBounds
+from ace_drake.robot.model import _joint_vector, add_robot_to_plant, check_joint_order, load_scenario
+from ace_drake.robot.params import JOINT_NAMES, RobotScenario
+from ace_drake.robot.trajectory import JointTrajectory
 
 PROOF_TOLERANCE = 1e-4  # m: a clearance below margin + DISTANCE_ERROR + this counts as a collision
 DISTANCE_ERROR = 1e-4  # m: Drake's signed distances are trusted to within this (module doc)
@@ -564,7 +565,7 @@ def _plane_reach(X_now, X_WB, geometry, normal, deviation, open_intervals, k, fr
 def _plane_gap(X_WB, s, geometry, normal):
     """The gap (m) between a pair's geometries along the unit ``normal`` (from B to A) at sample s
     of the body poses X_WB (num_bodies, 12, S): min over A of n . x less max over B of n . x, from
-    their poses and closed-form supports (``robot_bounds.Shape.support``)."""
+    their poses and closed-form supports (``robot.bounds.Shape.support``)."""
     body_A, X_BG_A, shape_A, body_B, X_BG_B, shape_B = geometry
     return _support_gap(X_WB, s, body_A, X_BG_A, shape_A, normal, 1.0) + _support_gap(X_WB, s, body_B, X_BG_B, shape_B, normal, -1.0)
 
@@ -733,7 +734,7 @@ def _motion_bounds(q, v, a, period, upstream):
     """For samples q, v, a (n + 1, 8): the cumulative travel bound of each joint at each sample
     (n + 1, 8), and per joint and interval, joints by intervals (8, n): how far the joint strays
     from the chord between its samples, h^2 / 8 A, and the deviation terms of the robot's points,
-    h^2 / 8 (A + V (V + 4 U)) (module doc of robot_bounds; V, A: ``joint_speed_bounds``,
+    h^2 / 8 (A + V (V + 4 U)) (module doc of robot.bounds; V, A: ``joint_speed_bounds``,
     ``joint_acceleration_bounds``; U_j: the sum of V over the joints upstream of j, upstream
     (8, 8) [i, j] = 1 if i is)."""
     n, joints = q.shape[0] - 1, q.shape[1]
