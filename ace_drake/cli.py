@@ -606,6 +606,23 @@ def cmd_imitation(args) -> int:
     return 0
 
 
+def cmd_results(args) -> int:
+    """The README's results table (and docs/benchmarks.md's) regenerated from their source files."""
+    from ace_drake.analysis.results import render_results, stale_files, update_files
+
+    if args.check:
+        stale = stale_files(REPO_ROOT)
+        for name in stale:
+            log(f"results: {name} is stale; run `ace-drake results` and commit it")
+        if not stale:
+            log("results: README.md and docs/benchmarks.md are current")
+        return 1 if stale else 0
+    for name in update_files(REPO_ROOT):
+        log(f"results: rewrote {name}")
+    print(render_results(REPO_ROOT))
+    return 0
+
+
 # ------------------------------------------------------------------------------ parser
 
 
@@ -706,6 +723,10 @@ def build_parser() -> argparse.ArgumentParser:
     graphs = commands.add_parser("diagrams", help="render every diagram's graph into diagrams/")
     graphs.add_argument("--out", default=str(REPO_ROOT / "diagrams"))
     graphs.set_defaults(run=cmd_diagrams)
+
+    results = commands.add_parser("results", help="regenerate the README's results table from the sidecars and stored JSON")
+    results.add_argument("--check", action="store_true", help="only check: exit 1 if README.md or docs/benchmarks.md is stale")
+    results.set_defaults(run=cmd_results)
     return parser
 
 

@@ -14,7 +14,7 @@ ball estimator's output (state and status), which the paper's actor does not rea
 controllers (the model-based returner) do, and the preferred hit predicted from that estimate
 (``control.hit_prediction``: the memoryless returner's choice of where to meet the ball), which a
 learned actor may read in place of learning the ball's flight and bounce itself (this project's
-addition; README *Training*); a learner picks its features by ``ObservationLayout`` slices, so
+addition; docs/training.md, *The trainer*); a learner picks its features by ``ObservationLayout`` slices, so
 every controller shares one observation port.
 
 Layout (all SI units; ages in s, -1 where the history has fewer entries):

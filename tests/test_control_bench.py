@@ -1,5 +1,5 @@
 """The control benchmarks' machinery: the joints following a command stream, random starts, and
-a small safety run that must find no violation (the README's 100,000-case run is the real one)."""
+a small safety run that must find no violation (docs/robot_and_control.md's 100,000-case run is the real one)."""
 
 import numpy as np
 

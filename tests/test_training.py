@@ -166,7 +166,7 @@ def test_the_shipped_stage_5_config_continues_stage_4():
 
     fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
     fourth = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
-    assert fifth.pop("initialize_from") == "out/train/rally_sac_human/checkpoint.pt"  # stage 4's run directory (README)
+    assert fifth.pop("initialize_from") == "out/train/rally_sac_human/checkpoint.pt"  # stage 4's run directory (docs/training.md)
     assert fifth.pop("seed") != fourth.pop("seed")
     fourth.pop("initialize_from")
     assert fifth == fourth  # the same recipe, the learner's config included
@@ -179,7 +179,7 @@ def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
 
     sixth = yaml.safe_load((MODELS_DIR / "train_rally_human_memoryless.yaml").read_text())
     fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
-    assert sixth.pop("initialize_from") == "out/train/rally_sac_human2/checkpoint.pt"  # stage 5's run directory (README)
+    assert sixth.pop("initialize_from") == "out/train/rally_sac_human2/checkpoint.pt"  # stage 5's run directory (docs/training.md)
     # Both labelled with the IK from the segment start and no spin skill (the rules of their time); the sixth without memory.
     assert sixth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start", "memory": False}
     assert fifth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start"}
@@ -201,7 +201,7 @@ def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labelle
     braking = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_braking.yaml").read_text())
     assert braking["returner"].pop("skill_brush") == 0.0 and "skill_brush" not in skill["returner"]  # the default, 2 m/s
     assert skill.pop("name") == "rally_skill" and skill.pop("seed") != braking.pop("seed")
-    for name in ("demonstrations", "pretrain_updates", "env_steps"):  # a smaller run (README *Following the skill*)
+    for name in ("demonstrations", "pretrain_updates", "env_steps"):  # a smaller run (docs/training.md, *The shipped policies*)
         assert skill.pop(name) < braking.pop(name)
     braking.pop("name")
     assert skill == braking
@@ -503,11 +503,11 @@ def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # returner:hit_state (the returner's planned hit states through the layer) 7, returner:hit_memory
     # (the same on an observation that keeps its predicted hit) 5 (6 with the IK from the segment
     # start), rally_sac 3,
-    # still 0 (measured). A behaviour, not a benchmark (README *Training: the hit-state actor*
+    # still 0 (measured). A behaviour, not a benchmark (docs/experiments/2026-12-01-hit-state-actor.md
     # has the measured rates).
     from ace_drake.control.params import RallyParams
-    from ace_drake.evaluation.evaluate import evaluate
     from ace_drake.evaluation import controllers
+    from ace_drake.evaluation.evaluate import evaluate
     from ace_drake.play.shots import human_shots
 
     data = Path(__file__).resolve().parents[2] / "shared/data/ace_match_events_elite.csv"

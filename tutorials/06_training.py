@@ -13,7 +13,7 @@ Actor-Critic (Methods *Algorithm*); this tutorial runs the same machinery as
      checkpointed in ``--out``; run the tutorial again and it resumes from the checkpoint;
   4. evaluation and export: the trained actor in the rally diagram, the policy artefact, its
      sidecar and the learning curve;
-  5. the hit-state action (this project's; README *Training: the hit-state actor*): an actor that
+  5. the hit-state action (this project's; docs/training.md, *Hit-state actor*): an actor that
      outputs the joints' state at the predicted hit, the fixed layer that turns it into the
      eq. (12) action, a demonstration episode through that layer, and the cloning loss.
 

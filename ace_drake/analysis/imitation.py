@@ -1,5 +1,5 @@
 """How well can an actor imitate the model-based returner? Offline fits on a training run's
-demonstrations (README, *Training*; ``ace-drake imitation CHECKPOINT``).
+demonstrations (docs/experiments/2026-12-01-imitation.md; ``ace-drake imitation CHECKPOINT``).
 
 The learn phase's cloning term (``learning.sac``) asks the actor's mean to reproduce the
 returner's actions from the actor's observation parts. This module measures, on the

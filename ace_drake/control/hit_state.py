@@ -1,5 +1,5 @@
 """Driving the joints to a hit state: the returner's last step, and the hit-state action of a
-learned actor (README, *Training: the hit-state actor*; this project's, not the paper's).
+learned actor (docs/training.md, *Hit-state actor*; this project's, not the paper's).
 
 A hit state is the joints' (q_hit, v_hit) (8 each) at the instant the racket meets the ball.
 ``HitDriver`` turns one into the next segment's eq. (12) action from the segment-start state
@@ -32,7 +32,7 @@ so the actor chooses how to hit (the normal, the velocity, the arm's redundant p
 layer makes the blade meet the ball where the predictor says it will be. A cloned actor's blade
 centre sits 3.3 cm (median; 9.4 cm at the 90th percentile, against a blade radius of about
 7.5 cm) off the line through the predicted ball along its normal, the returner's within 2 mm
-(README, *Training: the hit-state actor*).
+(docs/experiments/2026-12-01-hit-state-actor.md).
 
 ``PlannedHitState`` is the memoryless returner's planned hit state as such an action: the
 demonstrator and the labels of a hit-state actor (``training.rollout``), and with the layer a
@@ -41,7 +41,7 @@ hit states perfectly would do).
 
 Why: an actor that outputs eq. (12)'s per-segment terminal states must re-derive the whole swing
 every 32 ms and its errors from call to call make the swing jitter; one that outputs the hit
-state names the same target all along, and this layer makes the motion (measured in the README).
+state names the same target all along, and this layer makes the motion (docs/training.md, *Hit-state actor*).
 """
 
 from __future__ import annotations

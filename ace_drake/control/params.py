@@ -94,7 +94,7 @@ class ReturnerParams:
     # Added to brush_speed per unit of the skill's w_s (paper, *Rewards*: w_s weighs the landing's
     # topspin), so that the returner follows the spin skill: 2 m/s put the median landing topspin
     # at +198 / -32 / -157 rad/s for w_s = +1 / 0 / -1 on 21 recorded shots, returning 17 / 18 / 19
-    # of them (4 m/s: 11 / 18 / 14; README, *Rally: the model-based returner*). 0: spin ignored.
+    # of them (4 m/s: 11 / 18 / 14; docs/experiments/2026-12-02-skill.md). 0: spin ignored.
     skill_brush: float = 2.0
     # The ball centre at the hit: height above the playing surface, and how far behind the table.
     hit_height_min: float = 0.12
@@ -112,7 +112,7 @@ class ReturnerParams:
     # them, q0 + v0 D / 2, and the gantry at q0, so that a moving arm keeps to the solution it is
     # moving towards; "segment_start", q0 itself. None: "braking" without memory (369 of the 411
     # playable recorded shots against 353), "segment_start" with it (376 against 372), the better
-    # rule for each (README, *Rally: the model-based returner*).
+    # rule for each (docs/experiments/2026-12-01-returner-memory.md).
     ik_nominal: str | None = None
     # The joints' lag behind the command (eq. (9) ramp-tracking lag plus half a command period of
     # zero-order hold); None: computed from the scenario's joint dynamics.
@@ -122,8 +122,8 @@ class ReturnerParams:
     # alone, so that the action is a function of the observation (as a policy's is): the labels a
     # learner imitates (``training.rollout``, DAgger) are then learnable.
     memory: bool = True
-    # With memory on, remembered things to forget, for studying what the memory is worth (README,
-    # *Rally: the model-based returner*); any of RETURNER_MEMORY_PARTS: "bounce" (found behind the
+    # With memory on, remembered things to forget, for studying what the memory is worth
+    # (docs/experiments/2026-12-01-returner-memory.md); any of RETURNER_MEMORY_PARTS: "bounce" (found behind the
     # ball at every call instead), "hit" (the planned hit time is not tried first), "follow" (the
     # follow-through is decided from the preferred hit, not from the plan), "racket" (the plan's
     # flight time and return are not reused), "ik" (the plan's configuration is not refined: full IK

@@ -68,7 +68,7 @@ holds while the estimate does), follows through when that hit falls in the segme
 commanded, and solves the full IK afresh (from where braking would stop the arm: step 4).
 ``ReturnerParams.forget`` drops parts of the memory one at a time instead (its bounce, hit time,
 follow-through, racket plan, hit configuration, fallback; ``returner:forget=...``), to measure
-what each is worth (README).
+what each is worth (docs/experiments/2026-12-01-returner-memory.md).
 """
 
 from __future__ import annotations
@@ -375,7 +375,7 @@ class ModelBasedReturner:
         at q0 + v0 D / 2 (uniform braking from v0 to rest over D stops there; the gantry stays at
         q0), inside the joint limits. A moving arm's solution then stays on the branch it is moving
         towards instead of hopping between nearly equidistant ones from call to call (measured:
-        README, *Rally: the model-based returner*)."""
+        docs/experiments/2026-12-01-returner-memory.md)."""
         if self.params.ik_rule == "segment_start":
             return q0
         step = np.where(self.model.revolute, 0.5 * v0 * max(duration, 0.0), 0.0)

@@ -36,7 +36,7 @@ def still(observation):
 class NoisyActions:
     """A controller whose every action gets independent Gaussian noise of standard deviation
     ``sigma`` per component (action units), clipped into the box; None stays None. How precise a
-    controller's actions must be (README, *Training*): a learned actor's imitation error is such a
+    controller's actions must be (docs/experiments/2026-12-01-imitation.md): a learned actor's imitation error is such a
     noise, though not an independent one. Seeded; ``reset`` restarts the wrapped controller's memory."""
 
     def __init__(self, controller, sigma: float, seed: int = 0):
@@ -136,7 +136,7 @@ def diagram_params_for(controller, params: RallyParams) -> RallyParams:
     controllers made for it (a hit-state policy or ``PlannedHitState`` with ``hit_memory``).
     Their observation then has zeros there: the same episodes, simulated ~1.4 x faster on the
     statistical path (``ace-drake bench sim``; a returner's own planning dominates its
-    evaluation, ~1.1 x faster, README *Speed*). Any other callable keeps ``params`` as given."""
+    evaluation, ~1.1 x faster, docs/experiments/2026-11-30-speed.md). Any other callable keeps ``params`` as given."""
 
 
     inner = controller.controller if isinstance(controller, NoisyActions) else controller

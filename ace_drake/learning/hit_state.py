@@ -1,5 +1,5 @@
-"""The learner's side of the hit-state actor (``control.hit_state``; README, *Training: the
-hit-state actor*): the racket's forward kinematics in torch and the cloning loss on hit states.
+"""The learner's side of the hit-state actor (``control.hit_state``; docs/training.md, *Hit-state
+actor*): the racket's forward kinematics in torch and the cloning loss on hit states.
 
 **Kinematics.** Drake computes the racket pose for one configuration at a time and does not give torch gradients;
 the cloning loss needs the racket pose and velocity of a whole batch of hit states, and their
@@ -26,7 +26,7 @@ where it matters, per row, with D = k T the time from the segment start to the h
     loss        = mean(task + joint + consistency_weight consistency)
 
 The consistency term is what makes the target hold still between calls near the hit, where an
-error in q_hit costs acceleration as 1 / D^2; measured in the README.
+error in q_hit costs acceleration as 1 / D^2; measured in docs/experiments/2026-12-01-hit-state-actor.md.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ Polyak target updates, and auxiliary weight 1. One ``update`` on a batch of tran
                (both divided by networks.BALL_STATE_SCALE)
     theta'   = tau theta + (1 - tau) theta'
 
-Demonstrations (this project's addition, not the paper's; README *Training*): ``update`` may take a
+Demonstrations (this project's addition, not the paper's; docs/training.md, *The trainer*): ``update`` may take a
 second batch of demonstrated transitions (observations with the model-based returner's actions,
 ``rollout`` docstring) and then adds a behaviour-cloning term to the actor's loss (Nair et al.
 2018, "Overcoming exploration in RL with demonstrations"):
@@ -26,7 +26,7 @@ so that the sparse terminal reward is not the only thing telling 16 action dimen
 a ball; with ``bc_weight`` 0 (the default) or no demonstration batch, the update is the paper's.
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
-the next segment; "hit_state" (this project's; README *Training: the hit-state actor*) is the
+the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
 joints' state at the hit (``control.hit_state.HitStateAction``), turned into the eq. (12) action
 by a fixed layer outside the learner (``control.hit_state.HitStateLayer``: in the rollout workers
 and the policy controller). The critic then values hit states, the replay stores them, and the
@@ -102,7 +102,7 @@ class SacConfig:
     # What the actor outputs (module docstring): "terminal" (eq. (12), the paper's) or "hit_state".
     action: str = "terminal"
     # The hit-state cloning loss (learning.hit_state): its consistency weight (30 measured best of
-    # 0-100, README) and the task-space scales (blade position m, normal, blade velocity m/s).
+    # 0-100: docs/experiments/2026-12-01-hit-state-actor.md) and the task-space scales (blade position m, normal, blade velocity m/s).
     consistency_weight: float = 30.0
     hit_loss_scales: tuple[float, float, float] = (0.02, 0.05, 0.2)
     # The hit-state layer moves the actor's q_hit so the blade meets the predicted ball

@@ -74,8 +74,8 @@ class JointLimits:
 class RobotLimits:
     """Limits per joint (JOINT_NAMES). The paper publishes none: these are chosen so that the
     racket reaches the recorded robot contact points with the blade facing the opponent and can
-    swing at 20 m/s (``ace-drake bench reach`` measures both; README, *Robot*). Prismatic joints
-    in m, revolute in rad."""
+    swing at 20 m/s (``ace-drake bench reach`` measures both; docs/robot_and_control.md,
+    *The robot*). Prismatic joints in m, revolute in rad."""
 
     gantry_x: JointLimits = JointLimits(-0.90, 0.80, 5.0, 40.0)
     gantry_y: JointLimits = JointLimits(-1.30, 1.30, 5.0, 40.0)

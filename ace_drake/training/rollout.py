@@ -12,7 +12,7 @@ plus the ``EpisodeSummary`` the event tables read):
   on a share of its actions (DART, Laskey et al. 2017: the states the returner visits after its
   own small errors, labelled with what it would do there). Every transition also records the
   returner's clean action (``demo_action``) for the learner's behaviour-cloning term
-  (``sac`` docstring). This is this project's addition, not the paper's (README, *Training*).
+  (``sac`` docstring). This is this project's addition, not the paper's (docs/training.md, *The trainer*).
   When the returner has no action (no track yet, or after its hit), the label and the action are
   ``RallyEnv.hold_action``: continue the committed plan.
 - ``"dagger"``: the actor acts as in ``"policy"`` and the returner labels every state it visits

@@ -1,0 +1,238 @@
+"""The headline results: one table generated from the files the figures live in (``ace-drake results``).
+
+Sources, all relative to the repository root:
+
+- the shipped policies' sidecars ``models/policies/<name>.json`` (``SHIPPED_POLICIES``): the
+  export evaluation ``final_evaluation`` that ``ace-drake train --evaluate-data`` records (the
+  recorded human shots through the cameras, at the run's seed);
+- the fitted ball model's sidecar ``models/ball_physics_fitted.json`` (``ace-drake physics-fit``);
+- stored evaluations ``docs/results/<controller>.json`` (``ace-drake evaluate ... --json``
+  redirected there; the default controller's row says "not measured" until its file exists);
+- stored benchmarks ``docs/benchmarks/<name>.json`` (``ace-drake bench <name> --json``).
+
+``render_results`` turns them into the README's table, ``render_benchmarks`` into the table of
+docs/benchmarks.md; ``replace_block`` puts a table between its markers and ``stale_files`` says
+which document no longer shows what its sources hold. No figure in either table is typed by hand.
+Plain Python: no Drake, no NumPy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+SHIPPED_POLICIES = ("rally_hit_state_braking", "rally_sac", "rally_skill")
+DEFAULT_CONTROLLER = "returner"  # play.controllers.DEFAULT_CONTROLLER, the row the table starts with
+POLICY_ROLES = {
+    "rally_hit_state_braking": "best policy (hit-state actor)",
+    "rally_sac": "the paper's action (eq. 12)",
+    "rally_skill": "follows the skill's aim and spin",
+}
+RESULTS_BEGIN, RESULTS_END = "<!-- results:begin -->", "<!-- results:end -->"
+BENCHMARKS_BEGIN, BENCHMARKS_END = "<!-- benchmarks:begin -->", "<!-- benchmarks:end -->"
+README = "README.md"
+BENCHMARKS_PAGE = "docs/benchmarks.md"
+EVALUATE_COMMAND = "ace-drake evaluate --controller {controller} --data ../shared/data/ace_match_events_elite.csv --json"
+BENCHMARK_COMMANDS = {"sim": "ace-drake bench sim --json"}  # bench output carries no command of its own
+NOT_MEASURED = "not measured"
+
+
+@dataclasses.dataclass(frozen=True)
+class Row:
+    """One line of the results table: what was measured, the figure, on what, and from which file."""
+
+    what: str
+    figure: str
+    measured_on: str
+    source: str
+
+
+def read_json(path: Path) -> dict | None:
+    """The JSON object in ``path``, or None if there is no such file."""
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def percent(value: float) -> str:
+    return f"{100.0 * value:.1f}%"
+
+
+def return_rate_text(rate: dict) -> str:
+    """'88.2% (360 of 408 playable; 95% CI 84.7-91.0%)' from an evaluation's ``return_rate``."""
+    low, high = rate["ci95"]
+    return f"{percent(rate['rate'])} ({rate['returned']} of {rate['played']} playable; 95% CI {100 * low:.1f}-{100 * high:.1f}%)"
+
+
+def _source(path: str) -> str:
+    """The source file (the sidecars record the command that wrote them; docs/benchmarks.md the rest)."""
+    return f"`{path}`"
+
+
+def _shots_text(evaluation: dict) -> str:
+    """'637 recorded shots of ace_match_events_elite.csv, cameras' from an evaluation's keys."""
+    data = evaluation.get("data")
+    shots = f"{evaluation['episodes']} recorded human shots of {Path(data).name}" if data else f"{evaluation['episodes']} synthetic shots"
+    return f"{shots}, {evaluation['sensors']}"
+
+
+def policy_row(name: str, sidecar: dict | None, source: str) -> Row:
+    """The export evaluation of a shipped policy's sidecar (``final_evaluation``)."""
+    what = f"`policy:{name}`: {POLICY_ROLES.get(name, 'a shipped policy')}"
+    evaluation = None if sidecar is None else sidecar.get("final_evaluation")
+    if evaluation is None:
+        return Row(what, NOT_MEASURED, "-", _source(source))
+    figure = return_rate_text(evaluation["return_rate"])
+    held_out = evaluation.get("held_out")
+    if held_out:
+        figure += f"; held-out players ({', '.join(held_out['players'])}): {return_rate_text(held_out['return_rate'])}"
+    measured_on = f"{_shots_text(evaluation)}, seed {sidecar['seed']} (the run's), {sidecar['date']}"
+    return Row(what, figure, measured_on, _source(source))
+
+
+def evaluation_row(controller: str, evaluation: dict | None, source: str) -> Row:
+    """A stored ``ace-drake evaluate --json`` (or "not measured" without one)."""
+    what = f"`{controller}`" + (": the default controller" if controller == DEFAULT_CONTROLLER else "")
+    if evaluation is None:
+        command = EVALUATE_COMMAND.format(controller=controller)
+        return Row(what, NOT_MEASURED, f"`{command} > {source}` measures it on the recorded human shots", _source(source))
+    figure = return_rate_text(evaluation["return_rate"])
+    measured_on = f"{_shots_text(evaluation)}, seed {evaluation['seed']}" + (f", {evaluation['date']}" if evaluation.get("date") else "")
+    return Row(what, figure, measured_on, _source(source))
+
+
+def ball_fit_row(sidecar: dict | None, source: str) -> Row:
+    """The fitted ball model against the paper's on the held-out players (physics-fit sidecar)."""
+    what = "ball model fitted to the recorded matches (`models/ball_physics_fitted.yaml`)"
+    if sidecar is None:
+        return Row(what, NOT_MEASURED, "-", _source(source))
+    held_out = sidecar["figures"]["held_out_players"]
+    fitted, paper = held_out["fitted"]["landing_error_m"], held_out["initial"]["landing_error_m"]
+    figure = (f"landing error median {100 * fitted['median']:.1f} cm (p90 {100 * fitted['p90']:.1f}), "
+              f"paper model {100 * paper['median']:.1f} cm (p90 {100 * paper['p90']:.1f})")
+    fit_pairs = sidecar["figures"]["fit_players"]["fitted"]["pairs"]
+    measured_on = (f"{held_out['fitted']['pairs']} (shot or bounce) -> bounce pairs of {', '.join(sidecar['held_out_players'])}, "
+                   f"held out; fitted on {', '.join(sidecar['fit_players'])} ({fit_pairs} pairs), {sidecar['date']}")
+    return Row(what, figure, measured_on, _source(source))
+
+
+def speed_rows(sim: dict | None, source: str) -> list[Row]:
+    """Real-time factors of the rally diagram and its ceilings, and RallyEnv steps/s (bench sim)."""
+    if sim is None:
+        return [Row("rally diagram speed", NOT_MEASURED, "-", _source(source))]
+    setup = f"ready-pose controller, median of {sim['episodes']} episodes of {sim['simulated_seconds_per_episode']:g} s from synthetic shots"
+    rows = [
+        Row(f"rally diagram speed, {sim[key]['sensors']}",
+            f"{sim[key]['real_time_factor_median']:.2f} x real time ({sim[key]['cpu_real_time_factor_median']:.2f} per CPU second)",
+            setup, _source(source))
+        for key in ("rally_cameras", "rally_statistical")
+    ]
+    ceilings = sim["ceilings"]
+    rows.append(Row("ceilings of any rally diagram: the ball alone, the robot alone under its control stack",
+                    f"{ceilings['ball_alone_cpu_real_time_factor_median']:.1f} x and "
+                    f"{ceilings['controlled_robot_alone_cpu_real_time_factor_median']:.1f} x real time per CPU second",
+                    "the same shots and seconds", _source(source)))
+    rows.append(Row("training environment (RallyEnv) speed", f"{sim['env']['steps_per_second']:.1f} steps per second",
+                    f"{sim['env']['actions']} actions, statistical sensors", _source(source)))
+    return rows
+
+
+def result_rows(root: Path) -> list[Row]:
+    """Every row of the README's table, read from the files under ``root``."""
+    rows = [evaluation_row(DEFAULT_CONTROLLER, read_json(root / "docs/results" / f"{DEFAULT_CONTROLLER}.json"),
+                           f"docs/results/{DEFAULT_CONTROLLER}.json")]
+    for path in sorted((root / "docs/results").glob("*.json")):
+        if path.stem != DEFAULT_CONTROLLER:
+            evaluation = read_json(path)
+            rows.append(evaluation_row(evaluation.get("controller", path.stem), evaluation, f"docs/results/{path.name}"))
+    for name in SHIPPED_POLICIES:
+        source = f"models/policies/{name}.json"
+        rows.append(policy_row(name, read_json(root / source), source))
+    rows.append(ball_fit_row(read_json(root / "models/ball_physics_fitted.json"), "models/ball_physics_fitted.json"))
+    rows.extend(speed_rows(read_json(root / "docs/benchmarks/sim.json"), "docs/benchmarks/sim.json"))
+    return rows
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def render_table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
+    """A markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "| " + " | ".join("---" for _ in header) + " |"]
+    lines += ["| " + " | ".join(_cell(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def render_results(root: Path) -> str:
+    """The README's results table (between ``RESULTS_BEGIN`` and ``RESULTS_END``)."""
+    rows = result_rows(root)
+    return render_table(("what", "figure", "measured on", "source"), [dataclasses.astuple(row) for row in rows])
+
+
+def render_benchmarks(root: Path) -> str:
+    """docs/benchmarks.md's generated part: every stored ``docs/benchmarks/<name>.json`` in full."""
+    parts = []
+    sim = read_json(root / "docs/benchmarks/sim.json")
+    if sim is not None:
+        rows = [(sim[key]["sensors"], f"{sim[key]['real_time_factor_median']:.2f}", f"{sim[key]['real_time_factor_min']:.2f}",
+                 f"{sim[key]['cpu_real_time_factor_median']:.2f}", f"{sim[key]['wall_seconds_median']:.3f}")
+                for key in ("rally_cameras", "rally_statistical", "rally_statistical_no_hit_prediction")]
+        parts.append(f"`docs/benchmarks/sim.json` (`{BENCHMARK_COMMANDS['sim']}`; controller: {sim['controller']}; "
+                     f"{sim['episodes']} episodes of {sim['simulated_seconds_per_episode']:g} simulated s after a warm-up):")
+        parts.append(render_table(("rally diagram", "x real time, median", "min", "per CPU second, median", "wall s, median"), rows))
+        ceilings, env = sim["ceilings"], sim["env"]
+        parts.append(render_table(("what", "figure"), [
+            ("the ball alone (BallPlant in a Simulator), per CPU second", f"{ceilings['ball_alone_cpu_real_time_factor_median']:.1f} x real time"),
+            ("the robot alone under its control stack, per CPU second", f"{ceilings['controlled_robot_alone_cpu_real_time_factor_median']:.1f} x real time"),
+            ("statistical sensor against cameras", f"x {sim['ratio_statistical_to_cameras']:.2f}"),
+            ("without the hit prediction against with it", f"x {sim['ratio_no_hit_prediction_to_statistical']:.2f}"),
+            (f"RallyEnv, {env['actions']} actions", f"{env['steps_per_second']:.1f} steps/s, {env['episode_steps_median']:g} steps per episode (median)"),
+        ]))
+        profile = sim.get("profile", {})
+        if profile:
+            paths = [path for path in ("cameras", "statistical", "env") if path in profile]
+            def largest_share(name: str) -> float:
+                return max(profile[path]["systems"].get(name, {"share": 0.0})["share"] for path in paths)
+
+            names = {name for path in paths for name in profile[path]["systems"]}
+            systems = sorted((name for name in names if largest_share(name) >= 0.001), key=lambda name: -largest_share(name))
+            rows = [(f"`{name}`", *(percent(profile[path]["systems"][name]["share"]) if name in profile[path]["systems"] else "-" for path in paths))
+                    for name in systems]
+            rows.append(("outside the systems (Drake's dispatch, integrator, the benchmark)",
+                         *(percent(profile[path]["outside_systems_share"]) for path in paths)))
+            parts.append("Where the time goes (share of the profiled wall time; tracing slows Python more than C++):")
+            parts.append(render_table(("system", *(f"{path}" for path in paths)), rows))
+    return "\n\n".join(parts) if parts else NOT_MEASURED
+
+
+def replace_block(text: str, block: str, begin: str = RESULTS_BEGIN, end: str = RESULTS_END) -> str:
+    """``text`` with everything between the markers ``begin`` and ``end`` replaced by ``block``."""
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
+        raise ValueError(f"no '{begin}' ... '{end}' block in the text")
+    return text[: start + len(begin)] + "\n" + block + "\n" + text[stop:]
+
+
+def generated_documents(root: Path) -> dict[str, str]:
+    """Each generated document (path relative to ``root``) as it should read now."""
+    documents = {}
+    for name, render, begin, end in ((README, render_results, RESULTS_BEGIN, RESULTS_END),
+                                     (BENCHMARKS_PAGE, render_benchmarks, BENCHMARKS_BEGIN, BENCHMARKS_END)):
+        path = root / name
+        if path.is_file():
+            documents[name] = replace_block(path.read_text(), render(root), begin, end)
+    return documents
+
+
+def stale_files(root: Path) -> list[str]:
+    """The generated documents under ``root`` whose tables differ from what their sources give."""
+    return [name for name, text in generated_documents(root).items() if (root / name).read_text() != text]
+
+
+def update_files(root: Path) -> list[str]:
+    """Rewrites the stale generated documents under ``root``; returns their names."""
+    stale = stale_files(root)
+    for name, text in generated_documents(root).items():
+        if name in stale:
+            (root / name).write_text(text)
+    return stale
