@@ -493,13 +493,18 @@ def start_rally(diagram: Diagram, context, shot, seed: int = 0, skill=None, q=No
     """Starts an episode in ``context`` at its current time: the context's state and parameters
     drawn by Drake's random context from ``seed`` (``SetRandomContext(context,
     RandomGenerator(seed))``: every stochastic system, ball perturbations and sensors alike, gets
-    its own stream, ``add_random_sources``; everything else takes its default), the ball in the
-    state ``shot`` ([p (m), v (m/s), w (rad/s)], just after the opponent's hit), the skill
-    [y_desired, w_p, w_s] (default: the ObservationBuilder's), and the robot at rest at q
-    (default: the reset pose; see ``start_controlled_robot``). Reuse one context per Simulator;
-    its time is kept."""
+    its own stream, ``add_random_sources``; everything else takes its default), the policy told
+    that an episode starts (``PolicyController.ResetPolicy``), the ball in the state ``shot``
+    ([p (m), v (m/s), w (rad/s)], just after the opponent's hit), the skill [y_desired, w_p, w_s]
+    (default: the ObservationBuilder's), and the robot at rest at q (default: the reset pose; see
+    ``start_controlled_robot``). Reuse one context per Simulator; its time is kept."""
     # First: SetRandomContext resets every state and parameter, so what follows must come after.
     diagram.SetRandomContext(context, RandomGenerator(int(seed)))
+    # The one place an episode's start reaches the policy's own memory (the model-based
+    # returner's plan): the policy is a plain callable that the runner, the CLI and the tests all
+    # hand in, so its memory cannot live in the Context; every episode starts here instead.
+    if diagram.HasSubsystemNamed("policy_controller"):
+        diagram.GetSubsystemByName("policy_controller").ResetPolicy()
     ball = diagram.GetSubsystemByName("ball")
     ball.SetBallState(ball.GetMyMutableContextFromRoot(context), np.asarray(shot, dtype=float))
     if skill is not None:
