@@ -504,7 +504,8 @@ def start_rally(diagram: Diagram, context, shot, seed: int = 0, skill=None, q=No
     # returner's plan): the policy is a plain callable that the runner, the CLI and the tests all
     # hand in, so its memory cannot live in the Context; every episode starts here instead.
     if diagram.HasSubsystemNamed("policy_controller"):
-        diagram.GetSubsystemByName("policy_controller").ResetPolicy()
+        controller = diagram.GetSubsystemByName("policy_controller")
+        controller.ResetPolicy(controller.GetMyContextFromRoot(context))
     ball = diagram.GetSubsystemByName("ball")
     ball.SetBallState(ball.GetMyMutableContextFromRoot(context), np.asarray(shot, dtype=float))
     if skill is not None:
