@@ -69,9 +69,9 @@ class GazeSpinSensor(LeafSystem):
     State:
         abstract SpinSensorState (released and pending measurements, next sample time, biases).
     Parameters:
-        numeric (1,): the seed while random_seed is unconnected. Poll k draws from [seed, SPIN_STREAM, k] and the bias of contact
-        interval i from [seed, BIAS_STREAM, i], the first sample time from [seed, START_STREAM];
-        a seed (>= 0) gives the same output bit for bit.
+        numeric (1,): the seed while random_seed is unconnected. Poll k draws from [seed,
+        SPIN_STREAM, k] and the bias of contact interval i from [seed, BIAS_STREAM, i], the first
+        sample time from [seed, START_STREAM]; a seed (>= 0) gives the same output bit for bit.
     Events:
         initialization: clears the state and draws the first sample time.
         periodic unrestricted update every poll_period (5 ms, offset 0): samples every capture
