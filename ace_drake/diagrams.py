@@ -11,6 +11,7 @@ import dataclasses
 import re
 
 import numpy as np
+from pydrake.common import RandomGenerator
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
     MakeRenderEngineVtk,
@@ -27,7 +28,7 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import ConstantValueSource, MatrixGain, TrajectorySource, VectorLogSink
+from pydrake.systems.primitives import AddRandomInputs, ConstantValueSource, MatrixGain, TrajectorySource, VectorLogSink
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 from pydrake.trajectories import PiecewisePolynomial, Trajectory
 
@@ -52,6 +53,7 @@ from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
 from ace_drake.systems.gaze_spin_sensor import GazeSpinSensor
 from ace_drake.systems.observation_builder import ObservationBuilder
 from ace_drake.systems.policy_controller import PolicyController
+from ace_drake.systems.random_seed import SEED_HOLD_PERIOD
 from ace_drake.systems.reset_mpc import ResetMpc
 from ace_drake.systems.robot_kinematics import RobotKinematics
 from ace_drake.systems.safety_supervisor import SafetySupervisor
@@ -86,6 +88,19 @@ def make_simulator(diagram: Diagram, context=None, accuracy: float = SIMULATION_
     integrator.set_target_accuracy(accuracy)
     integrator.set_maximum_step_size(max_step)
     return simulator
+
+
+def add_random_sources(builder: DiagramBuilder) -> None:
+    """Connects a RandomSource to every random input port left unconnected in ``builder`` (Drake's
+    ``AddRandomInputs``; ports like ``systems.random_seed``'s) and names it after its port's
+    system (``<system>_seed_source``), for stable graphs. Every builder here calls it before
+    ``Build``, so that ``SetRandomContext`` seeds every stochastic system, one stream each
+    (``start_rally``)."""
+    named = {system.get_name() for system in builder.GetSystems()}
+    AddRandomInputs(SEED_HOLD_PERIOD, builder)
+    for (system, _), (source, _) in builder.connection_map().items():
+        if source.get_name() not in named:  # a source AddRandomInputs just added
+            source.set_name(f"{system.get_name()}_seed_source")
 
 
 def add_ball(
@@ -130,6 +145,7 @@ def build_ball_diagram(
         builder.Connect(ball.ball_state_port, visualizer.ball_state_port)
     logger = builder.AddNamedSystem("ball_logger", VectorLogSink(9, log_period))
     builder.Connect(ball.ball_state_port, logger.get_input_port())
+    add_random_sources(builder)
     diagram = builder.Build()
     diagram.set_name("ball_diagram")
     return diagram
@@ -220,6 +236,7 @@ def build_perception_diagram(
     builder.Connect(ball.ball_state_port, truth.get_input_port())
     estimate = builder.AddNamedSystem("estimate_logger", VectorLogSink(9, 1e-3))
     builder.Connect(perception.estimator.ball_state_estimate_port, estimate.get_input_port())
+    add_random_sources(builder)
     diagram = builder.Build()
     diagram.set_name("perception_diagram")
     return diagram
@@ -294,6 +311,7 @@ def build_swing_diagram(
     builder.Connect(ball.ball_state_port, ball_logger.get_input_port())
     joint_logger = builder.AddNamedSystem("joint_logger", VectorLogSink(16, log_period))
     builder.Connect(robot.joint_plant.joint_state_port, joint_logger.get_input_port())
+    add_random_sources(builder)
     diagram = builder.Build()
     diagram.set_name("robot_swing_diagram")
     return diagram
@@ -361,6 +379,7 @@ def build_controlled_robot_diagram(
     builder.Connect(systems.supervisor.commanded_state_port, command_logger.get_input_port())
     joint_logger = builder.AddNamedSystem("joint_logger", VectorLogSink(16, log_period))
     builder.Connect(robot.joint_plant.joint_state_port, joint_logger.get_input_port())
+    add_random_sources(builder)
     diagram = builder.Build()
     diagram.set_name("controlled_robot_diagram")
     return diagram
@@ -443,6 +462,7 @@ def build_rally_diagram(params: RallyParams | None = None, policy=None, meshcat:
     builder.Connect(systems.ball.ball_state_port, ball_logger.get_input_port())
     joint_logger = builder.AddNamedSystem("joint_logger", VectorLogSink(16, log_period))
     builder.Connect(systems.robot.joint_plant.joint_state_port, joint_logger.get_input_port())
+    add_random_sources(builder)
     diagram = builder.Build()
     diagram.set_name("rally_diagram")
     return diagram
@@ -457,24 +477,31 @@ def build_training_diagram(params: RallyParams | None = None) -> Diagram:
     params = params or RallyParams(perception=PerceptionParams(positions="statistical"))
     builder = DiagramBuilder()
     add_rally(builder, params, None)
+    add_random_sources(builder)
     diagram = builder.Build()
     diagram.set_name("training_diagram")
     return diagram
 
 
 def start_rally(diagram: Diagram, context, shot, seed: int = 0, skill=None, q=None, light_curtain: float = 0.0) -> None:
-    """Starts an episode in ``context`` at its current time: the ball in the state ``shot``
-    ([p (m), v (m/s), w (rad/s)], just after the opponent's hit), every seed parameter (ball
-    perturbations, sensors) set from ``seed``, the skill [y_desired, w_p, w_s] (default: the
-    ObservationBuilder's), and the robot at rest at q (default: the reset pose; see
-    ``start_controlled_robot``). Reuse one context per Simulator: reset it to the diagram's
-    default first (``context.SetTimeStateAndParametersFrom(diagram.CreateDefaultContext())``)."""
+    """Starts an episode in ``context`` at its current time: the context's state and parameters
+    drawn by Drake's random context from ``seed`` (``SetRandomContext(context,
+    RandomGenerator(seed))``: every stochastic system, ball perturbations and sensors alike, gets
+    its own stream, ``add_random_sources``; everything else takes its default), the policy told
+    that an episode starts (``PolicyController.ResetPolicy``), the ball in the state ``shot``
+    ([p (m), v (m/s), w (rad/s)], just after the opponent's hit), the skill [y_desired, w_p, w_s]
+    (default: the ObservationBuilder's), and the robot at rest at q (default: the reset pose; see
+    ``start_controlled_robot``). Reuse one context per Simulator; its time is kept."""
+    # First: SetRandomContext resets every state and parameter, so what follows must come after.
+    diagram.SetRandomContext(context, RandomGenerator(int(seed)))
+    # The one place an episode's start reaches the policy's own memory (the model-based
+    # returner's plan): the policy is a plain callable that the runner, the CLI and the tests all
+    # hand in, so its memory cannot live in the Context; every episode starts here instead.
+    if diagram.HasSubsystemNamed("policy_controller"):
+        controller = diagram.GetSubsystemByName("policy_controller")
+        controller.ResetPolicy(controller.GetMyContextFromRoot(context))
     ball = diagram.GetSubsystemByName("ball")
     ball.SetBallState(ball.GetMyMutableContextFromRoot(context), np.asarray(shot, dtype=float))
-    for index, name in enumerate(("ball", "aps_cameras", "position_sensor", "spin_sensor")):
-        if diagram.HasSubsystemNamed(name):
-            system = diagram.GetSubsystemByName(name)
-            system.SetSeed(system.GetMyMutableContextFromRoot(context), int(seed) * 4 + index)
     if skill is not None:
         observation = diagram.GetSubsystemByName("observation_builder")
         observation.SetSkill(observation.GetMyMutableContextFromRoot(context), skill)

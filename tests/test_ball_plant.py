@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from pydrake.common import RandomGenerator
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.math import SpatialVelocity
 
@@ -20,9 +21,9 @@ def run(diagram, state, duration, seed=0):
     ball = diagram.GetSubsystemByName("ball")
     simulator = make_simulator(diagram)
     context = simulator.get_mutable_context()
+    diagram.SetRandomContext(context, RandomGenerator(seed))
     ball_context = ball.GetMyMutableContextFromRoot(context)
     ball.SetBallState(ball_context, state)
-    ball.SetSeed(ball_context, seed)
     simulator.AdvanceTo(duration)
     return ball.ball_state_port.Eval(ball_context), ball.contact_events_port.Eval(ball_context)
 

@@ -112,7 +112,7 @@ def test_without_a_policy_the_action_is_read_from_the_request_at_each_event():
 def test_with_a_policy_there_is_no_request_port():
     dut = PolicyController(lambda observation: None, 3)
     assert not dut.external and dut.action_request_port is None
-    assert dut.num_input_ports() == 1
+    assert [dut.get_input_port(i).get_name() for i in range(dut.num_input_ports())] == ["observation", "random_seed"]
 
 
 def test_noisy_actions_add_seeded_gaussian_noise_in_the_box():
@@ -138,3 +138,30 @@ def test_noisy_actions_add_seeded_gaussian_noise_in_the_box():
     assert resets == [1]
     with pytest.raises(ConfigError, match=">= 0"):
         NoisyActions(Fixed(), -0.1)
+
+
+def test_a_stochastic_policy_is_reseeded_by_the_episode_seed_from_the_random_context():
+    # ResetPolicy hands a policy whose reset takes a seed the episode's seed (the random_seed
+    # input, drawn by SetRandomContext): its noise then depends on that seed, not on earlier episodes.
+    from pydrake.common import RandomGenerator
+
+    from ace_drake.diagrams import add_random_sources
+    from ace_drake.evaluation.controllers import NoisyActions
+
+    policy = NoisyActions(lambda observation: np.zeros(16), 0.1, seed=3)
+    builder = DiagramBuilder()
+    dut = builder.AddNamedSystem("dut", PolicyController(policy, 3, ControlParams()))
+    source = builder.AddSystem(ConstantVectorSource(np.zeros(3)))
+    builder.Connect(source.get_output_port(), dut.observation_port)
+    add_random_sources(builder)
+    diagram = builder.Build()
+    context = diagram.CreateDefaultContext()
+
+    def episode(seed, calls):
+        diagram.SetRandomContext(context, RandomGenerator(seed))
+        dut.ResetPolicy(dut.GetMyContextFromRoot(context))
+        return np.array([policy(np.zeros(3)) for _ in range(calls)])
+
+    first = episode(5, 4)
+    np.testing.assert_array_equal(episode(5, 2), first[:2])  # whatever came before
+    assert not np.allclose(episode(6, 4), first)

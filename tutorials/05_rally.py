@@ -55,6 +55,10 @@ DATA = REPO_ROOT.parent / "shared" / "data" / "ace_match_events_elite.csv"
 # A return from the human's side when the match data is absent: 7 m/s with topspin.
 BUILT_IN_SHOT = make_state((1.6, 0.2, 0.25), (-7.0, -0.5, 1.3), (0.0, 150.0, 0.0))
 SHOT_INDEX = 1  # which human shot of the match data to play
+# The seed of every episode here (the sensors' noise, the ball's perturbations): episodes are
+# reproducible by seed, and this one shows the returner's usual play (with skill (+0.3, 1, +1) it
+# returns human shot 1 for 7 of the seeds 0-7; with seed 0 that return lands long).
+SEED = 1
 # Part 4's skills [y_desired (m), w_p, w_s]: aimed left with topspin, at the centre line with none,
 # aimed right with backspin.
 SKILLS = ((0.3, 1.0, 1.0), (0.0, 1.0, 0.0), (-0.3, 1.0, -1.0))
@@ -104,7 +108,7 @@ def main() -> None:
     runner = RallyRunner(diagram, params)
     if meshcat is not None:
         meshcat.StartRecording(frames_per_second=60.0, set_visualizations_while_recording=False)
-    episode = runner.run(shot, seed=0, serve=is_serve)
+    episode = runner.run(shot, seed=SEED, serve=is_serve)
     result = episode.result
     print(f"   outcome: {result.outcome.value} {result.reason}".rstrip())
     print(f"   segments accepted {episode.segments[0]}, refused {episode.segments[1]}; {episode.duration:.2f} s simulated")
@@ -166,10 +170,10 @@ def main() -> None:
     # The returner aims its return at y_desired (within +-target_y_limit) and brushes the ball
     # along the blade by skill_brush * w_s: the spin at landing is what the reward's w_s weighs.
     # The incoming spin carries over in part (eqs (7)-(8)), so w_s moves the landing's spin up or
-    # down from what a flat stroke gives (for human shot 1: +377, +249 and +69 rad/s).
+    # down from what a flat stroke gives (for human shot 1: +388, +193 and +67 rad/s).
     print("\n4. the same shot with other skills [y_desired, w_p, w_s]:")
     for skill in SKILLS:
-        result = runner.run(shot, seed=0, serve=is_serve, skill=skill).result
+        result = runner.run(shot, seed=SEED, serve=is_serve, skill=skill).result
         landing = "" if result.landing is None else (
             f", lands at y = {result.landing.state_pre[1]:+.2f} m with topspin {travel_frame_spin(result.landing.state_pre):+.0f} rad/s")
         print(f"   skill ({skill[0]:+.1f}, {skill[1]:.0f}, {skill[2]:+.0f}): {result.outcome.value}{landing}")

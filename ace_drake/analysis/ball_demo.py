@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from pydrake.common import RandomGenerator
 from pydrake.geometry import Meshcat
 
 from ace_drake.diagrams import build_ball_diagram, make_simulator
@@ -73,9 +74,9 @@ def run_shots(
     for index, (name, state) in enumerate(shots.items()):
         start = index * duration
         context.SetTime(start)
+        diagram.SetRandomContext(context, RandomGenerator(seed + index))  # the perturbations' seed
         ball_context = ball.GetMyMutableContextFromRoot(context)
         ball.SetBallState(ball_context, state)
-        ball.SetSeed(ball_context, seed + index)
         log = logger.GetMutableLog(logger.GetMyContextFromRoot(context))
         log.Clear()
         simulator.Initialize()

@@ -37,16 +37,21 @@ class NoisyActions:
     """A controller whose every action gets independent Gaussian noise of standard deviation
     ``sigma`` per component (action units), clipped into the box; None stays None. How precise a
     controller's actions must be (docs/experiments/2026-12-01-imitation.md): a learned actor's imitation error is such a
-    noise, though not an independent one. Seeded; ``reset`` restarts the wrapped controller's memory."""
+    noise, though not an independent one. Seeded: by ``seed`` alone until an episode's start
+    (``reset(seed)``, from the PolicyController's random context) reseeds it with [seed, the
+    episode's seed], so that an episode's noise does not depend on the episodes before it;
+    ``reset`` also restarts the wrapped controller's memory."""
 
     def __init__(self, controller, sigma: float, seed: int = 0):
         if not sigma >= 0.0:
             raise ConfigError(f"action noise must be >= 0, got {sigma}")
 
-        self.controller, self._call, self.sigma = controller, as_policy(controller), sigma
+        self.controller, self._call, self.sigma, self.seed = controller, as_policy(controller), sigma, seed
         self.rng = np.random.default_rng(seed)
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
+        if seed is not None:
+            self.rng = np.random.default_rng([self.seed, seed])
         reset = getattr(self.controller, "reset", None)
         if callable(reset):
             reset()

@@ -47,17 +47,16 @@ class RallyRunner:
         self._default_context = diagram.CreateDefaultContext()
         self._default_context.SetAccuracy(self.context.get_accuracy())  # copied on every reset
         self._ball = diagram.GetSubsystemByName("ball")
-        self._controller = diagram.GetSubsystemByName("policy_controller")
         self._loggers = [system for system in diagram.GetSystems() if isinstance(system, VectorLogSink)]
         self._supervisor = diagram.GetSubsystemByName("safety_supervisor")
         self._observation = diagram.GetSubsystemByName("observation_builder")
         self._period = self._supervisor.segment_samples * self._supervisor.period
 
     def reset(self, shot, seed: int = 0, skill=None, q=None, start_time: float = 0.0) -> None:
-        """Resets the Context to the diagram's default (loggers emptied, the policy told) and
-        starts an episode from ``shot`` (see ``diagrams.start_rally``) at ``start_time`` (s; a
-        multiple of the 32 ms policy period, so that a replay can run episodes one after another
-        on one time line)."""
+        """Resets the Context to the diagram's default (loggers emptied) and starts an episode
+        from ``shot`` (see ``diagrams.start_rally``, which also tells the policy) at
+        ``start_time`` (s; a multiple of the 32 ms policy period, so that a replay can run
+        episodes one after another on one time line)."""
 
         shot = np.asarray(shot, dtype=float)
         if shot.shape != (9,) or not np.all(np.isfinite(shot)):
@@ -69,7 +68,6 @@ class RallyRunner:
         self.context.SetTime(start_time)
         for logger in self._loggers:  # logs live in the Context's cache, not its state
             logger.FindMutableLog(self.context).Clear()
-        self._controller.ResetPolicy()
         start_rally(self.diagram, self.context, shot, seed=seed, skill=skill, q=q)
         self.simulator.Initialize()
 

@@ -18,6 +18,7 @@ from pydrake.systems.sensors import CameraInfo, ImageRgba8U, RgbdSensor
 from ace_drake.perception.cameras import BALL_RADIUS, Camera, DetectionFrame, Occluder, simulate_detections, table_occluder
 from ace_drake.perception.detection import BallColorThreshold, detect_ball
 from ace_drake.perception.params import CameraParams
+from ace_drake.systems.random_seed import declare_seed_port, episode_seed
 
 RENDER_CLIPPING = (0.05, 40.0)  # m, near and far planes of the rendering cameras
 RENDER_DEPTH_RANGE = (0.06, 39.0)  # m, the (unused) depth camera's range, inside the clipping
@@ -76,6 +77,8 @@ class ApsCameraArray(LeafSystem):
             (e.g. the robot's links) besides the table, which always occludes. Analytic mode only.
         color_image_<camera name> (abstract ImageRgba8U), one per camera, rendered mode only: that
             camera's image at ``params.render_scale`` of 1440 x 1080 (``make_rgbd_sensor``).
+        random_seed (1,), random uniform: the seed of the pixel noise and dropout, drawn by
+            Drake's random context (``systems.random_seed``). Unconnected: the seed parameter.
     Output ports:
         detections (abstract DetectionFrame): the latest released trigger: sequence number,
             capture time (s), release time (s) and each camera's detected ball centre in px (NaN:
@@ -83,7 +86,7 @@ class ApsCameraArray(LeafSystem):
     State:
         abstract: the captured, unreleased frames; the latest released frame; the trigger count.
     Parameters:
-        numeric (1,): the seed of the pixel noise and dropout.
+        numeric (1,): the seed of the pixel noise and dropout while random_seed is unconnected.
     Events:
         periodic unrestricted update at ``params.trigger_rate`` (200 Hz, offset 0): capture. Per
             camera, analytic mode: project the ball's centre (cv2.projectPoints), keep it if
@@ -128,6 +131,7 @@ class ApsCameraArray(LeafSystem):
         self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
         self.ball_state_port = self.DeclareVectorInputPort("ball_state", 9)
         self.occluders_port = self.DeclareAbstractInputPort("occluders", AbstractValue.Make(()))
+        self.random_seed_port = declare_seed_port(self)
         self.image_ports = {}
         if self.params.mode == "rendered":
             self.render_cameras = tuple(camera.scaled(self.params.render_scale) for camera in self.cameras)
@@ -146,7 +150,8 @@ class ApsCameraArray(LeafSystem):
 
     # ------------------------------------------------------------------------------ set-up
     def SetSeed(self, context, seed: int) -> None:
-        """Sets the seed of the pixel noise and dropout for this context."""
+        """Sets the seed of the pixel noise and dropout for this context, used while the
+        random_seed input is unconnected (a diagram's random context seeds it otherwise)."""
         context.get_mutable_numeric_parameter(self._seed_index).SetAtIndex(0, float(seed))
 
     # ------------------------------------------------------------------------------ outputs
@@ -171,7 +176,7 @@ class ApsCameraArray(LeafSystem):
 
     def _Capture(self, context, sequence: int) -> np.ndarray:
         """The detections (C, 2), px, of trigger ``sequence`` at the context's time."""
-        seed = int(context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
+        seed = episode_seed(self.random_seed_port, context, context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
         rng = np.random.default_rng([seed, sequence])
         p_WB = self.ball_state_port.Eval(context)[:3]
         ideal_pixels = self._DetectInImages(context) if self.params.mode == "rendered" else None

@@ -20,6 +20,7 @@ from ace_drake.physics.contact import ResidualModel
 from ace_drake.physics.flight import one_ball_flight_acceleration
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, is_contact
+from ace_drake.systems.random_seed import declare_seed_port, episode_seed
 
 # m: a witness returns a cheap lower bound on its gap while that bound exceeds this (far above the
 # bounds' round-off of a few 1e-16 m), else the gap itself (BallPlant's docstring).
@@ -34,6 +35,9 @@ class BallPlant(LeafSystem):
             blade centre and its z axis the blade normal. Unconnected: there is no racket.
         racket_spatial_velocity (abstract SpatialVelocity): V_WR of R's origin in world,
             [w (rad/s), v (m/s)]. Needed when racket_pose is connected.
+        random_seed (1,), random uniform, only with ``perturb``: the seed of the post-table
+            contact perturbations, drawn by Drake's random context (``systems.random_seed``).
+            Unconnected: the seed parameter.
     Output ports:
         ball_state (9,): [p_WB (m), v_WB (m/s), w_WB (rad/s)] in world (DESIGN.md frame).
         contact_events (abstract tuple[ContactEvent]): the contacts of this episode, in order, with
@@ -42,7 +46,7 @@ class BallPlant(LeafSystem):
         continuous (9,): [p, v, w]; spin is constant in flight (paper eq. (1)).
         abstract: the tuple of contact events.
     Parameters:
-        numeric (1,): the seed of the post-table-contact perturbations.
+        numeric (1,): the seed of the perturbations while random_seed is unconnected.
     Events:
         witness functions on the table, net, floor and (when connected) racket gaps; each
         triggers an unrestricted update applying that contact's impact map from ``physics/``.
@@ -71,10 +75,10 @@ class BallPlant(LeafSystem):
         racket_reach: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         """Args: params, the ball model; perturb, apply the paper's post-table perturbations
-        (seeded by the context's seed parameter, ``seed`` by default); racket_residual, an optional
-        correction model for racket contacts (see physics/racket_residual.py); racket_reach, the
-        lower and upper corners (3,) (m, world) of a box that contains the racket frame's origin
-        at all times, or None (no such knowledge)."""
+        (seeded by the random_seed input; unconnected, by the context's seed parameter, ``seed``
+        by default); racket_residual, an optional correction model for racket contacts (see
+        physics/racket_residual.py); racket_reach, the lower and upper corners (3,) (m, world) of
+        a box that contains the racket frame's origin at all times, or None (no such knowledge)."""
         super().__init__()
         self.params = params or BallPhysicsParams()
         self._perturb = perturb
@@ -95,6 +99,7 @@ class BallPlant(LeafSystem):
         self.racket_velocity_port = self.DeclareAbstractInputPort(
             "racket_spatial_velocity", AbstractValue.Make(SpatialVelocity())
         )
+        self.random_seed_port = declare_seed_port(self) if perturb else None
         self.ball_state_port = self.DeclareVectorOutputPort(
             "ball_state", 9, self.CalcBallState, prerequisites_of_calc={self.xc_ticket()}
         )
@@ -128,7 +133,8 @@ class BallPlant(LeafSystem):
         context.get_mutable_abstract_state(self._events_index).set_value(())
 
     def SetSeed(self, context, seed: int) -> None:
-        """Sets the seed of the post-table perturbations for this context."""
+        """Sets the seed of the post-table perturbations for this context, used while the
+        random_seed input is unconnected (a diagram's random context seeds it otherwise)."""
         context.get_mutable_numeric_parameter(self._seed_index).SetAtIndex(0, float(seed))
 
     # ------------------------------------------------------------------------------ dynamics
@@ -186,7 +192,7 @@ class BallPlant(LeafSystem):
             return
         rng = None
         if self._perturb and kind == ContactKind.TABLE:
-            seed = int(context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
+            seed = episode_seed(self.random_seed_port, context, context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
             rng = np.random.default_rng([seed, len(self._events(context))])
         post = apply_impact(kind, pre, self.params, rng)
         self._record(context, state, kind, pre, post)

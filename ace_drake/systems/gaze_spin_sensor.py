@@ -21,6 +21,7 @@ from ace_drake.perception.sensor_models import (
     spin_capture_times,
 )
 from ace_drake.physics.propagate import ContactKind
+from ace_drake.systems.random_seed import declare_seed_port, episode_seed
 from ace_drake.systems.statistical_position_sensor import SensorQueue
 
 SPIN_STREAM = 2  # random streams under the seed (the position sensor uses 1)
@@ -58,6 +59,8 @@ class GazeSpinSensor(LeafSystem):
         ball_state (9,): [p_WB (m), v_WB (m/s), w_WB (rad/s)] in world (BallPlant).
         contact_events (abstract tuple[ContactEvent]): BallPlant's contacts of the episode; each
             re-draws the bias, a racket contact starts the tracking loss. Unconnected: none.
+        random_seed (1,), random uniform: the seed, drawn by Drake's random context
+            (``systems.random_seed``). Unconnected: the seed parameter.
     Output ports:
         spin_measurements (abstract MeasurementHistory): spins w_WB (rad/s) with the precision
             noise's covariance ((rad/s)^2; the bias is not in it), capture and release times (s);
@@ -66,9 +69,9 @@ class GazeSpinSensor(LeafSystem):
     State:
         abstract SpinSensorState (released and pending measurements, next sample time, biases).
     Parameters:
-        numeric (1,): the seed; poll k draws from [seed, SPIN_STREAM, k] and the bias of contact
-        interval i from [seed, BIAS_STREAM, i], the first sample time from [seed, START_STREAM];
-        a seed (>= 0) gives the same output bit for bit.
+        numeric (1,): the seed while random_seed is unconnected. Poll k draws from [seed,
+        SPIN_STREAM, k] and the bias of contact interval i from [seed, BIAS_STREAM, i], the first
+        sample time from [seed, START_STREAM]; a seed (>= 0) gives the same output bit for bit.
     Events:
         initialization: clears the state and draws the first sample time.
         periodic unrestricted update every poll_period (5 ms, offset 0): samples every capture
@@ -90,6 +93,7 @@ class GazeSpinSensor(LeafSystem):
         self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
         self.ball_state_port = self.DeclareVectorInputPort("ball_state", 9)
         self.contact_events_port = self.DeclareAbstractInputPort("contact_events", AbstractValue.Make(()))
+        self.random_seed_port = declare_seed_port(self)
         self.spin_measurements_port = self.DeclareAbstractOutputPort(
             "spin_measurements",
             lambda: AbstractValue.Make(MeasurementHistory()),
@@ -101,7 +105,7 @@ class GazeSpinSensor(LeafSystem):
 
     # ------------------------------------------------------------------------------ set-up
     def SetSeed(self, context, seed: int) -> None:
-        """Sets this context's seed."""
+        """Sets this context's seed parameter (used while random_seed is unconnected)."""
         context.get_mutable_numeric_parameter(self._seed_index).SetAtIndex(0, float(seed))
 
     # ------------------------------------------------------------------------------ events
@@ -156,4 +160,4 @@ class GazeSpinSensor(LeafSystem):
         return context.get_abstract_state(self._state_index).get_value()
 
     def _seed(self, context) -> int:
-        return int(context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
+        return episode_seed(self.random_seed_port, context, context.get_numeric_parameter(self._seed_index).GetAtIndex(0))

@@ -3,6 +3,7 @@ reads the action an outside learner requested (a gymnasium environment)."""
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 
 import numpy as np
@@ -10,6 +11,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.params import ControlParams
+from ace_drake.systems.random_seed import declare_seed_port, episode_seed
 
 
 def as_policy(policy) -> Callable[[np.ndarray], np.ndarray | None]:
@@ -53,6 +55,8 @@ class PolicyController(LeafSystem):
         observation (n,): whatever the policy reads (here: anything the diagram wires in).
         action_request (17,), only without a policy: [action (16) in [-1, 1], valid]; valid
             > 0.5 asks for a segment with that action, <= 0.5 for none (e.g. after the hit).
+        random_seed (1,), random uniform, only with a policy: the episode's seed of a stochastic
+            policy, drawn by Drake's random context (``systems.random_seed``; ``ResetPolicy``).
     Output ports:
         action (16,): the latest action, in [-1, 1] (row-major (2, 8): terminal positions, then
             velocities; ``control.action_mapping``).
@@ -88,6 +92,7 @@ class PolicyController(LeafSystem):
         self.action_request_port = None
         if self._policy is None:
             self.action_request_port = self.DeclareVectorInputPort("action_request", ACTION_REQUEST_SIZE)
+        self.random_seed_port = None if self._policy is None else declare_seed_port(self)
         self._state_index = self.DeclareDiscreteState(ACTION_SIZE + 3)
         self.action_port = self.DeclareVectorOutputPort(
             "action", ACTION_SIZE, self.CalcAction, prerequisites_of_calc={self.xd_ticket()}
@@ -97,11 +102,18 @@ class PolicyController(LeafSystem):
         )
         self.DeclarePeriodicDiscreteUpdateEvent(segment, segment - self.control.observation_lead, self.UpdateAction)
 
-    def ResetPolicy(self) -> None:
+    def ResetPolicy(self, context=None) -> None:
         """Tells a stateful policy that a new episode starts: calls its ``reset()`` if it has one
-        (the model-based returner remembers the ball it is playing)."""
+        (the model-based returner remembers the ball it is playing). A stochastic policy, one
+        whose ``reset`` takes a ``seed``, gets the episode's seed from this system's random_seed
+        input in ``context`` (this system's context, after the diagram's ``SetRandomContext``),
+        so that its noise too follows the episode's seed (``diagrams.start_rally``)."""
         reset = getattr(self._source, "reset", None)
-        if callable(reset):
+        if not callable(reset):
+            return
+        if context is not None and "seed" in inspect.signature(reset).parameters:
+            reset(seed=episode_seed(self.random_seed_port, context, 0))
+        else:
             reset()
 
     @property

@@ -11,6 +11,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import PositionSensorParams
 from ace_drake.perception.sensor_models import PendingMeasurement, insert_pending, release_due, sample_position_measurements
+from ace_drake.systems.random_seed import declare_seed_port, episode_seed
 
 POSITION_STREAM = 1  # random stream of this sensor under its seed (the spin sensor has its own)
 
@@ -55,6 +56,8 @@ class StatisticalPositionSensor(LeafSystem):
 
     Input ports:
         ball_state (9,): [p_WB (m), v_WB (m/s), w_WB (rad/s)] in world (BallPlant).
+        random_seed (1,), random uniform: the seed, drawn by Drake's random context
+            (``systems.random_seed``). Unconnected: the seed parameter.
     Output ports:
         position_measurements (abstract MeasurementHistory): positions p_WB (m) with covariance
             noise_std^2 I (m^2), capture time = the trigger (s) and release time = capture +
@@ -63,8 +66,9 @@ class StatisticalPositionSensor(LeafSystem):
     State:
         abstract SensorQueue: the released history and the sampled, not yet released measurements.
     Parameters:
-        numeric (1,): the seed; the draws at trigger k come from the generator seeded with
-        [seed, POSITION_STREAM, k], so a seed gives the same measurements bit for bit.
+        numeric (1,): the seed while random_seed is unconnected. The draws at trigger k come
+        from the generator seeded with [seed, POSITION_STREAM, k], so a seed gives the same
+        measurements bit for bit.
     Events:
         initialization: clears the queue (a new episode).
         periodic unrestricted update every trigger_period (5 ms, 200 Hz, offset 0): samples the
@@ -79,6 +83,7 @@ class StatisticalPositionSensor(LeafSystem):
         self._queue_index = self.DeclareAbstractState(AbstractValue.Make(self._empty))
         self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
         self.ball_state_port = self.DeclareVectorInputPort("ball_state", 9)
+        self.random_seed_port = declare_seed_port(self)
         self.position_measurements_port = self.DeclareAbstractOutputPort(
             "position_measurements",
             lambda: AbstractValue.Make(MeasurementHistory()),
@@ -90,7 +95,7 @@ class StatisticalPositionSensor(LeafSystem):
 
     # ------------------------------------------------------------------------------ set-up
     def SetSeed(self, context, seed: int) -> None:
-        """Sets this context's seed."""
+        """Sets this context's seed parameter (used while random_seed is unconnected)."""
         context.get_mutable_numeric_parameter(self._seed_index).SetAtIndex(0, float(seed))
 
     # ------------------------------------------------------------------------------ events
@@ -117,4 +122,4 @@ class StatisticalPositionSensor(LeafSystem):
         return context.get_abstract_state(self._queue_index).get_value()
 
     def _seed(self, context) -> int:
-        return int(context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
+        return episode_seed(self.random_seed_port, context, context.get_numeric_parameter(self._seed_index).GetAtIndex(0))
