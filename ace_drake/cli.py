@@ -520,12 +520,12 @@ def cmd_diagrams(args) -> int:
 def cmd_train(args) -> int:
     """A training run (``learning.trainer``): resumes from the run directory's checkpoint, trains,
     exports the policy with its sidecar and learning curve."""
-    from ace_drake.learning.trainer import Trainer, export, load_train_config
+    from ace_drake.learning.trainer import CHECKPOINT, PREVIOUS_CHECKPOINT, Trainer, export, load_train_config
 
     config = load_train_config(args.config)
     run_dir = Path(args.run_dir or REPO_ROOT / "out" / "train" / config.name)
     log(f"train: {args.config} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
-    if args.export_only and not (run_dir / "checkpoint.pt").is_file():
+    if args.export_only and not any((run_dir / name).is_file() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
         raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
     trainer = Trainer(config, run_dir, progress=log)
     if args.export_only:

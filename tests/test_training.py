@@ -625,3 +625,46 @@ def test_a_checkpoint_written_before_a_learner_field_existed_loads_with_its_defa
     SacLearner(SMALL).load_state_dict(state)
     with pytest.raises(ValueError, match="hit_memory"):
         SacLearner(dataclasses.replace(SMALL, hit_memory=True)).load_state_dict(state)
+
+
+def test_a_checkpoint_write_keeps_the_previous_one(tmp_path):
+    from ace_drake.learning.trainer import read_checkpoint
+
+    dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    dut.checkpoint()
+    assert not (tmp_path / "run" / "checkpoint.prev.pt").exists()
+    dut.state.env_steps = 7
+    dut.checkpoint()
+    assert read_checkpoint(tmp_path / "run" / "checkpoint.pt")["progress"]["env_steps"] == 7
+    assert read_checkpoint(tmp_path / "run" / "checkpoint.prev.pt")["progress"]["env_steps"] == 0
+    assert sorted(p.name for p in (tmp_path / "run").glob("checkpoint*")) == ["checkpoint.prev.pt", "checkpoint.pt"]  # no .tmp left
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty"])
+def test_a_damaged_checkpoint_names_the_file_and_what_to_do(tmp_path, damage):
+    from ace_drake.learning.trainer import CheckpointError
+
+    Trainer(_config(), tmp_path / "run", progress=lambda line: None).checkpoint()
+    path = tmp_path / "run" / "checkpoint.pt"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2] if damage == "truncated" else b"")
+    with pytest.raises(CheckpointError, match=rf"{path}: .*{'truncated' if damage == 'truncated' else 'empty'}.*delete it to start the run afresh"):
+        Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    assert issubclass(CheckpointError, ConfigError)  # the CLI reports it as an input error
+
+
+def test_a_run_resumes_from_the_previous_checkpoint_when_the_latest_is_damaged_or_missing(tmp_path, capsys):
+    first = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    first.state.env_steps = 5
+    first.checkpoint()
+    first.state.env_steps = 9
+    first.checkpoint()
+    path = tmp_path / "run" / "checkpoint.pt"
+    path.write_bytes(path.read_bytes()[:1000])  # a crash while writing it (as an older version wrote in place)
+    dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    assert (dut.state.env_steps, dut.state.resumptions) == (5, 1)
+    warning = capsys.readouterr().err
+    assert f"warning: train: {path}: not a readable checkpoint" in warning and "checkpoint.prev.pt" in warning
+    path.unlink()  # a crash between the two renames of a write
+    assert Trainer(_config(), tmp_path / "run", progress=lambda line: None).state.env_steps == 5
+    assert "is missing; resuming from the previous checkpoint" in capsys.readouterr().err
