@@ -30,8 +30,9 @@ def log(message: str) -> None:
 
 
 def emit_json(payload: dict) -> None:
-    """The single JSON object of a ``--json`` command."""
-    json.dump(payload, sys.stdout, indent=2, default=_json_default)
+    """The single JSON object of a ``--json`` command; a number that is not finite is written as
+    null (JSON has no NaN), so the output is always valid JSON."""
+    json.dump(_finite_or_null(payload), sys.stdout, indent=2, default=_json_default, allow_nan=False)
     sys.stdout.write("\n")
 
 
@@ -734,6 +735,22 @@ def _maybe(value, spec: str = ".3f") -> str:
 
 def _sha256(path: str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _finite_or_null(value):
+    """``value`` with NumPy values as Python ones and every non-finite float as None, in nested
+    dicts, lists and tuples."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _finite_or_null(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_null(item) for item in value]
+    return value
 
 
 def _json_default(value):
