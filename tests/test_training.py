@@ -668,3 +668,43 @@ def test_a_run_resumes_from_the_previous_checkpoint_when_the_latest_is_damaged_o
     path.unlink()  # a crash between the two renames of a write
     assert Trainer(_config(), tmp_path / "run", progress=lambda line: None).state.env_steps == 5
     assert "is missing; resuming from the previous checkpoint" in capsys.readouterr().err
+
+
+SHIPPED_POLICIES = sorted((Path(__file__).resolve().parents[1] / "models" / "policies").glob("*.pt"))
+
+
+@pytest.mark.parametrize("path", SHIPPED_POLICIES, ids=lambda path: path.stem)
+def test_each_shipped_policy_loads_weights_only(path):
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    assert payload["format"] == 1 and set(payload) <= {"format", "sac_config", "actor", "hit_state"}
+    dut = load_policy(path)  # which loads it weights only too
+    assert isinstance(dut, torch.nn.Module)
+
+
+def test_there_are_six_shipped_policies():
+    assert [path.stem for path in SHIPPED_POLICIES] == ["rally_hit_state", "rally_hit_state_braking", "rally_hit_state_meet",
+                                                        "rally_hit_state_meet_more", "rally_sac", "rally_skill"]
+
+
+@dataclasses.dataclass
+class _NotWeights:
+    value: int = 1
+
+
+def test_a_checkpoint_loads_weights_only_with_its_numpy_tables_and_refuses_other_objects(tmp_path):
+    from ace_drake.learning.trainer import CheckpointError, read_checkpoint
+
+    dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    dut.demonstrations.add({"obs": np.ones((3, dut.learner.observation_size)), "privileged": np.zeros((3, 28)),
+                            "demo_action": np.zeros((3, ACTION_SIZE))})
+    dut.state.evaluations = [(0, 0, {"rate": 0.5, "ci95": [np.float64(0.25), np.float64(0.75)]})]
+    dut.checkpoint()
+    path = tmp_path / "run" / "checkpoint.pt"
+    payload = read_checkpoint(path)
+    np.testing.assert_array_equal(payload["demonstrations"]["buffer"]["data"]["obs"], 1.0)
+    assert payload["progress"]["evaluations"][0][2]["ci95"] == [0.25, 0.75]
+    assert Trainer(_config(), tmp_path / "run", progress=lambda line: None).state.evaluations == dut.state.evaluations
+    payload["recent"] = [_NotWeights()]  # a Python object that a weights-only load must not build
+    torch.save(payload, path)
+    with pytest.raises(CheckpointError, match=rf"{path}: not a readable checkpoint .*_NotWeights"):
+        read_checkpoint(path)

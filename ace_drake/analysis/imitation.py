@@ -58,11 +58,9 @@ def demonstration_arrays(checkpoint) -> tuple[np.ndarray, np.ndarray, Observatio
     """(observations (N, n), the returner's actions (N, 16), the observation layout of the run's
     learner) of a training checkpoint's demonstration buffer, in collection order. Raises
     ValueError when it holds none."""
-    import torch
+    from ace_drake.learning.replay import DemonstrationBuffer, load_weights_only
 
-    from ace_drake.learning.replay import DemonstrationBuffer
-
-    payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    payload = load_weights_only(checkpoint)
     if "demonstrations" not in payload:
         raise ValueError(f"imitation: {checkpoint} is not a training checkpoint (no demonstrations)")
     buffer = DemonstrationBuffer(capacity=int(payload["demonstrations"]["buffer"]["capacity"]))

@@ -369,7 +369,7 @@ def load_policy(path) -> DeterministicPolicy:
     from ace_drake.config import from_dict
 
     try:
-        payload = torch.load(path, weights_only=False)
+        payload = torch.load(path, map_location="cpu", weights_only=True)  # tensors and plain containers only
     except Exception as error:  # torch raises several kinds for a file that is not its own
         raise ValueError(f"{path}: not a policy artefact ({type(error).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != POLICY_FORMAT:

@@ -39,6 +39,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import pickle
+import re
 import sys
 import time
 from collections import deque
@@ -66,7 +68,7 @@ def read_checkpoint(path) -> dict:
     """The payload of the training checkpoint at ``path``. Raises CheckpointError naming the file
     and what to do when it cannot be read (truncated, e.g. by a crash while it was written by an
     older version, empty, or not a training checkpoint), FileNotFoundError when it is absent."""
-    import torch
+    from ace_drake.learning.replay import load_weights_only
 
     path = Path(path)
     if not path.is_file():
@@ -75,7 +77,12 @@ def read_checkpoint(path) -> dict:
     if path.stat().st_size == 0:
         raise CheckpointError(f"{path}: the checkpoint is empty; {remedy}")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        payload = load_weights_only(path)  # weights only: loading a checkpoint runs no code from it
+    except pickle.UnpicklingError as error:
+        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(error))
+        what = refused.group(1) if refused else "something other than tensors, plain containers and NumPy arrays"
+        raise CheckpointError(f"{path}: not a readable checkpoint (it holds {what}, which a weights-only load does not build); "
+                              f"{remedy}") from None
     except Exception as error:  # torch raises several kinds (RuntimeError, EOFError, UnpicklingError) for a damaged file
         reason = str(error).splitlines()[0] if str(error) else type(error).__name__
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or damaged: {reason}); {remedy}") from None
