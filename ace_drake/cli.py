@@ -528,6 +528,10 @@ def cmd_train(args) -> int:
     log(f"train: {args.config} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
     if args.export_only and not any((run_dir / name).is_file() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
         raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
+    existing = [path for path in (Path(args.export_dir) / f"{config.name}{suffix}" for suffix in (".pt", ".json", "_curve.png")) if path.exists()]
+    if existing and not args.overwrite:  # checked before anything is trained or written
+        raise ConfigError(f"train: {existing[0]} exists (a policy named {config.name!r}, e.g. a shipped one); give --overwrite to "
+                          "replace it, or another --export-dir or config name")
     trainer = Trainer(config, run_dir, progress=log)
     if args.export_only:
         log(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
@@ -641,6 +645,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
     train.add_argument("--evaluate-data", help="match-data CSV: evaluate the exported policy on its human shots (cameras) into the sidecar")
     train.add_argument("--export-only", action="store_true", help="export the run's checkpoint as it stands (e.g. a run stopped early) without training")
+    train.add_argument("--overwrite", action="store_true", help="replace a policy of the same name in --export-dir (refused otherwise)")
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
 

@@ -414,7 +414,7 @@ def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
     assert printed["env_steps"] >= 40 and printed["policy"].endswith("cli.pt")
     sidecar = json.loads((tmp_path / "policies" / "cli.json").read_text())
     assert sidecar["command"].startswith("ace-drake train") and sidecar["final_evaluation"] is None
-    assert main(args + ["--export-only"]) == 0  # resumes nothing, trains nothing
+    assert main(args + ["--export-only", "--overwrite"]) == 0  # resumes nothing, trains nothing; replaces the export
     assert "exported" in capsys.readouterr().out
     assert main(["train", str(config), "--run-dir", str(tmp_path / "empty"), "--export-only"]) == 2
 
@@ -708,3 +708,24 @@ def test_a_checkpoint_loads_weights_only_with_its_numpy_tables_and_refuses_other
     torch.save(payload, path)
     with pytest.raises(CheckpointError, match=rf"{path}: not a readable checkpoint .*_NotWeights"):
         read_checkpoint(path)
+
+
+def test_train_refuses_to_overwrite_a_policy_of_the_same_name_without_overwrite(tmp_path, capsys):
+    import json
+
+    import yaml
+
+    from ace_drake.cli import main
+    from ace_drake.config import to_dict
+
+    config = tmp_path / "train.yaml"
+    config.write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(_config(name="shipped", env_steps=40))))))
+    policies = tmp_path / "policies"
+    policies.mkdir()
+    (policies / "shipped.pt").write_bytes(b"the shipped policy")
+    args = ["train", str(config), "--run-dir", str(tmp_path / "run"), "--export-dir", str(policies)]
+    assert main(args) == 2
+    error = capsys.readouterr().err
+    assert f"error: train: {policies / 'shipped.pt'} exists" in error and "give --overwrite to replace it" in error
+    assert (policies / "shipped.pt").read_bytes() == b"the shipped policy" and [p.name for p in policies.iterdir()] == ["shipped.pt"]
+    assert not (tmp_path / "run").exists()  # refused before anything was trained or written
