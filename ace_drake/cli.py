@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import BallPhysicsParams, ConfigError, PerceptionParams, RallyParams, load_config, to_dict
+from ace_drake.config import BallPhysicsParams, ConfigError, InputError, PerceptionParams, RallyParams, load_config, to_dict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MODELS = REPO_ROOT / "models"
@@ -720,7 +720,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, ValueError, FileNotFoundError) as error:
+    except (InputError, FileNotFoundError) as error:  # bad input (ConfigError, MatchDataError, ... are InputErrors); a bug keeps its traceback
         log(f"ace-drake {args.command}: error: {error}")
         return 2
 

@@ -250,3 +250,38 @@ def test_a_match_data_row_without_a_column_is_an_input_error(capsys, tmp_path):
     data.write_text("player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\nP,/g/r/e1,shot_p2,1.0,[1 2 3]\n")
     assert main(["physics-validate", "--data", str(data)]) == 2
     assert f"error: {data}, line 2: no value in column(s) ['ball_vel_out', 'ball_spin_out']" in capsys.readouterr().err
+
+
+def test_only_input_errors_exit_2_and_a_bug_keeps_its_traceback(capsys, monkeypatch, tmp_path):
+    import ace_drake.cli as cli
+    from ace_drake.analysis.match_data import MatchDataError
+    from ace_drake.config import ConfigError, InputError
+    from ace_drake.control.sysid import JointLogError
+    from ace_drake.learning.trainer import CheckpointError
+    from ace_drake.play.shots import ShotDistributionError
+
+    assert all(issubclass(error, InputError) for error in (ConfigError, MatchDataError, JointLogError, ShotDistributionError, CheckpointError))
+    argv = ["physics-validate", "--data", str(tmp_path / "events.csv")]
+
+    def bug(path):
+        raise ValueError("an internal bug")
+
+    monkeypatch.setattr(cli, "load_ball_params", bug)
+    with pytest.raises(ValueError, match="an internal bug"):  # not "error: ..." and exit 2
+        main(argv)
+
+    def bad_input(path):
+        raise InputError("--params: not a ball model")
+
+    monkeypatch.setattr(cli, "load_ball_params", bad_input)
+    assert main(argv) == 2
+    assert "ace-drake physics-validate: error: --params: not a ball model" in capsys.readouterr().err
+
+
+def test_a_file_that_is_not_a_policy_artefact_is_an_input_error(tmp_path):
+    from ace_drake.config import InputError
+    from ace_drake.learning.sac import load_policy
+
+    (tmp_path / "junk.pt").write_bytes(b"not torch")
+    with pytest.raises(InputError, match=r"junk\.pt: not a policy artefact"):
+        load_policy(tmp_path / "junk.pt")

@@ -14,10 +14,12 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from ace_drake.config import InputError
+
 REQUIRED_COLUMNS = ("player_id", "rally_id", "type", "timestamp", "ball_pos", "ball_vel_out", "ball_spin_out")
 
 
-class MatchDataError(ValueError):
+class MatchDataError(InputError):
     """The match-data file is missing or malformed; the message names the file, row and column."""
 
 

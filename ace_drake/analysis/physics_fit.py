@@ -16,7 +16,7 @@ from scipy.optimize import least_squares
 
 from ace_drake.analysis.match_data import EventPairs
 from ace_drake.analysis.physics_validation import predict_pairs
-from ace_drake.config import BallPhysicsParams
+from ace_drake.config import BallPhysicsParams, InputError
 
 # name -> (lower, upper): the coefficients the fit may change, and the box it keeps them in.
 FIT_BOUNDS = {
@@ -128,10 +128,10 @@ def fit_physics(
     the same data and start give the same result. ``progress`` receives a line per evaluation.
     """
     if len(pairs) == 0:
-        raise ValueError("fit_physics: no event pairs to fit")
+        raise InputError("fit_physics: no event pairs to fit")
     unknown = [n for n in names if n not in FIT_BOUNDS]
     if unknown:
-        raise ValueError(f"fit_physics: cannot fit {unknown}; choose from {sorted(FIT_BOUNDS)}")
+        raise InputError(f"fit_physics: cannot fit {unknown}; choose from {sorted(FIT_BOUNDS)}")
     params = initial or BallPhysicsParams()
     evaluations = [0]
     messages = []
@@ -192,5 +192,5 @@ def _best_grid_start(x0, cost0, names, cost):
 def _split(name: str) -> tuple[str, str]:
     group, _, field = name.partition(".")
     if not field or group not in {f.name for f in dataclasses.fields(BallPhysicsParams)}:
-        raise ValueError(f"not a coefficient name: {name!r} (expected like 'aero.drag_coefficient')")
+        raise InputError(f"not a coefficient name: {name!r} (expected like 'aero.drag_coefficient')")
     return group, field

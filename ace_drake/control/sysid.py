@@ -19,14 +19,14 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from ace_drake.config import JointDynamicsParams
+from ace_drake.config import InputError, JointDynamicsParams
 from ace_drake.control.joint_model import ProcessModel, simulate_joint
 
 DELAY_GRID_STEP = 0.25e-3  # s
 MAX_DELAY = 0.02  # s
 
 
-class JointLogError(ValueError):
+class JointLogError(InputError):
     """A joint log is missing, malformed or not uniformly sampled; the message says which."""
 
 

@@ -33,7 +33,7 @@ import numpy as np
 from scipy import stats
 
 from ace_drake.analysis.match_data import MatchDataError, load_match_events
-from ace_drake.config import BallPhysicsParams, ShotParams
+from ace_drake.config import BallPhysicsParams, InputError, ShotParams
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.propagate import DEFAULT_KINDS, ContactEvent, ContactKind, contact_gap, simulate
 from ace_drake.play.episode import classify
@@ -51,7 +51,7 @@ FIRST_BATCH_ACCEPTANCE = 0.6
 SYNTHETIC_CANDIDATES = 2000  # uniform draws per kind for the synthetic set, before the validity check
 
 
-class ShotDistributionError(ValueError):
+class ShotDistributionError(InputError):
     """A shot distribution cannot be fitted or sampled; the message says which kind and why."""
 
 
