@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ace_drake.config import ConfigError, load_config, to_dict
+from ace_drake.config import ConfigError, InputError, load_config, to_dict
 from ace_drake.control.params import RallyParams
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.params import BallPhysicsParams
@@ -33,8 +33,9 @@ def log(message: str) -> None:
 
 
 def emit_json(payload: dict) -> None:
-    """The single JSON object of a ``--json`` command."""
-    json.dump(payload, sys.stdout, indent=2, default=_json_default)
+    """The single JSON object of a ``--json`` command; a number that is not finite is written as
+    null (JSON has no NaN), so the output is always valid JSON."""
+    json.dump(_finite_or_null(payload), sys.stdout, indent=2, default=_json_default, allow_nan=False)
     sys.stdout.write("\n")
 
 
@@ -523,13 +524,17 @@ def cmd_diagrams(args) -> int:
 def cmd_train(args) -> int:
     """A training run (``training.trainer``): resumes from the run directory's checkpoint, trains,
     exports the policy with its sidecar and learning curve."""
-    from ace_drake.training.trainer import Trainer, export, load_train_config
+    from ace_drake.training.trainer import CHECKPOINT, PREVIOUS_CHECKPOINT, Trainer, export, load_train_config
 
     config = load_train_config(args.config)
     run_dir = Path(args.run_dir or REPO_ROOT / "out" / "train" / config.name)
     log(f"train: {args.config} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
-    if args.export_only and not (run_dir / "checkpoint.pt").is_file():
+    if args.export_only and not any((run_dir / name).is_file() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
         raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
+    existing = [path for path in (Path(args.export_dir) / f"{config.name}{suffix}" for suffix in (".pt", ".json", "_curve.png")) if path.exists()]
+    if existing and not args.overwrite:  # checked before anything is trained or written
+        raise ConfigError(f"train: {existing[0]} exists (a policy named {config.name!r}, e.g. a shipped one); give --overwrite to "
+                          "replace it, or another --export-dir or config name")
     trainer = Trainer(config, run_dir, progress=log)
     if args.export_only:
         log(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
@@ -661,6 +666,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
     train.add_argument("--evaluate-data", help="match-data CSV: evaluate the exported policy on its human shots (cameras) into the sidecar")
     train.add_argument("--export-only", action="store_true", help="export the run's checkpoint as it stands (e.g. a run stopped early) without training")
+    train.add_argument("--overwrite", action="store_true", help="replace a policy of the same name in --export-dir (refused otherwise)")
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
 
@@ -739,7 +745,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, ValueError, FileNotFoundError) as error:
+    except (InputError, FileNotFoundError) as error:  # bad input (ConfigError, MatchDataError, ... are InputErrors); a bug keeps its traceback
         log(f"ace-drake {args.command}: error: {error}")
         return 2
 
@@ -759,6 +765,22 @@ def _maybe(value, spec: str = ".3f") -> str:
 
 def _sha256(path: str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _finite_or_null(value):
+    """``value`` with NumPy values as Python ones and every non-finite float as None, in nested
+    dicts, lists and tuples."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _finite_or_null(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_null(item) for item in value]
+    return value
 
 
 def _json_default(value):

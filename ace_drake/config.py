@@ -27,7 +27,14 @@ T = TypeVar("T")
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 
 
-class ConfigError(ValueError):
+class InputError(ValueError):
+    """What the user gave is wrong: a config value, a data or artefact file, a command-line value;
+    the message names it and what was expected. The command line reports these (and a missing
+    file) as ``error: ...`` with exit status 2; any other exception is a bug and keeps its
+    traceback."""
+
+
+class ConfigError(InputError):
     """A configuration value is missing, misspelt or out of range; the message names the field."""
 
 

@@ -14,10 +14,12 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from ace_drake.config import InputError
+
 REQUIRED_COLUMNS = ("player_id", "rally_id", "type", "timestamp", "ball_pos", "ball_vel_out", "ball_spin_out")
 
 
-class MatchDataError(ValueError):
+class MatchDataError(InputError):
     """The match-data file is missing or malformed; the message names the file, row and column."""
 
 
@@ -74,6 +76,10 @@ def load_match_events(path: str | Path) -> list[MatchEvent]:
         if missing:
             raise MatchDataError(f"{path}: missing column(s) {missing}; expected {list(REQUIRED_COLUMNS)}")
         for line, row in enumerate(reader, start=2):
+            absent = [c for c in REQUIRED_COLUMNS if row.get(c) is None]  # a short row: DictReader fills None
+            if absent:
+                raise MatchDataError(f"{path}, line {line}: no value in column(s) {absent} (the row has "
+                                     f"{sum(v is not None for v in row.values())} fields; expected {len(reader.fieldnames)})")
             try:
                 kind, _, side = row["type"].partition("_")
                 if kind not in ("shot", "bounce", "net"):

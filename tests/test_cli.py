@@ -205,3 +205,83 @@ def test_bench_perception_reports_triangulation_and_ekf_errors(capsys):
         assert late["valid_fraction"] == 1.0 and late["velocity_error_mean_m_s"] < 0.5
     assert 0.9 < figures["coverage_3_views_5_px"] <= 1.0
     assert main(["bench", "perception"]) == 2
+
+
+def test_physics_validate_json_leaves_out_non_finite_figures_and_counts_them(capsys, tmp_path):
+    # Two shot -> bounce pairs (the shared data's first rally's shape); the second bounce was
+    # recorded without a velocity.
+    data = tmp_path / "events.csv"
+    data.write_text(
+        "player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\n"
+        "Elite A,/game_0/rally_0/event1,shot_p2,29.03,[ 1.82956839 -0.45609742  0.25450805],[-5.73012773  1.04166943 -0.5737637 ],"
+        "[ -76.13009986   84.66006598 -213.75973523]\n"
+        "Elite A,/game_0/rally_0/event2,bounce_p2,29.215,[ 0.85414135 -0.23702946  0.01713298],[-4.10968873  1.33167064  1.82470505],"
+        "[ -68.40530475   26.40244034 -212.59858184]\n"
+        "Elite A,/game_0/rally_1/event1,shot_p2,31.03,[ 1.82956839 -0.45609742  0.25450805],[-5.73012773  1.04166943 -0.5737637 ],"
+        "[ -76.13009986   84.66006598 -213.75973523]\n"
+        "Elite A,/game_0/rally_1/event2,bounce_p2,31.215,[ 0.85414135 -0.23702946  0.01713298],[nan nan nan],"
+        "[ -68.40530475   26.40244034 -212.59858184]\n"
+    )
+    assert main(["physics-validate", "--data", str(data), "--json"]) == 0
+    out = capsys.readouterr().out
+    result = json.loads(out, parse_constant=lambda name: pytest.fail(f"--json wrote {name}"))
+    assert (result["pairs"], result["missed"]) == (2, 0)
+    assert result["non_finite"] == {"landing_error_m": 0, "time_error_s": 0, "post_bounce_velocity_error_mps": 1,
+                                    "post_bounce_spin_error_radps": 0}
+    # The velocity figure is the one finite pair's (median = p90 = mean), not NaN.
+    velocity = result["post_bounce_velocity_error_mps"]
+    assert velocity["median"] == velocity["p90"] == velocity["mean"] > 0.0
+    assert result["by_transition"]["shot_p2->bounce_p2"]["non_finite"]["post_bounce_velocity_error_mps"] == 1
+    assert main(["physics-validate", "--data", str(data)]) == 0
+    assert "left out, not finite in the data: 1 pair(s) of post_bounce_velocity_error_mps" in capsys.readouterr().out
+
+
+def test_json_output_writes_non_finite_numbers_as_null(capsys):
+    import numpy as np
+
+    from ace_drake.cli import emit_json
+
+    emit_json({"a": float("nan"), "b": [1.0, np.inf], "c": np.array([np.nan, 2.0]), "d": np.float64("-inf"), "e": "nan"})
+    assert json.loads(capsys.readouterr().out) == {"a": None, "b": [1.0, None], "c": [None, 2.0], "d": None, "e": "nan"}
+
+
+def test_a_match_data_row_without_a_column_is_an_input_error(capsys, tmp_path):
+    data = tmp_path / "events.csv"
+    data.write_text("player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\nP,/g/r/e1,shot_p2,1.0,[1 2 3]\n")
+    assert main(["physics-validate", "--data", str(data)]) == 2
+    assert f"error: {data}, line 2: no value in column(s) ['ball_vel_out', 'ball_spin_out']" in capsys.readouterr().err
+
+
+def test_only_input_errors_exit_2_and_a_bug_keeps_its_traceback(capsys, monkeypatch, tmp_path):
+    import ace_drake.cli as cli
+    from ace_drake.config import ConfigError, InputError
+    from ace_drake.control.sysid import JointLogError
+    from ace_drake.match_data import MatchDataError
+    from ace_drake.play.shots import ShotDistributionError
+    from ace_drake.training.trainer import CheckpointError
+
+    assert all(issubclass(error, InputError) for error in (ConfigError, MatchDataError, JointLogError, ShotDistributionError, CheckpointError))
+    argv = ["physics-validate", "--data", str(tmp_path / "events.csv")]
+
+    def bug(path):
+        raise ValueError("an internal bug")
+
+    monkeypatch.setattr(cli, "load_ball_params", bug)
+    with pytest.raises(ValueError, match="an internal bug"):  # not "error: ..." and exit 2
+        main(argv)
+
+    def bad_input(path):
+        raise InputError("--params: not a ball model")
+
+    monkeypatch.setattr(cli, "load_ball_params", bad_input)
+    assert main(argv) == 2
+    assert "ace-drake physics-validate: error: --params: not a ball model" in capsys.readouterr().err
+
+
+def test_a_file_that_is_not_a_policy_artefact_is_an_input_error(tmp_path):
+    from ace_drake.config import InputError
+    from ace_drake.learning.sac import load_policy
+
+    (tmp_path / "junk.pt").write_bytes(b"not torch")
+    with pytest.raises(InputError, match=r"junk\.pt: not a policy artefact"):
+        load_policy(tmp_path / "junk.pt")

@@ -316,3 +316,36 @@ def test_the_returners_planned_hit_state_plays_through_the_layer(layer):
     assert at_prediction and remembering.returner.last_plan.time == pytest.approx(preferred + layer.segment, abs=1e-9)
     assert not planned.plan(later)[1]  # the memoryless labeller plans its own preference: no label there
     assert not np.allclose(y_later, y)
+
+
+def test_a_non_finite_hit_state_is_an_invalid_action_like_a_plain_policys(layer):
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    from ace_drake.control.params import ControlParams
+    from ace_drake.systems.policy_controller import PolicyController
+
+    meeting = HitStateLayer.for_rally(RallyParams(), meet_ball=True)
+    predictor = HitPredictor.for_robot(layer.driver.stack.scenario, layer.driver.stack.control, BallPhysicsParams())
+    estimate = simulate(INCOMING_BALL, BallPhysicsParams(), 0.1).final_state[0]
+    obs = observation(layer.layout, estimate, predictor)
+    assert layer.steps_to_hit(layer.layout.part(obs, "hit_prediction")[1]) >= 2
+    nan_y = np.r_[np.full(3, np.nan), np.zeros(ACTION_SIZE - 3)]
+    # The layer computes nothing from it (the meeting layer's kinematics would raise on NaN) and
+    # passes it on; None stays None.
+    for dut in (layer, meeting):
+        passed = dut(obs, nan_y)
+        assert passed.shape == (ACTION_SIZE,) and np.isnan(passed[:3]).all()
+        assert dut(obs, None) is None
+    # Behind a PolicyController the hit-state actor's NaN counts as invalid, as a plain NaN policy's does.
+    outputs = iter([np.zeros(ACTION_SIZE), nan_y])
+    builder = DiagramBuilder()
+    dut = builder.AddNamedSystem("dut", PolicyController(lambda o: meeting(o, next(outputs)), len(obs), ControlParams()))
+    builder.Connect(builder.AddSystem(ConstantVectorSource(obs)).get_output_port(), dut.observation_port)
+    simulator = Simulator(builder.Build())
+    context = dut.GetMyContextFromRoot(simulator.get_context())
+    simulator.AdvanceTo(0.0271)
+    assert dut.counts(context) == (1, 0) and dut.action_valid_port.Eval(context)[0] == 1.0
+    simulator.AdvanceTo(0.0271 + 0.032)
+    assert dut.counts(context) == (2, 1) and dut.action_valid_port.Eval(context)[0] == 0.0

@@ -93,3 +93,11 @@ def test_the_imitation_command_reports_its_fits(tmp_path, capsys):
     assert report["rows"] == 1500 and [fit["fit_rows"] for fit in report["fits"]] == [1350, 1350, 675, 337]
     assert "hit_prediction" not in report["fits"][0]["parts"] and "hit_prediction" in report["fits"][1]["parts"]
     assert cli.main(["imitation", str(tmp_path / "missing.pt")]) == 2
+
+
+def test_the_imitation_command_reports_a_file_that_is_not_a_checkpoint_as_an_input_error(tmp_path, capsys):
+    from ace_drake import cli
+
+    torch.save({"learner": {}}, tmp_path / "other.pt")
+    assert cli.main(["imitation", str(tmp_path / "other.pt")]) == 2
+    assert f"error: imitation: {tmp_path / 'other.pt'} is not a training checkpoint" in capsys.readouterr().err

@@ -46,3 +46,11 @@ def test_errors_name_file_line_and_problem(tmp_path):
     path = write(tmp_path, "P,/g/r/e1,serve_p2,1.0,[1 2 3],[0 0 0],[0 0 0]\n")
     with pytest.raises(MatchDataError, match="unknown event type"):
         load_match_events(path)
+
+
+def test_a_short_row_names_the_file_line_and_the_columns_without_a_value(tmp_path):
+    path = write(tmp_path, "P,/g/r/e1,shot_p2,1.0,[1 2 3],[0 0 0],[0 0 0]\n"
+                           "P,/g/r/e2,bounce_p2,1.3,[1 2 0.02]\n")
+    with pytest.raises(MatchDataError, match=r"events\.csv, line 3: no value in column\(s\) \['ball_vel_out', 'ball_spin_out'\] "
+                                             r"\(the row has 5 fields; expected 7\)"):
+        load_match_events(path)

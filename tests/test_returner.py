@@ -296,3 +296,26 @@ def test_the_returner_plays_the_same_episode_without_the_observations_hit_predic
         episode = RallyRunner(build_rally_diagram(params, dut), params).run(INCOMING_BALL, seed=3)
         results.append((episode.result.outcome, episode.result.landing.state_pre.tolist(), episode.segments))
     assert results[0] == results[1]
+
+
+def test_a_non_finite_estimate_keeps_the_plan_or_sends_nothing_without_one(returner, memoryless):
+    estimate = simulate(INCOMING_BALL, PARAMS, 0.1).final_state[0]
+    nan_estimate = np.r_[estimate[:3], np.nan, estimate[4:]]
+    # No plan yet: no new segment (the supervisor holds its plan, ending at the ready pose).
+    returner.reset()
+    assert returner(observation(returner.layout, nan_estimate)) is None and returner.last_plan is None
+    memoryless.last_plan = None
+    assert memoryless(observation(memoryless.layout, np.full(9, np.inf))) is None
+    # With a plan: the next call, one segment on, drives on towards the same hit as planned.
+    returner.reset()
+    assert returner(observation(returner.layout, estimate)) is not None
+    plan = returner.last_plan
+    later = simulate(INCOMING_BALL, PARAMS, 0.1 + returner.segment).final_state[0]
+    obs = observation(returner.layout, np.r_[later[:3], np.nan, later[4:]])
+    action = returner(obs)
+    assert returner.last_plan is plan
+    robot = returner.layout.part(obs, "robot_state")
+    boundary = plan.time - returner.segment - returner.lag - returner.lead  # its clock: 0 at the first call, one segment at this one
+    np.testing.assert_array_equal(action, returner.driver.drive(robot[:8], robot[8:16], robot[16:], plan.q, plan.v, boundary))
+    # And the ball is still played when the estimate comes back.
+    assert returner(observation(returner.layout, simulate(INCOMING_BALL, PARAMS, 0.1 + 2 * returner.segment).final_state[0])) is not None

@@ -412,7 +412,7 @@ def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
     assert printed["env_steps"] >= 40 and printed["policy"].endswith("cli.pt")
     sidecar = json.loads((tmp_path / "policies" / "cli.json").read_text())
     assert sidecar["command"].startswith("ace-drake train") and sidecar["final_evaluation"] is None
-    assert main(args + ["--export-only"]) == 0  # resumes nothing, trains nothing
+    assert main(args + ["--export-only", "--overwrite"]) == 0  # resumes nothing, trains nothing; replaces the export
     assert "exported" in capsys.readouterr().out
     assert main(["train", str(config), "--run-dir", str(tmp_path / "empty"), "--export-only"]) == 2
 
@@ -623,3 +623,107 @@ def test_a_checkpoint_written_before_a_learner_field_existed_loads_with_its_defa
     SacLearner(SMALL).load_state_dict(state)
     with pytest.raises(ValueError, match="hit_memory"):
         SacLearner(dataclasses.replace(SMALL, hit_memory=True)).load_state_dict(state)
+
+
+def test_a_checkpoint_write_keeps_the_previous_one(tmp_path):
+    from ace_drake.training.trainer import read_checkpoint
+
+    dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    dut.checkpoint()
+    assert not (tmp_path / "run" / "checkpoint.prev.pt").exists()
+    dut.state.env_steps = 7
+    dut.checkpoint()
+    assert read_checkpoint(tmp_path / "run" / "checkpoint.pt")["progress"]["env_steps"] == 7
+    assert read_checkpoint(tmp_path / "run" / "checkpoint.prev.pt")["progress"]["env_steps"] == 0
+    assert sorted(p.name for p in (tmp_path / "run").glob("checkpoint*")) == ["checkpoint.prev.pt", "checkpoint.pt"]  # no .tmp left
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty"])
+def test_a_damaged_checkpoint_names_the_file_and_what_to_do(tmp_path, damage):
+    from ace_drake.training.trainer import CheckpointError
+
+    Trainer(_config(), tmp_path / "run", progress=lambda line: None).checkpoint()
+    path = tmp_path / "run" / "checkpoint.pt"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2] if damage == "truncated" else b"")
+    with pytest.raises(CheckpointError, match=rf"{path}: .*{'truncated' if damage == 'truncated' else 'empty'}.*delete it to start the run afresh"):
+        Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    assert issubclass(CheckpointError, ConfigError)  # the CLI reports it as an input error
+
+
+def test_a_run_resumes_from_the_previous_checkpoint_when_the_latest_is_damaged_or_missing(tmp_path, capsys):
+    first = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    first.state.env_steps = 5
+    first.checkpoint()
+    first.state.env_steps = 9
+    first.checkpoint()
+    path = tmp_path / "run" / "checkpoint.pt"
+    path.write_bytes(path.read_bytes()[:1000])  # a crash while writing it (as an older version wrote in place)
+    dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    assert (dut.state.env_steps, dut.state.resumptions) == (5, 1)
+    warning = capsys.readouterr().err
+    assert f"warning: train: {path}: not a readable checkpoint" in warning and "checkpoint.prev.pt" in warning
+    path.unlink()  # a crash between the two renames of a write
+    assert Trainer(_config(), tmp_path / "run", progress=lambda line: None).state.env_steps == 5
+    assert "is missing; resuming from the previous checkpoint" in capsys.readouterr().err
+
+
+SHIPPED_POLICIES = sorted((Path(__file__).resolve().parents[1] / "models" / "policies").glob("*.pt"))
+
+
+@pytest.mark.parametrize("path", SHIPPED_POLICIES, ids=lambda path: path.stem)
+def test_each_shipped_policy_loads_weights_only(path):
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    assert payload["format"] == 1 and set(payload) <= {"format", "sac_config", "actor", "hit_state"}
+    dut = load_policy(path)  # which loads it weights only too
+    assert isinstance(dut, torch.nn.Module)
+
+
+def test_there_are_six_shipped_policies():
+    assert [path.stem for path in SHIPPED_POLICIES] == ["rally_hit_state", "rally_hit_state_braking", "rally_hit_state_meet",
+                                                        "rally_hit_state_meet_more", "rally_sac", "rally_skill"]
+
+
+@dataclasses.dataclass
+class _NotWeights:
+    value: int = 1
+
+
+def test_a_checkpoint_loads_weights_only_with_its_numpy_tables_and_refuses_other_objects(tmp_path):
+    from ace_drake.training.trainer import CheckpointError, read_checkpoint
+
+    dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    dut.demonstrations.add({"obs": np.ones((3, dut.learner.observation_size)), "privileged": np.zeros((3, 28)),
+                            "demo_action": np.zeros((3, ACTION_SIZE))})
+    dut.state.evaluations = [(0, 0, {"rate": 0.5, "ci95": [np.float64(0.25), np.float64(0.75)]})]
+    dut.checkpoint()
+    path = tmp_path / "run" / "checkpoint.pt"
+    payload = read_checkpoint(path)
+    np.testing.assert_array_equal(payload["demonstrations"]["buffer"]["data"]["obs"], 1.0)
+    assert payload["progress"]["evaluations"][0][2]["ci95"] == [0.25, 0.75]
+    assert Trainer(_config(), tmp_path / "run", progress=lambda line: None).state.evaluations == dut.state.evaluations
+    payload["recent"] = [_NotWeights()]  # a Python object that a weights-only load must not build
+    torch.save(payload, path)
+    with pytest.raises(CheckpointError, match=rf"{path}: not a readable checkpoint .*_NotWeights"):
+        read_checkpoint(path)
+
+
+def test_train_refuses_to_overwrite_a_policy_of_the_same_name_without_overwrite(tmp_path, capsys):
+    import json
+
+    import yaml
+
+    from ace_drake.cli import main
+    from ace_drake.config import to_dict
+
+    config = tmp_path / "train.yaml"
+    config.write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(_config(name="shipped", env_steps=40))))))
+    policies = tmp_path / "policies"
+    policies.mkdir()
+    (policies / "shipped.pt").write_bytes(b"the shipped policy")
+    args = ["train", str(config), "--run-dir", str(tmp_path / "run"), "--export-dir", str(policies)]
+    assert main(args) == 2
+    error = capsys.readouterr().err
+    assert f"error: train: {policies / 'shipped.pt'} exists" in error and "give --overwrite to replace it" in error
+    assert (policies / "shipped.pt").read_bytes() == b"the shipped policy" and [p.name for p in policies.iterdir()] == ["shipped.pt"]
+    assert not (tmp_path / "run").exists()  # refused before anything was trained or written

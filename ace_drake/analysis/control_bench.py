@@ -279,8 +279,9 @@ REFUSALS = {
 def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: CommandLimits, checker=None) -> SafetyCounts:
     """One case: a random invariant start whose initial plan (its reset) and recent past
     (``lead_in``) are collision-free, then
-    1-8 actions of one random kind through the supervisor's logic (propose; execute if safe, else
-    keep the plan), then the plan to its end; the joints (eq. (9)) follow the command stream. The
+    1-8 actions of one random kind through the supervisor's decision (``ControlStack.propose``,
+    whose decision is ``control.stack.decide_segment``, the SafetySupervisor's own: execute the
+    new plan, else keep the current one), then the plan to its end; the joints (eq. (9)) follow the command stream. The
     command is checked against the command limits, the joints against the hardware limits and,
     with ``checker`` (margin 0), against collisions; the end must be at rest."""
     counts = SafetyCounts(cases=1)
@@ -298,14 +299,14 @@ def execute_case(stack: ControlStack, rng: np.random.Generator, hardware: Comman
     for step in range(int(rng.integers(1, 9))):
         counts.steps += 1
         start = plan_state(plan, 0)
-        proposal = stack.propose(*start, random_action(rng, kind, step))
-        if proposal.safe:
+        decision = stack.propose(*start, random_action(rng, kind, step)).decision
+        if decision.accepted:
             counts.accepted += 1
-            plan = proposal.plan
-        else:
+            plan = decision.plan
+        elif decision.refused:
             counts.refused += 1
             for prefix, name in REFUSALS.items():
-                if proposal.reason.startswith(prefix):
+                if decision.reason.startswith(prefix):
                     setattr(counts, name, getattr(counts, name) + 1)
         executed.append(plan.until(segment_samples))
         plan = plan.from_sample(min(segment_samples, plan.samples))

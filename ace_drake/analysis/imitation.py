@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
+from ace_drake.config import InputError
 from ace_drake.contracts import ObservationLayout
 from ace_drake.learning.networks import mlp, observation_scale
 from ace_drake.learning.replay import DemonstrationBuffer
@@ -61,20 +62,20 @@ def demonstration_arrays(checkpoint) -> tuple[np.ndarray, np.ndarray, Observatio
     """(observations (N, n), the returner's actions (N, 16), the observation layout of the run's
     learner) of a training checkpoint's demonstration buffer, in collection order. Raises
     ValueError when it holds none."""
+    from ace_drake.learning.replay import load_weights_only
 
-
-    payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    payload = load_weights_only(checkpoint)
     if "demonstrations" not in payload:
-        raise ValueError(f"imitation: {checkpoint} is not a training checkpoint (no demonstrations)")
+        raise InputError(f"imitation: {checkpoint} is not a training checkpoint (no demonstrations)")
     buffer = DemonstrationBuffer(capacity=int(payload["demonstrations"]["buffer"]["capacity"]))
     buffer.load_state_dict(payload["demonstrations"])
     if len(buffer) == 0:
-        raise ValueError(f"imitation: {checkpoint} holds no demonstrations")
+        raise InputError(f"imitation: {checkpoint} holds no demonstrations")
     rows = buffer.buffer.get(buffer.buffer.oldest_first())
     sac = payload.get("config", {}).get("sac", {})
     layout = ObservationLayout(sac.get("position_history", 10), sac.get("spin_history", 10))
     if rows["obs"].shape[1] != layout.size:
-        raise ValueError(f"imitation: {checkpoint}'s observations have {rows['obs'].shape[1]} values, its layout {layout.size} "
+        raise InputError(f"imitation: {checkpoint}'s observations have {rows['obs'].shape[1]} values, its layout {layout.size} "
                          "(written before an observation part was added?)")
     return rows["obs"].astype(np.float32), rows["demo_action"].astype(np.float32), layout
 
@@ -103,7 +104,7 @@ def fit_imitation(
     split = int(round((1.0 - held_out) * len(observations)))
     fit_rows = int(fit_fraction * split)
     if not 0.0 < held_out < 1.0 or fit_rows < batch_size or split == len(observations):
-        raise ValueError(f"fit_imitation: {len(observations)} rows are too few to fit {fit_rows} and hold out {held_out:.0%}")
+        raise InputError(f"fit_imitation: {len(observations)} rows are too few to fit {fit_rows} and hold out {held_out:.0%}")
     columns = layout.indices(parts)
     scale = observation_scale(layout).astype(np.float32)[columns]
     x, y = torch.as_tensor(observations[:, columns] / scale), torch.as_tensor(actions)
@@ -163,7 +164,7 @@ def label_sensitivity(observations: np.ndarray, returner, layout: ObservationLay
         swing.append(bool(in_swing(observation, layout)))
     changes, swing = np.asarray(changes), np.asarray(swing, dtype=bool)
     if changes.size == 0:
-        raise ValueError("label_sensitivity: the returner gave no action on any chosen observation")
+        raise InputError("label_sensitivity: the returner gave no action on any chosen observation")
     return {
         "rows": int(changes.size), "skipped": skipped, "mean": float(changes.mean()), "median": float(np.median(changes)),
         "share_above_0.5": float(np.mean(changes > 0.5)),

@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ace_drake.config import MODELS_DIR
+from ace_drake.config import MODELS_DIR, InputError
 from ace_drake.match_data import load_match_events
 from ace_drake.perception.ball_ekf import BallEkf
 from ace_drake.perception.cameras import load_cameras, simulate_detections
@@ -37,7 +37,7 @@ def incoming_shots(path: str, count: int, seed: int) -> np.ndarray:
     (rad/s)) of a match-data CSV, drawn without replacement (all of them if there are fewer)."""
     states = np.array([event.state for event in load_match_events(path) if event.kind == "shot" and event.side == "p2"])
     if not len(states):
-        raise ValueError(f"{path}: no incoming shots (shot_p2 events)")
+        raise InputError(f"{path}: no incoming shots (shot_p2 events)")
     rng = np.random.default_rng(seed)
     return states[np.sort(rng.choice(len(states), size=min(count, len(states)), replace=False))]
 

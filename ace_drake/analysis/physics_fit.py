@@ -16,6 +16,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ace_drake.analysis.physics_validation import predict_pairs
+from ace_drake.config import InputError
 from ace_drake.match_data import EventPairs
 from ace_drake.physics.params import BallPhysicsParams
 
@@ -129,10 +130,10 @@ def fit_physics(
     the same data and start give the same result. ``progress`` receives a line per evaluation.
     """
     if len(pairs) == 0:
-        raise ValueError("fit_physics: no event pairs to fit")
+        raise InputError("fit_physics: no event pairs to fit")
     unknown = [n for n in names if n not in FIT_BOUNDS]
     if unknown:
-        raise ValueError(f"fit_physics: cannot fit {unknown}; choose from {sorted(FIT_BOUNDS)}")
+        raise InputError(f"fit_physics: cannot fit {unknown}; choose from {sorted(FIT_BOUNDS)}")
     params = initial or BallPhysicsParams()
     evaluations = [0]
     messages = []
@@ -192,5 +193,5 @@ def _best_grid_start(x0, cost0, names, cost):
 def _split(name: str) -> tuple[str, str]:
     group, _, field = name.partition(".")
     if not field or group not in {f.name for f in dataclasses.fields(BallPhysicsParams)}:
-        raise ValueError(f"not a coefficient name: {name!r} (expected like 'aero.drag_coefficient')")
+        raise InputError(f"not a coefficient name: {name!r} (expected like 'aero.drag_coefficient')")
     return group, field

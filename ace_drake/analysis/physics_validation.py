@@ -79,12 +79,14 @@ def summarize(pairs: EventPairs, predictions: PairPredictions) -> dict:
 
     Landing error in m (median, p90, mean), absolute time error in s, post-bounce velocity error in
     m/s and spin error in rad/s (median, p90); ``missed`` counts pairs whose prediction never
-    reached the table plane.
+    reached the table plane; ``non_finite`` counts, per error, the reached pairs left out of it
+    because it is not finite (a recorded bounce without velocity or spin, NaN in the data), so
+    that no figure is NaN.
     """
 
     def figures(mask: np.ndarray) -> dict:
         reached = mask & np.isfinite(predictions.landing_error)
-        result = {"pairs": int(mask.sum()), "missed": int((mask & ~reached).sum())}
+        result = {"pairs": int(mask.sum()), "missed": int((mask & ~reached).sum()), "non_finite": {}}
         for name, values in [
             ("landing_error_m", predictions.landing_error),
             ("time_error_s", np.abs(predictions.time_error)),
@@ -92,6 +94,9 @@ def summarize(pairs: EventPairs, predictions: PairPredictions) -> dict:
             ("post_bounce_spin_error_radps", predictions.spin_error),
         ]:
             selected = values[reached]
+            finite = np.isfinite(selected)
+            result["non_finite"][name] = int((~finite).sum())
+            selected = selected[finite]
             if selected.size:
                 result[name] = {
                     "median": float(np.median(selected)),
@@ -130,4 +135,7 @@ def format_summary(summary: dict, title: str = "") -> str:
         lines.append(row(name, figures))
     lines.append(row("all", summary))
     lines.append("(median/p90 of each error)")
+    skipped = {name: count for name, count in summary.get("non_finite", {}).items() if count}
+    if skipped:
+        lines.append("left out, not finite in the data: " + ", ".join(f"{count} pair(s) of {name}" for name, count in skipped.items()))
     return "\n".join(lines)

@@ -16,6 +16,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.optimize import differential_evolution
 
+from ace_drake.config import InputError
 from ace_drake.match_data import load_match_events
 from ace_drake.robot.model import RobotModel
 
@@ -28,7 +29,7 @@ def robot_contact_points(path: str) -> np.ndarray:
     """Ball positions (N, 3), m, at the robot's recorded hits (``shot_p1`` events) in a match-data CSV."""
     points = [event.state[:3] for event in load_match_events(path) if event.kind == "shot" and event.side == "p1"]
     if not points:
-        raise ValueError(f"{path}: no robot contact points (shot_p1 events)")
+        raise InputError(f"{path}: no robot contact points (shot_p1 events)")
     return np.array(points)
 
 

@@ -28,6 +28,18 @@ from ace_drake.robot.params import JOINT_NAMES
 ACTION_SIZE = 2 * len(JOINT_NAMES)
 
 
+def is_valid_action(action) -> bool:
+    """Whether a policy's output ``action`` is an action: 16 finite numbers (values beyond [-1, 1]
+    are clipped into the box by whoever executes it). The one test of a policy's output, shared
+    by the PolicyController (which counts anything else as an invalid action) and the hit-state
+    layer (which passes an actor's invalid output on to it unchanged)."""
+    try:
+        action = np.asarray(action, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return action.shape == (ACTION_SIZE,) and bool(np.all(np.isfinite(action)))
+
+
 def _as_joint_pairs(action: np.ndarray) -> np.ndarray:
     """(..., 16) actions as (..., 8, 2) per-joint (position, velocity) components."""
     action = np.asarray(action, dtype=float)

@@ -53,7 +53,7 @@ import numpy as np
 
 from ace_drake.config import MODELS_DIR, ConfigError
 from ace_drake.contracts import ObservationLayout
-from ace_drake.control.action_mapping import inverse_map_action
+from ace_drake.control.action_mapping import inverse_map_action, is_valid_action
 from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets
 from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.control.stack import ControlStack, make_control_stack
@@ -258,7 +258,16 @@ class HitStateLayer:
         """k (``steps_to_hit``) for this layer's lead, lag and segment."""
         return steps_to_hit(hit_time, self.lead, self.lag, self.segment)
 
-    def __call__(self, observation: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    def __call__(self, observation: np.ndarray, y: np.ndarray | None) -> np.ndarray | None:
+        """The action (16,) for the actor's hit-state action ``y``, or None (no new segment).
+        An actor's output that is not 16 finite numbers is returned as it is, before the layer
+        computes anything from it, so that whoever executes it (the PolicyController, a
+        RallyEnv's request) counts it as an invalid action exactly as a plain policy's; None from
+        the actor is None (it wants no new segment)."""
+        if y is None:
+            return None
+        if not is_valid_action(y):
+            return y
         observation = np.asarray(observation, dtype=float)
         hit = self.layout.part(observation, "hit_prediction")
         if hit[0] < 0.5:

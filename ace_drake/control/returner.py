@@ -280,7 +280,10 @@ class ModelBasedReturner:
         valid = layout.part(observation, "estimate_status")[0] > 0.5
         robot = layout.part(observation, "robot_state")
         q0, v0, a0 = robot[:8], robot[8:16], robot[16:24]
-        flight = self._advance(estimate if valid else None)
+        usable = valid and bool(np.all(np.isfinite(estimate)))
+        flight = self._advance(estimate if usable else None)
+        if valid and not usable:
+            return self._keep_plan(flight, q0, v0, a0)
         if not valid or estimate[3] >= 0.0:
             # No track, or the ball is not coming (the robot has hit it): no new segment.
             self._flight = None if valid else flight
@@ -313,6 +316,24 @@ class ModelBasedReturner:
             return _no_action
         boundary = hit.time - flight.clock - self.lag  # when the command must be at (q_hit, v_hit), s after the observation
         return functools.partial(self.driver.drive, q0, v0, a0, hit.q, hit.v, boundary - self.lead)  # steps 5-6
+
+    def _keep_plan(self, flight: Flight, q0: np.ndarray, v0: np.ndarray, a0: np.ndarray) -> Callable[[], np.ndarray | None]:
+        """A call on an estimate that is not finite (a track whose numbers are NaN or infinite:
+        nothing to predict from): the plan stands. The remembered hit is driven on towards as
+        planned (followed through when it falls in the segment this action commands); without
+        one, or once its time has passed, no new segment (the supervisor keeps its plan, which
+        ends at the reset pose)."""
+        hit = flight.hit
+        if hit is None:
+            return _no_action
+        to_hit = hit.time - flight.clock
+        if to_hit < self.lead + self.lag + 0.5 * self.segment:
+            if to_hit > self.lead + self.lag - 0.5 * self.segment:
+                return functools.partial(self.driver.follow_through, q0, v0, a0)  # the hit happens in this segment
+            flight.hit = None  # its time has passed
+            return _no_action
+        self.last_plan = hit
+        return functools.partial(self.driver.drive, q0, v0, a0, hit.q, hit.v, to_hit - self.lag - self.lead)  # steps 5-6
 
     def _advance(self, estimate: np.ndarray | None) -> Flight:
         """The memory for this call: the clock advanced by one segment, or a fresh memory when the

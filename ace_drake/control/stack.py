@@ -41,12 +41,50 @@ class Stage:
     reason: str = ""
 
 
+NO_ACTION = "no action"  # the reason of a Stage that had nothing to work on: no refusal
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentDecision:
+    """The safety supervisor's decision at a segment boundary (``decide_segment``): ``plan``, the
+    new segment then its reset, to execute from the boundary, or None to keep the current plan;
+    ``reason``: why not ("" when accepted; NO_ACTION when nothing was proposed)."""
+
+    plan: JointTrajectory | None
+    reason: str = ""
+
+    @property
+    def accepted(self) -> bool:
+        return self.plan is not None
+
+    @property
+    def refused(self) -> bool:
+        """A proposal refused (counted as such); no action is not one."""
+        return self.plan is None and self.reason != NO_ACTION
+
+
+def decide_segment(stack: ControlStack, segment: Stage, reset: Stage) -> SegmentDecision:
+    """What the safety supervisor does with a proposal's last two stages (module docstring): the
+    segment then its reset, if both exist and the plan is collision-free (``ControlStack.check``);
+    otherwise keep the current plan, for the first failed stage's reason. The one copy of that
+    rule: the SafetySupervisor runs it on its input ports' stages, ``ControlStack.propose`` (so the
+    benchmarks and controllers that ask it) on its own."""
+    if not segment.ok or not reset.ok:
+        return SegmentDecision(None, segment.reason if not segment.ok else reset.reason)
+    plan = segment.value.then(reset.value)
+    checked = stack.check(plan)
+    if not checked.ok:
+        return SegmentDecision(None, checked.reason)
+    return SegmentDecision(plan)
+
+
 @dataclasses.dataclass(frozen=True)
 class Proposal:
     """What one action would make the robot do: ``plan`` = segment then reset when ``safe``.
 
     reason: why it is not safe ("" when it is); target: the mapped terminal (q_T, v_T) (8,) each,
-    or None if the mapping failed; seconds: wall time of each stage, s (for benchmarks).
+    or None if the mapping failed; seconds: wall time of each stage, s (for benchmarks);
+    decision: the supervisor's decision on it (``decide_segment``; ``safe`` is its ``accepted``).
     """
 
     safe: bool
@@ -56,6 +94,7 @@ class Proposal:
     reset: JointTrajectory | None
     target: tuple[np.ndarray, np.ndarray] | None
     seconds: dict[str, float]
+    decision: SegmentDecision | None = None
 
 
 class ControlStack:
@@ -125,30 +164,27 @@ class ControlStack:
 
     def propose(self, q, v, a, action) -> Proposal:
         """The proposal for ``action`` (16,) in [-1, 1] from the segment's start state (q, v, a):
-        the four stages in order, stopping at the first that fails."""
+        the stages in order as the diagram's systems run them (ActionMapper, SplineQp, ResetMpc:
+        a failed stage passes its reason on), stopping at the first that fails, and the
+        supervisor's decision on them (``decide_segment``: the collision check)."""
         seconds: dict[str, float] = {}
 
-        def timed(name: str, stage_function, *args) -> Stage:
+        def timed(name: str, stage_function, *args):
             start = time.perf_counter()
             stage = stage_function(*args)
             seconds[name] = time.perf_counter() - start
             return stage
 
         mapped = timed("map", self.map, q, v, a, action)
-        if not mapped.ok:
-            return Proposal(False, mapped.reason, None, None, None, None, seconds)
-        target = mapped.value
-        segment = timed("segment", self.segment, q, v, a, target)
-        if not segment.ok:
-            return Proposal(False, segment.reason, None, None, None, target, seconds)
-        reset = timed("reset", self.reset, segment.value)
-        if not reset.ok:
-            return Proposal(False, reset.reason, None, segment.value, None, target, seconds)
-        plan = segment.value.then(reset.value)
-        checked = timed("check", self.check, plan)
-        if not checked.ok:
-            return Proposal(False, checked.reason, None, segment.value, reset.value, target, seconds)
-        return Proposal(True, "", plan, segment.value, reset.value, target, seconds)
+        target = mapped.value if mapped.ok else None
+        segment = timed("segment", self.segment, q, v, a, target) if mapped.ok else Stage(False, reason=mapped.reason)
+        reset = timed("reset", self.reset, segment.value) if segment.ok else Stage(False, reason=segment.reason)
+        if reset.ok:
+            decision = timed("check", decide_segment, self, segment, reset)
+        else:
+            decision = decide_segment(self, segment, reset)
+        return Proposal(decision.accepted, decision.reason, decision.plan, segment.value if segment.ok else None,
+                        reset.value if reset.ok else None, target, seconds, decision)
 
     def action_towards(self, q, v, a, q_goal) -> np.ndarray:
         """An action (16,) that moves the joints from the start (q, v, a) towards q_goal (8,)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
+from ace_drake.config import InputError
 from ace_drake.control.joint_model import ProcessModel, simulate_joint
 from ace_drake.robot.params import JointDynamicsParams
 
@@ -26,7 +27,7 @@ DELAY_GRID_STEP = 0.25e-3  # s
 MAX_DELAY = 0.02  # s
 
 
-class JointLogError(ValueError):
+class JointLogError(InputError):
     """A joint log is missing, malformed or not uniformly sampled; the message says which."""
 
 

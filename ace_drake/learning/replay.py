@@ -40,12 +40,28 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import torch
 
 from ace_drake.contracts import EpisodeResult, ObservationLayout, Outcome, privileged_slice
 from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import return_reward, travel_frame_spin
 
 TRANSITION_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
+
+# What a replay table's state (NumPy arrays; NumPy scalars in the evaluation figures beside them)
+# needs from the unpickler beyond tensors and plain containers: NumPy's array and scalar
+# reconstruction and the dtypes the tables and figures use, nothing that runs other code.
+NUMPY_SAFE_GLOBALS = [np._core.multiarray._reconstruct, np._core.multiarray.scalar, np.ndarray, np.dtype,
+                      *(type(np.dtype(kind)) for kind in (np.float32, np.float64, np.int64, np.bool_))]
+
+
+def load_weights_only(path):
+    """``torch.load(path, weights_only=True)`` (on the CPU) for a file holding tensors, plain
+    containers and replay-table states (NUMPY_SAFE_GLOBALS allowed): a training checkpoint, or a
+    file of demonstrations; anything else in the file raises ``pickle.UnpicklingError``."""
+
+    with torch.serialization.safe_globals(NUMPY_SAFE_GLOBALS):
+        return torch.load(path, map_location="cpu", weights_only=True)
 EVENTS = ("all", "miss", "near_miss", "hit", "return", "high_speed_return", "high_topspin_return", "high_backspin_return")
 
 

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ace_drake.config import from_dict
+from ace_drake.config import InputError, from_dict
 from ace_drake.contracts import PRIVILEGED_PARTS, ObservationLayout, privileged_slice
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.hit_state import HitStateAction
@@ -368,11 +368,11 @@ def load_policy(path) -> DeterministicPolicy:
     """The DeterministicPolicy of a ``save_policy`` artefact (what ``policy:<name>`` runs)."""
 
     try:
-        payload = torch.load(path, weights_only=False)
+        payload = torch.load(path, map_location="cpu", weights_only=True)  # tensors and plain containers only
     except Exception as error:  # torch raises several kinds for a file that is not its own
-        raise ValueError(f"{path}: not a policy artefact ({type(error).__name__})") from None
+        raise InputError(f"{path}: not a policy artefact ({type(error).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != POLICY_FORMAT:
-        raise ValueError(f"{path}: not a policy artefact (format {POLICY_FORMAT})")
+        raise InputError(f"{path}: not a policy artefact (format {POLICY_FORMAT})")
     hit_state_action = None
     if "hit_state" in payload:  # the hit-state parameterisation it was trained with, not today's default
 

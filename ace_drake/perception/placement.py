@@ -38,6 +38,7 @@ from pathlib import Path
 import cma
 import numpy as np
 
+from ace_drake.config import InputError
 from ace_drake.perception.cameras import (
     BALL_RADIUS,
     PIXEL_PITCH,
@@ -322,7 +323,7 @@ def optimize_placement(
     """
     problem = problem or PlacementProblem()
     if seed < 0:
-        raise ValueError(f"optimize_placement: seed must be >= 0, got {seed}")
+        raise InputError(f"optimize_placement: seed must be >= 0, got {seed}")
     points = play_volume_points() if points is None else np.asarray(points, dtype=float).reshape(-1, 3)
     x0 = genes_aimed_at([0.0, 0.0, 0.3], problem) if initial_genes is None else np.asarray(initial_genes, dtype=float)
     if x0.shape != (problem.gene_count,):

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from ace_drake.config import InputError
 from ace_drake.match_data import MatchDataError, load_match_events
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.params import BallPhysicsParams
@@ -52,7 +53,7 @@ FIRST_BATCH_ACCEPTANCE = 0.6
 SYNTHETIC_CANDIDATES = 2000  # uniform draws per kind for the synthetic set, before the validity check
 
 
-class ShotDistributionError(ValueError):
+class ShotDistributionError(InputError):
     """A shot distribution cannot be fitted or sampled; the message says which kind and why."""
 
 

@@ -7,7 +7,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from ace_drake.control.action_mapping import ACTION_SIZE
-from ace_drake.control.stack import ControlStack, Stage
+from ace_drake.control.stack import NO_ACTION, ControlStack, Stage
 
 SEGMENT_START_STATE_SIZE = 24
 
@@ -37,7 +37,7 @@ class ActionMapper(LeafSystem):
 
     def CalcTarget(self, context, output):
         if self.action_valid_port.Eval(context)[0] <= 0.5:
-            output.set_value(Stage(False, reason="no action"))
+            output.set_value(Stage(False, reason=NO_ACTION))
             return
         q, v, a = np.split(self.segment_start_state_port.Eval(context), 3)
         output.set_value(self.stack.map(q, v, a, self.action_port.Eval(context)))

@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.control.action_mapping import ACTION_SIZE, is_valid_action
 from ace_drake.control.params import ControlParams
 from ace_drake.systems.random_seed import declare_seed_port, episode_seed
 
@@ -131,10 +131,11 @@ class PolicyController(LeafSystem):
         else:
             output = self._policy(self.observation_port.Eval(context))
         state[ACTION_SIZE + 1] += 1
-        action = None if output is None else np.asarray(output, dtype=float)
-        if action is not None and (action.shape != (ACTION_SIZE,) or not np.all(np.isfinite(action))):
+        action = None
+        if output is not None and not is_valid_action(output):
             state[ACTION_SIZE + 2] += 1
-            action = None
+        elif output is not None:
+            action = np.asarray(output, dtype=float)
         state[ACTION_SIZE] = 0.0 if action is None else 1.0
         if action is not None:
             state[:ACTION_SIZE] = np.clip(action, -1.0, 1.0)

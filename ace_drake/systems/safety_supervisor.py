@@ -10,7 +10,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 
-from ace_drake.control.stack import ControlStack, Stage, plan_state
+from ace_drake.control.stack import ControlStack, Stage, decide_segment, plan_state
 from ace_drake.robot.params import JOINT_NAMES
 from ace_drake.robot.trajectory import JointTrajectory
 from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
@@ -128,18 +128,14 @@ class SafetySupervisor(LeafSystem):
         return EventStatus.Succeeded()
 
     def _decide(self, context, current: SupervisorState, sample: int) -> SupervisorState:
-        """At a segment boundary: the new segment + reset if safe, else the plan as it is."""
-        segment, reset = self.segment_port.Eval(context), self.reset_port.Eval(context)
-        if not segment.ok or not reset.ok:
-            reason = segment.reason if not segment.ok else reset.reason
-            if reason == "no action":
-                return current
-            return dataclasses.replace(current, rejected=current.rejected + 1, last_reason=reason)
-        plan = segment.value.then(reset.value)
-        checked = self.stack.check(plan)
-        if not checked.ok:
-            return dataclasses.replace(current, rejected=current.rejected + 1, last_reason=checked.reason)
-        return dataclasses.replace(current, plan=plan, plan_start=sample, accepted=current.accepted + 1)
+        """At a segment boundary: the new segment + reset if safe, else the plan as it is
+        (``control.stack.decide_segment``, which the safety benchmark runs too)."""
+        decision = decide_segment(self.stack, self.segment_port.Eval(context), self.reset_port.Eval(context))
+        if decision.accepted:
+            return dataclasses.replace(current, plan=decision.plan, plan_start=sample, accepted=current.accepted + 1)
+        if decision.refused:
+            return dataclasses.replace(current, rejected=current.rejected + 1, last_reason=decision.reason)
+        return current
 
     # ------------------------------------------------------------------------------ outputs
     def CalcQCommand(self, context, output):

@@ -23,8 +23,9 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
 
 Every ``checkpoint_every`` steps the whole learner state (networks, optimisers, generator, replay
 tables, demonstrations, counters, history) is written atomically to ``checkpoint.pt`` (a
-temporary file renamed over the old one), so a killed run loses only the work since then;
-``train`` on the same directory resumes from it (the workers are reseeded from the run's seed
+temporary file, flushed to disk, renamed over the old one, which is kept as ``checkpoint.prev.pt``),
+so a killed run loses only the work since then; ``train`` on the same directory resumes from it
+(from the previous one, with a warning, if the latest cannot be read or is missing) (the workers are reseeded from the run's seed
 and the number of resumptions, so a resumed run is reproducible but not identical to an
 uninterrupted one). Every ``evaluate_every`` steps the deterministic actor is evaluated in the
 rally diagram (``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best
@@ -38,6 +39,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import pickle
+import re
+import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -52,7 +56,7 @@ from ace_drake.config import ConfigError, from_dict, to_dict
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
-from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
+from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig, load_weights_only
 from ace_drake.learning.sac import SacConfig, SacLearner, save_policy
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.shots import human_shots, make_distribution
@@ -62,6 +66,39 @@ from ace_drake.training.workers import WorkerPool
 
 PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
 CHECKPOINT = "checkpoint.pt"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the one before, kept by every write (module docstring)
+CHECKPOINT_KEYS = ("config", "learner", "replay", "demonstrations", "progress", "recent")
+
+
+class CheckpointError(ConfigError):
+    """A training checkpoint that cannot be read: truncated, empty, or not a checkpoint."""
+
+
+def read_checkpoint(path) -> dict:
+    """The payload of the training checkpoint at ``path``. Raises CheckpointError naming the file
+    and what to do when it cannot be read (truncated, e.g. by a crash while it was written by an
+    older version, empty, or not a training checkpoint), FileNotFoundError when it is absent."""
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such checkpoint")
+    remedy = f"delete it to start the run afresh, or point at an earlier checkpoint (e.g. {path.with_name(PREVIOUS_CHECKPOINT)})"
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path}: the checkpoint is empty; {remedy}")
+    try:
+        payload = load_weights_only(path)  # weights only: loading a checkpoint runs no code from it
+    except pickle.UnpicklingError as error:
+        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(error))
+        what = refused.group(1) if refused else "something other than tensors, plain containers and NumPy arrays"
+        raise CheckpointError(f"{path}: not a readable checkpoint (it holds {what}, which a weights-only load does not build); "
+                              f"{remedy}") from None
+    except Exception as error:  # torch raises several kinds (RuntimeError, EOFError, UnpicklingError) for a damaged file
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or damaged: {reason}); {remedy}") from None
+    missing = [key for key in CHECKPOINT_KEYS if not isinstance(payload, dict) or key not in payload]
+    if missing:
+        raise CheckpointError(f"{path}: not a training checkpoint (no {', '.join(missing)}); {remedy}")
+    return payload
 
 
 @dataclasses.dataclass(frozen=True)
@@ -216,9 +253,9 @@ class Trainer:
         self._pool = None
         self._started = time.perf_counter()
         self._last_log = self._started
-        checkpoint = self.run_dir / CHECKPOINT
-        if checkpoint.is_file():
-            self._load(checkpoint)
+        latest = self._latest_checkpoint()
+        if latest is not None:
+            self._load(*latest)
         elif config.initialize_from:
             self._initialize_from(Path(config.initialize_from))
         self._save_config()
@@ -441,11 +478,38 @@ class Trainer:
         }
         path = self.run_dir / CHECKPOINT
         temporary = path.with_name(path.name + ".tmp")
-        torch.save(payload, temporary)
+        with open(temporary, "wb") as file:
+            torch.save(payload, file)
+            file.flush()
+            os.fsync(file.fileno())
+        if path.is_file():  # a crash from here on leaves the previous checkpoint (and the new one)
+            os.replace(path, self.run_dir / PREVIOUS_CHECKPOINT)
         os.replace(temporary, path)
+        _sync_directory(self.run_dir)
 
-    def _load(self, path: Path) -> None:
-        payload = torch.load(path, weights_only=False)
+    def _latest_checkpoint(self) -> tuple[Path, dict] | None:
+        """(path, payload) of the run's checkpoint to resume from: the latest, or the previous one
+        with a warning on stderr when the latest is missing or cannot be read; None when the run
+        has none. Raises CheckpointError when neither can be read."""
+        latest, previous = self.run_dir / CHECKPOINT, self.run_dir / PREVIOUS_CHECKPOINT
+        if not latest.is_file():
+            if not previous.is_file():
+                return None
+            print(f"warning: train: {latest} is missing; resuming from the previous checkpoint {previous}", file=sys.stderr)
+            return previous, read_checkpoint(previous)
+        try:
+            return latest, read_checkpoint(latest)
+        except CheckpointError as error:
+            if not previous.is_file():
+                raise
+            try:
+                payload = read_checkpoint(previous)
+            except CheckpointError as previous_error:
+                raise CheckpointError(f"{error}; the previous checkpoint cannot be read either: {previous_error}") from None
+            print(f"warning: train: {error}; resuming from the previous checkpoint {previous}", file=sys.stderr)
+            return previous, payload
+
+    def _load(self, path: Path, payload: dict) -> None:
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
         saved = to_dict(from_dict(TrainConfig, payload["config"]))
@@ -467,8 +531,7 @@ class Trainer:
         run on to this config's totals. Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and
         chooses among its own evaluations."""
-
-        payload = torch.load(path, weights_only=False)
+        payload = read_checkpoint(path)
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])
         self.demonstrations.load_state_dict(payload["demonstrations"])
@@ -483,6 +546,21 @@ class Trainer:
 
     def _save_config(self) -> None:
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(self.config))), sort_keys=False))
+
+
+def _sync_directory(directory: Path) -> None:
+    """Flushes ``directory``'s entries (the renames of a checkpoint write) to disk, where the
+    platform allows it."""
+    try:
+        descriptor = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
 
 
 def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
