@@ -8,15 +8,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
-import hashlib
 import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from ace_drake import artefacts
 from ace_drake.config import ConfigError, load_config, to_dict
 from ace_drake.control.params import RallyParams
 from ace_drake.perception.params import PerceptionParams
@@ -119,7 +117,7 @@ def cmd_evaluate(args) -> int:
     figures = {"controller": args.controller, "action_noise": args.action_noise, "data": args.data, "players": list(players),
                "sensors": args.sensors, "seed": args.seed, "skills": args.skill or "default", **figures}
     if args.json:
-        emit_json({**figures, **_provenance(), **({"data_sha256": _sha256(args.data)} if args.data else {})})
+        emit_json({**figures, **artefacts.provenance(), **({"data_sha256": artefacts.sha256(args.data)} if args.data else {})})
         return 0
     _print_evaluation(figures)
     return 0
@@ -251,8 +249,8 @@ def cmd_physics_fit(args) -> int:
             "fitted": summarize(subset, predict_pairs(subset, fitted)),
         }
     sidecar = {
-        **_provenance(),
-        "data": {"file": Path(args.data).name, "sha256": _sha256(args.data), "pairs": len(pairs)},
+        **artefacts.provenance(),
+        "data": {"file": Path(args.data).name, "sha256": artefacts.sha256(args.data), "pairs": len(pairs)},
         "fit_players": fit_players,
         "held_out_players": sorted(args.holdout_player),
         "initial_params": args.params or "paper",
@@ -308,8 +306,8 @@ def cmd_sysid(args) -> int:
         for name, r in identified.items()
     }
     sidecar = {
-        **_provenance(),
-        "log": {"file": Path(args.log).name, "sha256": _sha256(args.log), "samples": int(joint_log.times.size)},
+        **artefacts.provenance(),
+        "log": {"file": Path(args.log).name, "sha256": artefacts.sha256(args.log), "samples": int(joint_log.times.size)},
         "identified": report,
         "defaulted": [n for n in JOINT_NAMES if n not in identified],
     }
@@ -388,7 +386,7 @@ def _bench_perception(args) -> int:
     if args.shots < 1:
         raise ConfigError(f"bench perception: --shots must be >= 1, got {args.shots}")
     figures = bench_perception(args.data, shots=args.shots, seed=args.seed, progress=log)
-    figures["data_sha256"] = _sha256(args.data)
+    figures["data_sha256"] = artefacts.sha256(args.data)
     if args.json:
         emit_json(figures)
         return 0
@@ -425,7 +423,7 @@ def _bench_train(args) -> int:
         raise ConfigError(f"bench train: --seconds must be > 0 and --steps >= 1, got {args.seconds} and {args.steps}")
     figures = bench_train(seconds=args.seconds, updates=args.steps, seed=args.seed, progress=log)
     if args.json:
-        emit_json({**figures, **_provenance()})
+        emit_json({**figures, **artefacts.provenance()})
     else:
         for workers, rate in figures["env_steps_per_s"].items():
             print(f"env steps/s with {workers} worker(s): {rate:.1f}")
@@ -444,7 +442,7 @@ def _bench_reach(args) -> int:
     model = RobotModel(load_scenario(args.scenario))
     log(f"bench reach: {len(points)} robot contact points from {args.data}, and their mirror in y")
     figures = bench_reach(model, points, seed=args.seed, progress=log)
-    figures.update({"data": args.data, "data_sha256": _sha256(args.data), "scenario": str(args.scenario or "models/scenario.yaml")})
+    figures.update({"data": args.data, "data_sha256": artefacts.sha256(args.data), "scenario": str(args.scenario or "models/scenario.yaml")})
     if args.json:
         emit_json(figures)
         return 0
@@ -479,7 +477,7 @@ def cmd_cameras(args) -> int:
             log(f"cameras optimize: iteration {iteration}/{args.iterations}, coverage {100 * figures.coverage:.1f} %")
 
     sidecar = optimize_and_write(output, seed=args.seed, iterations=args.iterations, spacing=args.spacing, plot_path=plot,
-                                 command=_provenance()["command"], progress=progress)
+                                 command=artefacts.provenance()["command"], progress=progress)
     log(f"wrote {output}, {output.with_suffix('.json')} and {plot}")
     if args.json:
         emit_json(sidecar)
@@ -521,42 +519,14 @@ def cmd_diagrams(args) -> int:
 
 
 def cmd_train(args) -> int:
-    """A training run (``training.trainer``): resumes from the run directory's checkpoint, trains,
-    exports the policy with its sidecar and learning curve."""
-    from ace_drake.training.trainer import Trainer, export, load_train_config
+    """A training run (``training.export.train_and_export``): resumes from the run directory's
+    checkpoint, trains, exports the policy with its sidecar and learning curve."""
+    from ace_drake.training.export import train_and_export
 
-    config = load_train_config(args.config)
-    run_dir = Path(args.run_dir or REPO_ROOT / "out" / "train" / config.name)
-    log(f"train: {args.config} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
-    if args.export_only and not (run_dir / "checkpoint.pt").is_file():
-        raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
-    trainer = Trainer(config, run_dir, progress=log)
-    if args.export_only:
-        log(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
-    else:
-        trainer.run()
-    evaluation = None
-    if args.evaluate_data:
-        from ace_drake.evaluation.evaluate import evaluate
-        from ace_drake.play.shots import held_out_players, human_shots
-        from ace_drake.training.trainer import chosen_policy
-
-        policy = chosen_policy(trainer, args.export)
-
-        def human_evaluation(players: tuple[str, ...] = ()) -> dict:
-            shots, serve = human_shots(args.evaluate_data, players)
-            of = f" of {', '.join(players)}" if players else ""
-            log(f"train: evaluating the {args.export} actor on the {len(shots)} human shots{of} of {args.evaluate_data} (cameras)")
-            return evaluate(policy, RallyParams(), shots, serve, config.seed, progress=log)
-
-        evaluation = {"data": args.evaluate_data, "data_sha256": _sha256(args.evaluate_data), "sensors": "cameras", **human_evaluation()}
-        held_out = held_out_players(config.env.shots, args.evaluate_data)
-        if held_out:  # trained on some players' shots: the others' are reported on their own
-            evaluation["held_out"] = {"players": list(held_out), **human_evaluation(held_out)}
-    sidecar = export(trainer, args.export_dir, args.export, evaluation, _provenance())
-    summary = {"policy": str(Path(args.export_dir) / f"{config.name}.pt"), **{k: sidecar[k] for k in ("env_steps", "episodes", "updates", "wall_time_s", "actor_at")}}
+    summary = train_and_export(args.config, args.run_dir, args.export_dir, args.export, args.evaluate_data, args.export_only, progress=log)
+    evaluation = summary["final_evaluation"]
     if args.json:
-        emit_json({**summary, "final_evaluation": evaluation})
+        emit_json(summary)
     else:
         print(f"exported {summary['policy']} after {summary['env_steps']} steps, {summary['updates']} updates, {summary['wall_time_s']:.0f} s")
         if evaluation:
@@ -655,7 +625,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")
-    train.add_argument("config", help="training config YAML (training.trainer.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
+    train.add_argument("config", help="training config YAML (training.loop.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
     train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
     train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
@@ -730,12 +700,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_ARGV: list[str] = []  # the command line main() runs, for provenance
-
-
 def main(argv: list[str] | None = None) -> int:
-    global _ARGV
-    _ARGV = list(sys.argv[1:] if argv is None else argv)
+    artefacts.record_command_line(sys.argv[1:] if argv is None else argv)  # for the sidecars' provenance
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
@@ -744,21 +710,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _provenance() -> dict:
-    """The command line and date that every artefact's sidecar records."""
-    return {
-        "command": "ace-drake " + " ".join(shlex.quote(a) for a in _ARGV),
-        "date": datetime.date.today().isoformat(),
-    }
-
-
 def _maybe(value, spec: str = ".3f") -> str:
     """A number formatted, or '-' for None."""
     return "-" if value is None else format(value, spec)
-
-
-def _sha256(path: str) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _json_default(value):

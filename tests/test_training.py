@@ -15,7 +15,8 @@ from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.training.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
-from ace_drake.training.trainer import TrainConfig, Trainer, chosen_actor, evaluation_series, export, load_train_config
+from ace_drake.training.export import chosen_actor, evaluation_series, export
+from ace_drake.training.loop import TrainConfig, Trainer, load_train_config
 
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
 
@@ -306,7 +307,7 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
     policy = load_policy(tmp_path / "policies" / "tiny.pt")
     obs = torch.randn(3, again.learner.observation_size)
     torch.testing.assert_close(policy(obs), again.learner.policy()(obs))
-    from ace_drake.training.trainer import chosen_policy
+    from ace_drake.training.export import chosen_policy
 
     torch.testing.assert_close(chosen_policy(again, "final")(obs), policy(obs))  # what --evaluate-data evaluates
     export(again, tmp_path / "best", "best")
@@ -521,7 +522,7 @@ def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
 
 
 def test_a_run_that_only_clones_evaluates_on_the_way_and_draws_its_curve_against_updates(tmp_path):
-    from ace_drake.training.trainer import cloning_curve, plot_learning_curve
+    from ace_drake.training.export import cloning_curve, plot_learning_curve
 
     config = _config(pretrain_updates=8, pretrain_evaluate_every=4, env_steps=1)  # stops after cloning
     state = Trainer(config, tmp_path / "run", progress=lambda line: None).run()
@@ -535,7 +536,8 @@ def test_a_run_that_only_clones_evaluates_on_the_way_and_draws_its_curve_against
 
 
 def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
-    from ace_drake.training.trainer import Progress, cloning_curve, evaluation_description, evaluation_series, plot_learning_curve
+    from ace_drake.training.export import cloning_curve, evaluation_description, evaluation_series, plot_learning_curve
+    from ace_drake.training.loop import Progress
 
     assert evaluation_description(TrainConfig(evaluation_episodes=60)) == "60 synthetic shots"
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ace_match_events_elite.csv"
