@@ -539,43 +539,6 @@ def cmd_train(args) -> int:
     return 0
 
 
-def cmd_imitation(args) -> int:
-    """Offline imitation fits on a training checkpoint's demonstrations (``analysis.imitation``)."""
-    import torch
-
-    from ace_drake.analysis.imitation import demonstration_arrays, imitation_report, label_sensitivity
-
-    torch.set_num_threads(1)  # small batches: one thread is as fast, and does not fight other jobs for the cores
-    observations, actions, layout = demonstration_arrays(args.checkpoint)
-    log(f"imitation: {len(observations)} demonstrated steps of {args.checkpoint}")
-    fits = imitation_report(observations, actions, layout, steps=args.steps, seed=args.seed, progress=log)
-    sensitivity = None
-    if args.sensitivity:
-        from ace_drake.control.params import ReturnerParams
-        from ace_drake.control.returner import ModelBasedReturner
-        from ace_drake.perception.params import PerceptionParams
-
-        returner = ModelBasedReturner.for_rally(RallyParams(perception=PerceptionParams(positions="statistical")),
-                                                ReturnerParams(memory=False))
-        log(f"imitation: label sensitivity on {args.sensitivity} observations")
-        sensitivity = label_sensitivity(observations, returner, layout, rows=args.sensitivity, seed=args.seed)
-    if args.json:
-        emit_json({"checkpoint": args.checkpoint, "rows": len(observations), "steps": args.steps, "seed": args.seed,
-                   "fits": [dataclasses.asdict(fit) for fit in fits], "label_sensitivity": sensitivity})
-        return 0
-    print(f"{len(observations)} demonstrated steps; squared action error summed over 16 components (label variance "
-          f"{fits[0].label_variance:.3f}); last 10% held out")
-    print(f"{'inputs':<28} {'rows':>7} {'held-out':>9} {'swing':>7} {'other':>7} {'fit':>7}")
-    for fit in fits:
-        name = "+ hit_prediction" if "hit_prediction" in fit.parts else "paper + estimate"
-        print(f"{name:<28} {fit.fit_rows:>7} {fit.held_out:>9.3f} {fit.held_out_swing:>7.3f} {fit.held_out_other:>7.3f} {fit.train:>7.3f}")
-    if sensitivity:
-        print(f"label change under estimate noise ({sensitivity['rows']} observations): mean {sensitivity['mean']:.3f}, "
-              f"median {sensitivity['median']:.2e}, above 0.5: {sensitivity['share_above_0.5']:.1%} "
-              f"(mean in the swing {_maybe(sensitivity['swing_mean'])}, elsewhere {_maybe(sensitivity['other_mean'])})")
-    return 0
-
-
 def cmd_results(args) -> int:
     """The README's results table (and docs/benchmarks.md's) regenerated from their source files."""
     from ace_drake.analysis.results import render_results, stale_files, update_files
@@ -633,14 +596,6 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--export-only", action="store_true", help="export the run's checkpoint as it stands (e.g. a run stopped early) without training")
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
-
-    imitation = commands.add_parser("imitation", help="offline imitation fits on a training checkpoint's demonstrations")
-    imitation.add_argument("checkpoint", help="a training run's checkpoint.pt (out/train/<name>/checkpoint.pt)")
-    imitation.add_argument("--steps", type=int, default=6000, help="Adam steps per fit (default: %(default)s)")
-    imitation.add_argument("--seed", type=int, default=0)
-    imitation.add_argument("--sensitivity", type=int, default=0, help="also relabel this many observations with the memoryless returner, with and without estimate noise")
-    imitation.add_argument("--json", action="store_true")
-    imitation.set_defaults(run=cmd_imitation)
 
     validate = commands.add_parser("physics-validate", help="replay recorded events through the ball model")
     validate.add_argument("--data", required=True, help="match-data CSV (format of ace_match_events_elite.csv)")
@@ -708,11 +663,6 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError, FileNotFoundError) as error:
         log(f"ace-drake {args.command}: error: {error}")
         return 2
-
-
-def _maybe(value, spec: str = ".3f") -> str:
-    """A number formatted, or '-' for None."""
-    return "-" if value is None else format(value, spec)
 
 
 def _json_default(value):
