@@ -1,30 +1,55 @@
 """``ace-drake <command>``: the project's stable command-line surface.
 
 With ``--json`` a command prints a single JSON object on stdout and nothing else; progress and
-logs go to stderr.
+logs go to stderr. This module parses the arguments, reports input errors and prints; the work of
+every command is a function of an application module (``WORK``).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import datetime
-import hashlib
-import json
-import shlex
+import importlib
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from ace_drake.config import ConfigError, InputError, load_config, to_dict
-from ace_drake.control.params import RallyParams
-from ace_drake.perception.params import PerceptionParams
-from ace_drake.physics.params import BallPhysicsParams
+from ace_drake import artefacts
+from ace_drake.analysis.results import render_results, stale_files, update_files
+from ace_drake.config import ConfigError, InputError
+from ace_drake.contracts import DEFAULT_CONTROLLER
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MODELS = REPO_ROOT / "models"
 DEFAULT_FITTED_PARAMS = MODELS / "ball_physics_fitted.yaml"
+
+# The function that does each command's work, "module:function", imported by ``work`` when the
+# command runs and not at the top of this module: these modules load Drake, torch or Ray (seconds
+# each), and ``ace-drake --help``, an input error or ``ace-drake results`` need none of them.
+WORK = {
+    "rally": "ace_drake.evaluation.rallies:run_rallies",
+    "evaluate": "ace_drake.evaluation.evaluate:evaluate_controller",
+    "evaluate --skill sampled": "ace_drake.training.env:SkillSampling",
+    "physics-validate": "ace_drake.analysis.physics_validation:validate_file",
+    "physics summary": "ace_drake.analysis.physics_validation:format_summary",
+    "physics-fit": "ace_drake.analysis.physics_fit:fit_and_write",
+    "sysid": "ace_drake.control.sysid:identify_and_write",
+    "bench ball": "ace_drake.analysis.bench:bench_ball",
+    "bench reach": "ace_drake.analysis.reach:bench_reach_on_file",
+    "bench control": "ace_drake.analysis.control_bench:bench_control",
+    "bench safety": "ace_drake.analysis.control_bench:bench_safety",
+    "bench perception": "ace_drake.analysis.perception_bench:bench_perception",
+    "bench sim": "ace_drake.analysis.sim_bench:bench_sim",
+    "bench sim text": "ace_drake.analysis.sim_bench:print_sim_figures",
+    "bench train": "ace_drake.analysis.train_bench:bench_train",
+    "cameras optimize": "ace_drake.perception.placement:optimize_and_write",
+    "diagrams": "ace_drake.analysis.graphs:write_graphs",
+    "train": "ace_drake.training.export:train_and_export",
+}
+
+
+def work(name: str):
+    """The function of ``WORK[name]``, its module imported now."""
+    module, function = WORK[name].split(":")
+    return getattr(importlib.import_module(module), function)
 
 
 def log(message: str) -> None:
@@ -33,46 +58,18 @@ def log(message: str) -> None:
 
 
 def emit_json(payload: dict) -> None:
-    """The single JSON object of a ``--json`` command; a number that is not finite is written as
-    null (JSON has no NaN), so the output is always valid JSON."""
-    json.dump(_finite_or_null(payload), sys.stdout, indent=2, default=_json_default, allow_nan=False)
-    sys.stdout.write("\n")
-
-
-def load_ball_params(path: str | None) -> BallPhysicsParams:
-    """The paper's ball model, or the parameter file ``path`` (a YAML like models/ball_physics_fitted.yaml)."""
-    return BallPhysicsParams() if path is None else load_config(BallPhysicsParams, path)
+    """The single JSON object of a ``--json`` command (``artefacts.dumps``: a number that is not
+    finite is written as null, so the output is always valid JSON)."""
+    sys.stdout.write(artefacts.dumps(payload) + "\n")
 
 
 # ------------------------------------------------------------------------------ commands
 
 
-def _rally_params(args) -> RallyParams:
-    """The rally diagram's config from ``--params`` (ball model) and ``--sensors``."""
-    return RallyParams(physics=load_ball_params(args.params), perception=PerceptionParams(positions=args.sensors), seed=args.seed)
-
-
 def cmd_rally(args) -> int:
     """The main job: rallies of the best shipped controller against the launcher opponent."""
-    from pydrake.geometry import Meshcat
-
-    from ace_drake.evaluation.controllers import make_controller
-    from ace_drake.evaluation.rallies import play_rallies, rally_rows
-    from ace_drake.play.params import ShotParams
-
-    params = _rally_params(args)
-    controller = make_controller(args.controller, params)
-    meshcat = Meshcat() if args.html else None
-    log(f"rally: {args.rallies} rallies of '{args.controller}' against the launcher ({args.sensors} sensors, seed {args.seed})")
-    played = play_rallies(controller, params, ShotParams(seed=args.seed), args.rallies, args.seed, meshcat, progress=log)
-    rows = rally_rows(played)
-    returned = sum(row["outcome"] == "returned" for row in rows)
-    playable = sum(row["outcome"] != "invalid" for row in rows)
-    if args.html:
-        path = Path(args.html)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(meshcat.StaticHtml())
-        log(f"wrote Meshcat replay {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser")
+    result = work("rally")(args.controller, args.rallies, args.sensors, args.seed, args.params, args.html, progress=log)
+    rows, returned, playable = result["rallies"], result["returned"], result["played"]
     if args.json:
         emit_json({"command": "rally", "controller": args.controller, "returned": returned, "played": playable, "rallies": rows, "html": args.html})
         return 0
@@ -89,66 +86,21 @@ def cmd_rally(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    """Return-rate evaluation of a controller (``evaluation.evaluate``)."""
-    from ace_drake.evaluation.controllers import NoisyActions, make_controller
-    from ace_drake.evaluation.evaluate import evaluate
-    from ace_drake.play.params import ShotParams
-    from ace_drake.play.shots import human_shots, make_distribution
-
-    if args.episodes is not None and args.episodes < 1:
-        raise ConfigError(f"evaluate: --episodes must be >= 1, got {args.episodes}")
-    params = _rally_params(args)
+    """Return-rate evaluation of a controller (``evaluation.evaluate.evaluate_controller``)."""
     players = tuple(name.strip() for name in args.players.split(",") if name.strip()) if args.players else ()
-    if players and not args.data:
-        raise ConfigError("evaluate: --players selects shots of --data; give a match-data CSV")
-    if args.data:
-        shots, serve = human_shots(args.data, players)
-        shots, serve = shots[: args.episodes], serve[: args.episodes]
-        of = f" of {', '.join(players)}" if players else ""
-        source = f"the {len(shots)} human shots (shot_p2){of} of {args.data}"
-    else:
-        sample = make_distribution(ShotParams(seed=args.seed), params.physics).draw(np.random.default_rng(args.seed), args.episodes or 200)
-        shots, serve = sample.states, sample.serve
-        source = f"{len(shots)} shots from the built-in synthetic distribution"
-    skills, skill_text = _evaluation_skills(args.skill, len(shots), params, args.seed)
-    controller = make_controller(args.controller, params)
-    noise = f", Gaussian action noise {args.action_noise:g}" if args.action_noise else ""
-    if args.action_noise:
-        controller = NoisyActions(controller, args.action_noise, seed=args.seed)
-    log(f"evaluate: '{args.controller}'{noise} on {source}, {args.sensors} sensors, seed {args.seed}, {skill_text}")
-    figures = evaluate(controller, params, shots, serve, args.seed, progress=log, skills=skills)
-    figures = {"controller": args.controller, "action_noise": args.action_noise, "data": args.data, "players": list(players),
-               "sensors": args.sensors, "seed": args.seed, "skills": args.skill or "default", **figures}
+    sampling = work("evaluate --skill sampled")() if args.skill == "sampled" else None
+    figures = work("evaluate")(args.controller, sensors=args.sensors, seed=args.seed, ball_params=args.params, data=args.data,
+                               players=players, episodes=args.episodes, skill=args.skill, skill_sampling=sampling,
+                               action_noise=args.action_noise, progress=log)
     if args.json:
-        emit_json({**figures, **_provenance(), **({"data_sha256": _sha256(args.data)} if args.data else {})})
+        emit_json(figures)
         return 0
     _print_evaluation(figures)
     return 0
 
 
-def _evaluation_skills(spec: str | None, count: int, params: RallyParams, seed: int) -> tuple[np.ndarray | None, str]:
-    """The skills of ``evaluate --skill``: None (the diagram's default), one fixed skill
-    "Y,WP,WS" for every shot, or "sampled": one per shot from the training distribution
-    (``training.env.SkillSampling``) drawn with ``seed``. Returns (skills (count, 3) or None,
-    a phrase for the log); raises ConfigError for anything else."""
-    from ace_drake.training.env import SkillSampling
-
-    if spec is None:
-        return None, "the default skill (y_desired 0 m, w_p 1, w_s 0)"
-    if spec == "sampled":
-        rng = np.random.default_rng([seed, 0x5C111])
-        skills = np.array([SkillSampling().sample(rng, params.physics.table.width) for _ in range(count)]).reshape(count, 3)
-        return skills, "skills sampled as in training"
-    try:
-        skill = np.array([float(value) for value in spec.split(",")])
-    except ValueError:
-        skill = np.array([])
-    if skill.shape != (3,) or not np.all(np.isfinite(skill)) or not (0.0 <= skill[1] <= 1.0 and -1.0 <= skill[2] <= 1.0):
-        raise ConfigError(f"evaluate: --skill must be 'sampled' or Y,WP,WS (y_desired in m, w_p in [0, 1], w_s in [-1, 1]), got {spec!r}")
-    return np.tile(skill, (count, 1)), f"skill y_desired {skill[0]:g} m, w_p {skill[1]:g}, w_s {skill[2]:g}"
-
-
 def _print_evaluation(figures: dict) -> None:
+    """The text of ``evaluate`` without ``--json``."""
     def rate(entry: dict) -> str:
         if entry["rate"] is None:
             return "-"
@@ -186,138 +138,30 @@ def _print_evaluation(figures: dict) -> None:
 
 def cmd_physics_validate(args) -> int:
     """Replay recorded (shot or bounce) -> bounce pairs through the ball model; report errors."""
-    from ace_drake.analysis.physics_validation import format_summary, predict_pairs, summarize
-    from ace_drake.match_data import event_pairs, load_match_events
-
-    params = load_ball_params(args.params)
-    pairs = event_pairs(load_match_events(args.data))
-    if args.player:
-        unknown = sorted(set(args.player) - set(pairs.players))
-        if unknown:
-            raise ConfigError(f"--player {unknown}: not in {args.data} (players: {sorted(set(pairs.players))})")
-        pairs = pairs.subset(np.isin(pairs.players, args.player))
-    log(f"replaying {len(pairs)} event pairs from {args.data} with {'the paper model' if args.params is None else args.params}")
-    summary = summarize(pairs, predict_pairs(pairs, params))
-    summary = {"command": "physics-validate", "data": str(args.data), "params": args.params or "paper", **summary}
+    summary = work("physics-validate")(args.data, args.params, args.player or (), progress=log)
     if args.json:
         emit_json(summary)
     else:
-        print(format_summary(summary, f"ball model: {summary['params']}; data: {args.data}"))
+        print(work("physics summary")(summary, f"ball model: {summary['params']}; data: {args.data}"))
     return 0
 
 
 def cmd_physics_fit(args) -> int:
     """Fit aerodynamic and table coefficients on some players, judge on the held-out ones."""
-    import yaml
-
-    from ace_drake.analysis.physics_fit import DEFAULT_FIT_PARAMETERS, fit_physics
-    from ace_drake.analysis.physics_validation import format_summary, predict_pairs, summarize
-    from ace_drake.match_data import event_pairs, load_match_events
-
-    pairs = event_pairs(load_match_events(args.data))
-    players = sorted(set(pairs.players))
-    unknown = sorted(set(args.holdout_player) - set(players))
-    if unknown:
-        raise ConfigError(f"--holdout-player {unknown}: not in {args.data} (players: {players})")
-    held_out = np.isin(pairs.players, args.holdout_player)
-    if held_out.all():
-        raise ConfigError("--holdout-player: every player is held out; nothing is left to fit on")
-    initial = load_ball_params(args.params)
-    names = tuple(args.parameter or DEFAULT_FIT_PARAMETERS)
-    fit_players = sorted(set(pairs.players[~held_out]))
-    log(f"fitting {names} on {int((~held_out).sum())} pairs ({', '.join(fit_players)}); "
-        f"holding out {int(held_out.sum())} pairs ({', '.join(args.holdout_player)})")
-    result = fit_physics(pairs.subset(~held_out), initial, names, max_evaluations=args.max_evaluations, progress=log)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # Every field that was fitted or differs from the paper's defaults (a --params start), rounded.
-    final, defaults = to_dict(result.params), to_dict(BallPhysicsParams())
-    nested: dict[str, dict] = {}
-    for group, fields in final.items():
-        for field, value in fields.items():
-            if f"{group}.{field}" in result.values or value != defaults[group][field]:
-                nested.setdefault(group, {})[field] = round(value, 6) if isinstance(value, float) else value
-    header = (
-        "# Ball-model coefficients fitted to recorded match data by `ace-drake physics-fit`.\n"
-        "# Fields not listed keep the paper's defaults (ace_drake/config.py); how this file was\n"
-        f"# produced, and its held-out figures, are in {out.with_suffix('.json').name}.\n"
-    )
-    out.write_text(header + yaml.safe_dump(nested, sort_keys=True))
-    fitted = load_ball_params(str(out))  # the figures are those of the file as written (rounded)
-    figures = {}
-    for label, mask in [("fit_players", ~held_out), ("held_out_players", held_out)]:
-        subset = pairs.subset(mask)
-        figures[label] = {
-            "initial": summarize(subset, predict_pairs(subset, initial)),
-            "fitted": summarize(subset, predict_pairs(subset, fitted)),
-        }
-    sidecar = {
-        **_provenance(),
-        "data": {"file": Path(args.data).name, "sha256": _sha256(args.data), "pairs": len(pairs)},
-        "fit_players": fit_players,
-        "held_out_players": sorted(args.holdout_player),
-        "initial_params": args.params or "paper",
-        "fitted": result.values,
-        "optimizer": {"evaluations": result.evaluations, "message": result.message,
-                      "initial_cost": result.initial_cost, "final_cost": result.final_cost},
-        "figures": figures,
-    }
-    out.with_suffix(".json").write_text(json.dumps(sidecar, indent=2, default=_json_default) + "\n")
-    log(f"wrote {out} and {out.with_suffix('.json')}")
+    sidecar = work("physics-fit")(args.data, args.holdout_player, args.parameter, args.params, args.out, args.max_evaluations, progress=log)
     if args.json:
-        emit_json({"command": "physics-fit", "params_file": str(out), **sidecar})
+        emit_json({"command": "physics-fit", "params_file": str(args.out), **sidecar})
     else:
         for label in ("initial", "fitted"):
-            print(format_summary(figures["held_out_players"][label], f"\nheld-out players, {label} model"))
+            print(work("physics summary")(sidecar["figures"]["held_out_players"][label], f"\nheld-out players, {label} model"))
     return 0
 
 
 def cmd_sysid(args) -> int:
     """Identify each logged joint's delayed second-order model (paper eq. (9)); write the config."""
-    import yaml
-
-    from ace_drake.control.joint_model import ramp_tracking_lag
-    from ace_drake.control.sysid import identify_joint, load_joint_log
-    from ace_drake.robot.params import JOINT_NAMES, RobotDynamicsParams
-
-    joint_log = load_joint_log(args.log)
-    unknown = sorted(set(joint_log.commands) - set(JOINT_NAMES))
-    if unknown:
-        raise ConfigError(f"{args.log}: unknown joint(s) {unknown}; the robot's joints are {list(JOINT_NAMES)}")
-    defaults = RobotDynamicsParams()
-    identified = {}
-    for name in joint_log.commands:
-        log(f"identifying {name} from {joint_log.times.size} samples at {1 / joint_log.period:.0f} Hz")
-        result = identify_joint(joint_log.times, joint_log.commands[name], joint_log.positions[name])
-        identified[name] = result
-        log(f"  K {result.process.gain:.4f}  w {result.process.natural_frequency:.1f} rad/s  "
-            f"zeta {result.process.damping_ratio:.3f}  tau_d {1000 * result.process.delay:.3f} ms  fit {result.fit_percent:.2f} %")
-    joints = [identified[n].params if n in identified else defaults.joints[i] for i, n in enumerate(JOINT_NAMES)]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    header = (
-        "# Joint dynamics (paper eq. (9)) identified by `ace-drake sysid`; joints in the order\n"
-        f"# {', '.join(JOINT_NAMES)}. Joints absent from the log keep the defaults. See {out.with_suffix('.json').name}.\n"
-    )
-    body = {"joints": [{"a": list(j.a), "b": list(j.b), "delay": j.delay} for j in joints],
-            "command_period": joint_log.period}
-    out.write_text(header + yaml.safe_dump(body, sort_keys=False))
-    load_config(RobotDynamicsParams, out)  # what was written must load
-    report = {
-        name: {**dataclasses.asdict(r.process), "rms_error": r.rms_error, "fit_percent": r.fit_percent,
-               "ramp_tracking_lag_s": ramp_tracking_lag(r.params)}
-        for name, r in identified.items()
-    }
-    sidecar = {
-        **_provenance(),
-        "log": {"file": Path(args.log).name, "sha256": _sha256(args.log), "samples": int(joint_log.times.size)},
-        "identified": report,
-        "defaulted": [n for n in JOINT_NAMES if n not in identified],
-    }
-    out.with_suffix(".json").write_text(json.dumps(sidecar, indent=2) + "\n")
-    log(f"wrote {out} and {out.with_suffix('.json')}")
+    sidecar = work("sysid")(args.log, args.out, progress=log)
     if args.json:
-        emit_json({"params_file": str(out), **sidecar})
+        emit_json({"params_file": str(args.out), **sidecar})
     return 0
 
 
@@ -330,9 +174,7 @@ def cmd_bench(args) -> int:
 
 
 def _bench_ball(args) -> int:
-    from ace_drake.analysis import bench
-
-    figures = bench.bench_ball(repeats=args.repeats, progress=log)
+    figures = work("bench ball")(repeats=args.repeats, progress=log)
     if args.json:
         emit_json(figures)
     else:
@@ -344,11 +186,9 @@ def _bench_ball(args) -> int:
 
 
 def _bench_control(args) -> int:
-    from ace_drake.analysis.control_bench import bench_control
-
     if args.steps < 1:
         raise ConfigError(f"bench control: --steps must be >= 1, got {args.steps}")
-    figures = bench_control(steps=args.steps, seed=args.seed, states=args.states, progress=log)
+    figures = work("bench control")(steps=args.steps, seed=args.seed, states=args.states, progress=log)
     if args.json:
         emit_json(figures)
         return 0
@@ -368,11 +208,9 @@ def _bench_control(args) -> int:
 
 
 def _bench_safety(args) -> int:
-    from ace_drake.analysis.control_bench import bench_safety
-
     if args.cases < 1 or args.workers < 1:
         raise ConfigError(f"bench safety: --cases and --workers must be >= 1, got {args.cases} and {args.workers}")
-    figures = bench_safety(cases=args.cases, seed=args.seed, workers=args.workers, progress=log)
+    figures = work("bench safety")(cases=args.cases, seed=args.seed, workers=args.workers, progress=log)
     if args.json:
         emit_json(figures)
         return 0
@@ -382,14 +220,11 @@ def _bench_safety(args) -> int:
 
 
 def _bench_perception(args) -> int:
-    from ace_drake.analysis.perception_bench import bench_perception
-
     if not args.data:
         raise ConfigError("bench perception: --data FILE (a match-data CSV with shot_p2 events) is required")
     if args.shots < 1:
         raise ConfigError(f"bench perception: --shots must be >= 1, got {args.shots}")
-    figures = bench_perception(args.data, shots=args.shots, seed=args.seed, progress=log)
-    figures["data_sha256"] = _sha256(args.data)
+    figures = work("bench perception")(args.data, shots=args.shots, seed=args.seed, progress=log)
     if args.json:
         emit_json(figures)
         return 0
@@ -407,26 +242,22 @@ def _bench_perception(args) -> int:
 
 
 def _bench_sim(args) -> int:
-    from ace_drake.analysis.sim_bench import bench_sim, print_sim_figures
-
     if args.seconds <= 0 or args.repeats < 1:
         raise ConfigError(f"bench sim: --seconds must be > 0 and --repeats >= 1, got {args.seconds} and {args.repeats}")
-    figures = bench_sim(seconds=args.seconds, episodes=args.repeats, seed=args.seed, progress=log)
+    figures = work("bench sim")(seconds=args.seconds, episodes=args.repeats, seed=args.seed, progress=log)
     if args.json:
         emit_json(figures)
     else:
-        print_sim_figures(figures)
+        work("bench sim text")(figures)
     return 0
 
 
 def _bench_train(args) -> int:
-    from ace_drake.analysis.train_bench import bench_train
-
     if args.seconds <= 0 or args.steps < 1:
         raise ConfigError(f"bench train: --seconds must be > 0 and --steps >= 1, got {args.seconds} and {args.steps}")
-    figures = bench_train(seconds=args.seconds, updates=args.steps, seed=args.seed, progress=log)
+    figures = work("bench train")(seconds=args.seconds, updates=args.steps, seed=args.seed, progress=log)
     if args.json:
-        emit_json({**figures, **_provenance()})
+        emit_json(figures)
     else:
         for workers, rate in figures["env_steps_per_s"].items():
             print(f"env steps/s with {workers} worker(s): {rate:.1f}")
@@ -436,16 +267,9 @@ def _bench_train(args) -> int:
 
 
 def _bench_reach(args) -> int:
-    from ace_drake.analysis.reach import bench_reach, robot_contact_points
-    from ace_drake.robot.model import RobotModel, load_scenario
-
     if not args.data:
         raise ConfigError("bench reach: --data FILE (a match-data CSV with shot_p1 events) is required")
-    points = robot_contact_points(args.data)
-    model = RobotModel(load_scenario(args.scenario))
-    log(f"bench reach: {len(points)} robot contact points from {args.data}, and their mirror in y")
-    figures = bench_reach(model, points, seed=args.seed, progress=log)
-    figures.update({"data": args.data, "data_sha256": _sha256(args.data), "scenario": str(args.scenario or "models/scenario.yaml")})
+    figures = work("bench reach")(args.data, args.scenario, seed=args.seed, progress=log)
     if args.json:
         emit_json(figures)
         return 0
@@ -464,10 +288,8 @@ def _bench_reach(args) -> int:
 
 
 def cmd_cameras(args) -> int:
-    """Camera placement by CMA-ES (``perception.placement``): writes the calibration, its
-    sidecar and the coverage plot."""
-    from ace_drake.perception.placement import optimize_and_write
-
+    """Camera placement by CMA-ES (``perception.placement.optimize_and_write``): writes the
+    calibration, its sidecar and the coverage plot."""
     if args.action != "optimize":
         raise ConfigError(f"cameras: unknown action {args.action!r}; expected optimize")
     if args.iterations < 1 or not args.spacing > 0.0:
@@ -479,8 +301,7 @@ def cmd_cameras(args) -> int:
         if iteration % 10 == 0 or iteration == args.iterations:
             log(f"cameras optimize: iteration {iteration}/{args.iterations}, coverage {100 * figures.coverage:.1f} %")
 
-    sidecar = optimize_and_write(output, seed=args.seed, iterations=args.iterations, spacing=args.spacing, plot_path=plot,
-                                 command=_provenance()["command"], progress=progress)
+    sidecar = work("cameras optimize")(output, seed=args.seed, iterations=args.iterations, spacing=args.spacing, plot_path=plot, progress=progress)
     log(f"wrote {output}, {output.with_suffix('.json')} and {plot}")
     if args.json:
         emit_json(sidecar)
@@ -491,77 +312,18 @@ def cmd_cameras(args) -> int:
 
 def cmd_diagrams(args) -> int:
     """Render every documented diagram's graph (DOT, and SVG when Graphviz is installed)."""
-    import shutil
-    import subprocess
-
-    from ace_drake.diagrams import DOCUMENTED_DIAGRAMS, graphviz_dot
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    dot_program = shutil.which("dot")
-    if dot_program is None:
-        log("Graphviz 'dot' not found: writing DOT only (install it with `apt-get install graphviz` "
-            "or your platform's package manager to get SVGs)")
-    index = ["# Diagram graphs", "", "Generated by `ace-drake diagrams`; a test checks that the DOT files are current.", ""]
-    for name, build in DOCUMENTED_DIAGRAMS.items():
-        dot = graphviz_dot(build())
-        dot_path, svg_path = out / f"{name}.dot", out / f"{name}.svg"
-        unchanged = dot_path.is_file() and dot_path.read_text() == dot
-        dot_path.write_text(dot)
-        line = f"- `{name}`: [{name}.dot]({name}.dot)"
-        if dot_program is not None:
-            subprocess.run([dot_program, "-Tsvg", "-o", str(svg_path)], input=dot, text=True, check=True)
-        elif svg_path.is_file() and not unchanged:
-            log(f"{svg_path} is out of date (its graph changed) and is left out of the index: install Graphviz to redraw it")
-        if svg_path.is_file() and (dot_program is not None or unchanged):  # drawn now, or from the same DOT text
-            line += f", [{name}.svg]({name}.svg)\n\n  ![{name}]({name}.svg)"
-        index.append(line)
-        log(f"wrote {dot_path}" + (" and .svg" if dot_program else ""))
-    (out / "README.md").write_text("\n".join(index) + "\n")
+    work("diagrams")(args.out, progress=log)
     return 0
 
 
 def cmd_train(args) -> int:
-    """A training run (``training.trainer``): resumes from the run directory's checkpoint, trains,
-    exports the policy with its sidecar and learning curve."""
-    from ace_drake.training.trainer import CHECKPOINT, PREVIOUS_CHECKPOINT, Trainer, export, load_train_config
-
-    config = load_train_config(args.config)
-    run_dir = Path(args.run_dir or REPO_ROOT / "out" / "train" / config.name)
-    log(f"train: {args.config} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
-    if args.export_only and not any((run_dir / name).is_file() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
-        raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
-    existing = [path for path in (Path(args.export_dir) / f"{config.name}{suffix}" for suffix in (".pt", ".json", "_curve.png")) if path.exists()]
-    if existing and not args.overwrite:  # checked before anything is trained or written
-        raise ConfigError(f"train: {existing[0]} exists (a policy named {config.name!r}, e.g. a shipped one); give --overwrite to "
-                          "replace it, or another --export-dir or config name")
-    trainer = Trainer(config, run_dir, progress=log)
-    if args.export_only:
-        log(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
-    else:
-        trainer.run()
-    evaluation = None
-    if args.evaluate_data:
-        from ace_drake.evaluation.evaluate import evaluate
-        from ace_drake.play.shots import held_out_players, human_shots
-        from ace_drake.training.trainer import chosen_policy
-
-        policy = chosen_policy(trainer, args.export)
-
-        def human_evaluation(players: tuple[str, ...] = ()) -> dict:
-            shots, serve = human_shots(args.evaluate_data, players)
-            of = f" of {', '.join(players)}" if players else ""
-            log(f"train: evaluating the {args.export} actor on the {len(shots)} human shots{of} of {args.evaluate_data} (cameras)")
-            return evaluate(policy, RallyParams(), shots, serve, config.seed, progress=log)
-
-        evaluation = {"data": args.evaluate_data, "data_sha256": _sha256(args.evaluate_data), "sensors": "cameras", **human_evaluation()}
-        held_out = held_out_players(config.env.shots, args.evaluate_data)
-        if held_out:  # trained on some players' shots: the others' are reported on their own
-            evaluation["held_out"] = {"players": list(held_out), **human_evaluation(held_out)}
-    sidecar = export(trainer, args.export_dir, args.export, evaluation, _provenance())
-    summary = {"policy": str(Path(args.export_dir) / f"{config.name}.pt"), **{k: sidecar[k] for k in ("env_steps", "episodes", "updates", "wall_time_s", "actor_at")}}
+    """A training run (``training.export.train_and_export``): resumes from the run directory's
+    checkpoint, trains, exports the policy with its sidecar and learning curve."""
+    summary = work("train")(args.config, args.run_dir, args.export_dir, args.export, args.evaluate_data, args.export_only, progress=log,
+                            overwrite=args.overwrite)
+    evaluation = summary["final_evaluation"]
     if args.json:
-        emit_json({**summary, "final_evaluation": evaluation})
+        emit_json(summary)
     else:
         print(f"exported {summary['policy']} after {summary['env_steps']} steps, {summary['updates']} updates, {summary['wall_time_s']:.0f} s")
         if evaluation:
@@ -574,47 +336,8 @@ def cmd_train(args) -> int:
     return 0
 
 
-def cmd_imitation(args) -> int:
-    """Offline imitation fits on a training checkpoint's demonstrations (``analysis.imitation``)."""
-    import torch
-
-    from ace_drake.analysis.imitation import demonstration_arrays, imitation_report, label_sensitivity
-
-    torch.set_num_threads(1)  # small batches: one thread is as fast, and does not fight other jobs for the cores
-    observations, actions, layout = demonstration_arrays(args.checkpoint)
-    log(f"imitation: {len(observations)} demonstrated steps of {args.checkpoint}")
-    fits = imitation_report(observations, actions, layout, steps=args.steps, seed=args.seed, progress=log)
-    sensitivity = None
-    if args.sensitivity:
-        from ace_drake.control.params import ReturnerParams
-        from ace_drake.control.returner import ModelBasedReturner
-        from ace_drake.perception.params import PerceptionParams
-
-        returner = ModelBasedReturner.for_rally(RallyParams(perception=PerceptionParams(positions="statistical")),
-                                                ReturnerParams(memory=False))
-        log(f"imitation: label sensitivity on {args.sensitivity} observations")
-        sensitivity = label_sensitivity(observations, returner, layout, rows=args.sensitivity, seed=args.seed)
-    if args.json:
-        emit_json({"checkpoint": args.checkpoint, "rows": len(observations), "steps": args.steps, "seed": args.seed,
-                   "fits": [dataclasses.asdict(fit) for fit in fits], "label_sensitivity": sensitivity})
-        return 0
-    print(f"{len(observations)} demonstrated steps; squared action error summed over 16 components (label variance "
-          f"{fits[0].label_variance:.3f}); last 10% held out")
-    print(f"{'inputs':<28} {'rows':>7} {'held-out':>9} {'swing':>7} {'other':>7} {'fit':>7}")
-    for fit in fits:
-        name = "+ hit_prediction" if "hit_prediction" in fit.parts else "paper + estimate"
-        print(f"{name:<28} {fit.fit_rows:>7} {fit.held_out:>9.3f} {fit.held_out_swing:>7.3f} {fit.held_out_other:>7.3f} {fit.train:>7.3f}")
-    if sensitivity:
-        print(f"label change under estimate noise ({sensitivity['rows']} observations): mean {sensitivity['mean']:.3f}, "
-              f"median {sensitivity['median']:.2e}, above 0.5: {sensitivity['share_above_0.5']:.1%} "
-              f"(mean in the swing {_maybe(sensitivity['swing_mean'])}, elsewhere {_maybe(sensitivity['other_mean'])})")
-    return 0
-
-
 def cmd_results(args) -> int:
     """The README's results table (and docs/benchmarks.md's) regenerated from their source files."""
-    from ace_drake.analysis.results import render_results, stale_files, update_files
-
     if args.check:
         stale = stale_files(REPO_ROOT)
         for name in stale:
@@ -632,6 +355,7 @@ def cmd_results(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of every sub-command; each one's ``run`` is its handler above."""
     parser = argparse.ArgumentParser(prog="ace-drake", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
@@ -641,8 +365,6 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--seed", type=int, default=0)
         command.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
         command.add_argument("--json", action="store_true")
-
-    from ace_drake.evaluation.controllers import DEFAULT_CONTROLLER
 
     rally = commands.add_parser("rally", help="the main job: rallies of the best shipped controller against the launcher; Meshcat replay")
     add_rally_options(rally, DEFAULT_CONTROLLER)
@@ -660,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")
-    train.add_argument("config", help="training config YAML (training.trainer.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
+    train.add_argument("config", help="training config YAML (training.loop.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
     train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
     train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
@@ -669,14 +391,6 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--overwrite", action="store_true", help="replace a policy of the same name in --export-dir (refused otherwise)")
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
-
-    imitation = commands.add_parser("imitation", help="offline imitation fits on a training checkpoint's demonstrations")
-    imitation.add_argument("checkpoint", help="a training run's checkpoint.pt (out/train/<name>/checkpoint.pt)")
-    imitation.add_argument("--steps", type=int, default=6000, help="Adam steps per fit (default: %(default)s)")
-    imitation.add_argument("--seed", type=int, default=0)
-    imitation.add_argument("--sensitivity", type=int, default=0, help="also relabel this many observations with the memoryless returner, with and without estimate noise")
-    imitation.add_argument("--json", action="store_true")
-    imitation.set_defaults(run=cmd_imitation)
 
     validate = commands.add_parser("physics-validate", help="replay recorded events through the ball model")
     validate.add_argument("--data", required=True, help="match-data CSV (format of ace_match_events_elite.csv)")
@@ -736,59 +450,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_ARGV: list[str] = []  # the command line main() runs, for provenance
-
-
 def main(argv: list[str] | None = None) -> int:
-    global _ARGV
-    _ARGV = list(sys.argv[1:] if argv is None else argv)
+    """Runs ``ace-drake`` with ``argv`` (default: the process's arguments); returns the exit code."""
+    artefacts.record_command_line(sys.argv[1:] if argv is None else argv)  # for the sidecars' provenance
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
     except (InputError, FileNotFoundError) as error:  # bad input (ConfigError, MatchDataError, ... are InputErrors); a bug keeps its traceback
         log(f"ace-drake {args.command}: error: {error}")
         return 2
-
-
-def _provenance() -> dict:
-    """The command line and date that every artefact's sidecar records."""
-    return {
-        "command": "ace-drake " + " ".join(shlex.quote(a) for a in _ARGV),
-        "date": datetime.date.today().isoformat(),
-    }
-
-
-def _maybe(value, spec: str = ".3f") -> str:
-    """A number formatted, or '-' for None."""
-    return "-" if value is None else format(value, spec)
-
-
-def _sha256(path: str) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def _finite_or_null(value):
-    """``value`` with NumPy values as Python ones and every non-finite float as None, in nested
-    dicts, lists and tuples."""
-    if isinstance(value, np.ndarray):
-        value = value.tolist()
-    elif isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float):
-        return value if np.isfinite(value) else None
-    if isinstance(value, dict):
-        return {key: _finite_or_null(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_or_null(item) for item in value]
-    return value
-
-
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 if __name__ == "__main__":

@@ -38,6 +38,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+# The best shipped controller, what ``ace-drake rally`` and ``evaluate`` play with by default
+# (``evaluation.controllers`` makes it; here so that the CLI's parser names it without loading it).
+DEFAULT_CONTROLLER = "returner"
+
 if TYPE_CHECKING:  # a type only: physics sits above the contracts (docs/architecture.md)
     from ace_drake.physics.propagate import ContactEvent
 

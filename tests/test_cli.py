@@ -5,11 +5,20 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
-from ace_drake.cli import main
+from ace_drake.analysis import physics_validation
+from ace_drake.cli import emit_json, main
+from ace_drake.config import ConfigError, InputError
+from ace_drake.control.sysid import JointLogError
 from ace_drake.learning.params import RewardParams
+from ace_drake.learning.sac import load_policy
+from ace_drake.match_data import MatchDataError
+from ace_drake.perception.cameras import load_cameras
+from ace_drake.play.shots import ShotDistributionError
+from ace_drake.training.checkpoint import CheckpointError
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "ace_match_events_elite.csv"
@@ -183,8 +192,6 @@ def test_bench_safety_reports_zero_violations(capsys):
 
 
 def test_cameras_optimize_writes_a_loadable_calibration_with_its_sidecar_and_plot(capsys, tmp_path):
-    from ace_drake.perception.cameras import load_cameras
-
     output = tmp_path / "cameras.yaml"
     sidecar = run_json(capsys, "cameras", "optimize", "--iterations", "2", "--spacing", "0.8", "--output", str(output), "--json")
     assert 0.0 <= sidecar["figures"]["coverage"] <= 1.0 and sidecar["seed"] == 0
@@ -237,9 +244,6 @@ def test_physics_validate_json_leaves_out_non_finite_figures_and_counts_them(cap
 
 
 def test_json_output_writes_non_finite_numbers_as_null(capsys):
-    import numpy as np
-
-    from ace_drake.cli import emit_json
 
     emit_json({"a": float("nan"), "b": [1.0, np.inf], "c": np.array([np.nan, 2.0]), "d": np.float64("-inf"), "e": "nan"})
     assert json.loads(capsys.readouterr().out) == {"a": None, "b": [1.0, None], "c": [None, 2.0], "d": None, "e": "nan"}
@@ -253,35 +257,25 @@ def test_a_match_data_row_without_a_column_is_an_input_error(capsys, tmp_path):
 
 
 def test_only_input_errors_exit_2_and_a_bug_keeps_its_traceback(capsys, monkeypatch, tmp_path):
-    import ace_drake.cli as cli
-    from ace_drake.config import ConfigError, InputError
-    from ace_drake.control.sysid import JointLogError
-    from ace_drake.match_data import MatchDataError
-    from ace_drake.play.shots import ShotDistributionError
-    from ace_drake.training.trainer import CheckpointError
-
     assert all(issubclass(error, InputError) for error in (ConfigError, MatchDataError, JointLogError, ShotDistributionError, CheckpointError))
     argv = ["physics-validate", "--data", str(tmp_path / "events.csv")]
 
     def bug(path):
         raise ValueError("an internal bug")
 
-    monkeypatch.setattr(cli, "load_ball_params", bug)
+    monkeypatch.setattr(physics_validation, "load_ball_params", bug)
     with pytest.raises(ValueError, match="an internal bug"):  # not "error: ..." and exit 2
         main(argv)
 
     def bad_input(path):
         raise InputError("--params: not a ball model")
 
-    monkeypatch.setattr(cli, "load_ball_params", bad_input)
+    monkeypatch.setattr(physics_validation, "load_ball_params", bad_input)
     assert main(argv) == 2
     assert "ace-drake physics-validate: error: --params: not a ball model" in capsys.readouterr().err
 
 
 def test_a_file_that_is_not_a_policy_artefact_is_an_input_error(tmp_path):
-    from ace_drake.config import InputError
-    from ace_drake.learning.sac import load_policy
-
     (tmp_path / "junk.pt").write_bytes(b"not torch")
     with pytest.raises(InputError, match=r"junk\.pt: not a policy artefact"):
         load_policy(tmp_path / "junk.pt")

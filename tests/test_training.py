@@ -4,18 +4,38 @@ diagram, the trainer's phases, checkpoints and resumption, export and the policy
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import yaml
 
-from ace_drake.config import ConfigError
+from ace_drake.cli import main
+from ace_drake.config import MODELS_DIR, ConfigError, from_dict, to_dict
+from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.control.params import RallyParams, ReturnerParams
+from ace_drake.evaluation import controllers
+from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
-from ace_drake.training.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
-from ace_drake.training.trainer import TrainConfig, Trainer, chosen_actor, evaluation_series, export, load_train_config
+from ace_drake.play.shots import human_shots
+from ace_drake.training.checkpoint import CheckpointError, read_checkpoint
+from ace_drake.training.env import RallyEnvParams, training_rally_params
+from ace_drake.training.export import (
+    chosen_actor,
+    chosen_policy,
+    cloning_curve,
+    evaluation_description,
+    evaluation_series,
+    export,
+    plot_learning_curve,
+)
+from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
+from ace_drake.training.rollout import ExplorationParams, OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
+from ace_drake.training.workers import WorkerPool
 
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
 
@@ -129,8 +149,6 @@ def _config(**overrides) -> TrainConfig:
 
 
 def test_the_shipped_training_config_loads():
-    from ace_drake.config import MODELS_DIR
-
     config = load_train_config(MODELS_DIR / "train_rally.yaml")
     assert config.name == "rally_sac" and config.demonstrations > 0 and config.learn_mode == "dagger"
 
@@ -140,9 +158,7 @@ def _continuation(name: str, first: str) -> tuple[TrainConfig, TrainConfig]:
     without its ``initialize_from``; the config ``models/<first>.yaml`` of that run). Asserts that
     ``initialize_from`` is the first run's default run directory's checkpoint; skips without the
     match data the configs name."""
-    import yaml
 
-    from ace_drake.config import MODELS_DIR, from_dict
 
     data = yaml.safe_load((MODELS_DIR / f"{name}.yaml").read_text())
     if not Path(data["evaluation_data"]).is_file():
@@ -160,9 +176,6 @@ def test_the_shipped_second_stage_config_continues_the_first():
 
 
 def test_the_shipped_stage_5_config_continues_stage_4():
-    import yaml
-
-    from ace_drake.config import MODELS_DIR
 
     fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
     fourth = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
@@ -173,9 +186,6 @@ def test_the_shipped_stage_5_config_continues_stage_4():
 
 
 def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
-    import yaml
-
-    from ace_drake.config import MODELS_DIR
 
     sixth = yaml.safe_load((MODELS_DIR / "train_rally_human_memoryless.yaml").read_text())
     fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
@@ -189,11 +199,7 @@ def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
 
 
 def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labeller():
-    import json
 
-    import yaml
-
-    from ace_drake.config import MODELS_DIR, from_dict, to_dict
 
     skill = yaml.safe_load((MODELS_DIR / "train_rally_skill.yaml").read_text())
     if not Path(skill["evaluation_data"]).is_file():
@@ -221,11 +227,7 @@ def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
 
 
 def test_the_meeting_config_is_stage_1_with_more_demonstrations_and_the_ball_meeting_layer():
-    import dataclasses
 
-    import yaml
-
-    from ace_drake.config import MODELS_DIR
 
     source = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_meet.yaml").read_text())["env"]["shots"]["source"]
     if not Path(source).is_file():  # both configs name it; loading them checks that it exists
@@ -250,8 +252,6 @@ def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations
 
 
 def test_the_workers_label_with_the_configured_returner():
-    from ace_drake.control.params import ReturnerParams
-
     dut = RolloutWorker(sac=SMALL, seed=5, index=0, returner=ReturnerParams(memory=False))
     assert dut.returner.params.memory is False
     episode = dut.collect(1, "dagger")[0]
@@ -260,8 +260,6 @@ def test_the_workers_label_with_the_configured_returner():
 
 
 def test_the_trainer_hands_its_returner_config_to_the_workers(tmp_path):
-    from ace_drake.control.params import ReturnerParams
-
     trainer = Trainer(_config(returner=ReturnerParams(memory=False)), tmp_path / "run", progress=lambda line: None)
     assert trainer._workers()._workers[0].returner.params.memory is False
 
@@ -306,14 +304,11 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
     policy = load_policy(tmp_path / "policies" / "tiny.pt")
     obs = torch.randn(3, again.learner.observation_size)
     torch.testing.assert_close(policy(obs), again.learner.policy()(obs))
-    from ace_drake.training.trainer import chosen_policy
 
     torch.testing.assert_close(chosen_policy(again, "final")(obs), policy(obs))  # what --evaluate-data evaluates
     export(again, tmp_path / "best", "best")
     torch.testing.assert_close(chosen_policy(again, "best")(obs), load_policy(tmp_path / "best" / "tiny.pt")(obs))
 
-    from ace_drake.control.params import RallyParams
-    from ace_drake.evaluation import controllers
 
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path / "policies")
     assert "policy:tiny" in controllers.controller_names()
@@ -375,7 +370,6 @@ def test_save_policy_round_trip(tmp_path):
 
 def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
     """The Ray backend and the single-process mode run the same worker code on the same seeds."""
-    from ace_drake.training.workers import WorkerPool
 
     args = {"sac": SMALL, "seed": 21}
     local = WorkerPool(1, args, "local")
@@ -397,12 +391,7 @@ def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
 
 
 def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
-    import json
 
-    import yaml
-
-    from ace_drake.cli import main
-    from ace_drake.config import to_dict
 
     config = tmp_path / "train.yaml"
     config.write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(_config(name="cli", env_steps=40))))))
@@ -460,8 +449,6 @@ def test_a_run_can_take_up_another_runs_demonstrations_phase(tmp_path):
 
 
 def _exploration():
-    from ace_drake.training.rollout import ExplorationParams
-
     return ExplorationParams()
 
 
@@ -475,10 +462,6 @@ def test_policy_std_scale_narrows_the_sampled_actions():
 
 
 def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
-    from ace_drake.contracts import ObservationLayout
-    from ace_drake.control.params import RallyParams
-    from ace_drake.evaluation import controllers
-
     names = [name for name in controllers.controller_names() if name.startswith("policy:")]
     assert names, "no policy ships in models/policies"
     for name in names:
@@ -504,11 +487,6 @@ def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # (the same on an observation that keeps its predicted hit) 5 (6 with the IK from the segment
     # start), rally_sac 3,
     # still 0 (measured). A behaviour, not a benchmark (docs/experiments/2026-12-01-hit-state-actor.md
-    # has the measured rates).
-    from ace_drake.control.params import RallyParams
-    from ace_drake.evaluation import controllers
-    from ace_drake.evaluation.evaluate import evaluate
-    from ace_drake.play.shots import human_shots
 
     data = Path(__file__).resolve().parents[2] / "shared/data/ace_match_events_elite.csv"
     if not data.is_file():
@@ -521,8 +499,6 @@ def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
 
 
 def test_a_run_that_only_clones_evaluates_on_the_way_and_draws_its_curve_against_updates(tmp_path):
-    from ace_drake.training.trainer import cloning_curve, plot_learning_curve
-
     config = _config(pretrain_updates=8, pretrain_evaluate_every=4, env_steps=1)  # stops after cloning
     state = Trainer(config, tmp_path / "run", progress=lambda line: None).run()
     assert state.pretrain_updates == 8 and [e[1] for e in state.evaluations] == [4, 8]  # on the way, then after
@@ -535,8 +511,6 @@ def test_a_run_that_only_clones_evaluates_on_the_way_and_draws_its_curve_against
 
 
 def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
-    from ace_drake.training.trainer import Progress, cloning_curve, evaluation_description, evaluation_series, plot_learning_curve
-
     assert evaluation_description(TrainConfig(evaluation_episodes=60)) == "60 synthetic shots"
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ace_match_events_elite.csv"
     if data.is_file():
@@ -555,9 +529,6 @@ def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
 
 
 def test_a_policy_reading_the_hit_prediction_needs_a_diagram_that_computes_it(tmp_path, monkeypatch):
-    from ace_drake.control.params import RallyParams
-    from ace_drake.evaluation import controllers
-
     parts = (*SMALL.actor_observation_parts, "hit_prediction")
     save_policy(tmp_path / "hit.pt", SacLearner(dataclasses.replace(SMALL, actor_observation_parts=parts)))
     save_policy(tmp_path / "paper.pt", SacLearner(SMALL))
@@ -570,9 +541,6 @@ def test_a_policy_reading_the_hit_prediction_needs_a_diagram_that_computes_it(tm
 
 
 def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_it(tmp_path, monkeypatch):
-    from ace_drake.control.params import RallyParams
-    from ace_drake.evaluation import controllers
-
     parts = (*SMALL.actor_observation_parts, "hit_prediction")
     save_policy(tmp_path / "hit.pt", SacLearner(dataclasses.replace(SMALL, actor_observation_parts=parts)))
     save_policy(tmp_path / "paper.pt", SacLearner(SMALL))
@@ -590,9 +558,6 @@ def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_
 
 
 def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_path, monkeypatch):
-    from ace_drake.control.params import RallyParams
-    from ace_drake.evaluation import controllers
-
     hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
     save_policy(tmp_path / "forgetful.pt", SacLearner(hit_state))
     save_policy(tmp_path / "remembering.pt", SacLearner(dataclasses.replace(hit_state, hit_memory=True)))
@@ -610,7 +575,6 @@ def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_pat
         RallyParams(hit_prediction=False, hit_memory=True)
     with pytest.raises(ConfigError, match="must agree"):
         _config(sac=dataclasses.replace(SMALL, hit_memory=True))
-    from ace_drake.training.env import RallyEnvParams, training_rally_params
 
     env = RallyEnvParams(rally=dataclasses.replace(training_rally_params(), hit_memory=True))
     assert _config(sac=dataclasses.replace(SMALL, hit_memory=True), env=env).env.rally.hit_memory
@@ -626,8 +590,6 @@ def test_a_checkpoint_written_before_a_learner_field_existed_loads_with_its_defa
 
 
 def test_a_checkpoint_write_keeps_the_previous_one(tmp_path):
-    from ace_drake.training.trainer import read_checkpoint
-
     dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
     dut.checkpoint()
     assert not (tmp_path / "run" / "checkpoint.prev.pt").exists()
@@ -640,8 +602,6 @@ def test_a_checkpoint_write_keeps_the_previous_one(tmp_path):
 
 @pytest.mark.parametrize("damage", ["truncated", "empty"])
 def test_a_damaged_checkpoint_names_the_file_and_what_to_do(tmp_path, damage):
-    from ace_drake.training.trainer import CheckpointError
-
     Trainer(_config(), tmp_path / "run", progress=lambda line: None).checkpoint()
     path = tmp_path / "run" / "checkpoint.pt"
     data = path.read_bytes()
@@ -690,8 +650,6 @@ class _NotWeights:
 
 
 def test_a_checkpoint_loads_weights_only_with_its_numpy_tables_and_refuses_other_objects(tmp_path):
-    from ace_drake.training.trainer import CheckpointError, read_checkpoint
-
     dut = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
     dut.demonstrations.add({"obs": np.ones((3, dut.learner.observation_size)), "privileged": np.zeros((3, 28)),
                             "demo_action": np.zeros((3, ACTION_SIZE))})
@@ -709,12 +667,7 @@ def test_a_checkpoint_loads_weights_only_with_its_numpy_tables_and_refuses_other
 
 
 def test_train_refuses_to_overwrite_a_policy_of_the_same_name_without_overwrite(tmp_path, capsys):
-    import json
 
-    import yaml
-
-    from ace_drake.cli import main
-    from ace_drake.config import to_dict
 
     config = tmp_path / "train.yaml"
     config.write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(_config(name="shipped", env_steps=40))))))

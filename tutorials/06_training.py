@@ -38,8 +38,9 @@ import numpy as np
 
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy
+from ace_drake.training.export import export
+from ace_drake.training.loop import TrainConfig, Trainer
 from ace_drake.training.rollout import RolloutWorker
-from ace_drake.training.trainer import TrainConfig, Trainer, export
 
 PARTS = ("positions", "spins", "robot_state", "end_effector", "skill", "estimate", "estimate_status", "hit_prediction")
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ace_drake.artefacts import sha256
 from ace_drake.config import MODELS_DIR, InputError
 from ace_drake.match_data import load_match_events
 from ace_drake.perception.ball_ekf import BallEkf
@@ -54,7 +55,8 @@ def bench_perception(
     shots of ``data``, each followed for ``duration`` s: triangulation error against the truth
     (mean, p95, max, m), the fraction of triggers with a triangulation, latency (configured, s)
     and CPU time per 9-camera triangulation (median, p99, ms); EKF errors 50 ms and 150 ms after
-    the hit on the camera path and on the statistical one; coverage of the shipped placement."""
+    the hit on the camera path and on the statistical one; coverage of the shipped placement;
+    ``data`` and its sha256."""
     say = progress or (lambda _: None)
     params = params or CameraParams()
     cameras = load_cameras(MODELS_DIR / params.calibration)
@@ -85,6 +87,7 @@ def bench_perception(
     say("bench perception: coverage of the shipped placement on a 0.1 m grid")
     return {
         "data": str(data),
+        "data_sha256": sha256(data),
         "shots": len(initial),
         "seed": seed,
         "cameras": len(cameras),

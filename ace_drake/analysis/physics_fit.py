@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+import yaml
 from scipy.optimize import least_squares
 
-from ace_drake.analysis.physics_validation import predict_pairs
-from ace_drake.config import InputError
-from ace_drake.match_data import EventPairs
-from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.analysis.physics_validation import predict_pairs, summarize
+from ace_drake.artefacts import data_file, sidecar_path, write_sidecar
+from ace_drake.config import MODELS_DIR, ConfigError, InputError, to_dict
+from ace_drake.match_data import EventPairs, event_pairs, load_match_events
+from ace_drake.physics.params import BallPhysicsParams, load_ball_params
 
 # name -> (lower, upper): the coefficients the fit may change, and the box it keeps them in.
 FIT_BOUNDS = {
@@ -195,3 +198,64 @@ def _split(name: str) -> tuple[str, str]:
     if not field or group not in {f.name for f in dataclasses.fields(BallPhysicsParams)}:
         raise InputError(f"not a coefficient name: {name!r} (expected like 'aero.drag_coefficient')")
     return group, field
+
+
+def fit_and_write(data, holdout_players: Sequence[str], parameters: Sequence[str] | None = None, ball_params=None,
+                  out=MODELS_DIR / "ball_physics_fitted.yaml", max_evaluations: int = 200,
+                  progress: Callable[[str], None] = print) -> dict:
+    """``ace-drake physics-fit``: fits ``parameters`` (default ``DEFAULT_FIT_PARAMETERS``), from
+    the ball model of the YAML ``ball_params`` (None: the paper's), on the pairs of the match-data
+    CSV ``data`` of every player but ``holdout_players``; writes ``out`` (the fitted and changed
+    fields, rounded) and its sidecar (``artefacts.write_sidecar``) with the figures of the initial
+    and fitted models on the fit players and the held-out ones, of the file as written. Returns
+    the sidecar; raises ConfigError for a player the file does not hold or when all are held out."""
+    pairs = event_pairs(load_match_events(data))
+    players = sorted(set(pairs.players))
+    unknown = sorted(set(holdout_players) - set(players))
+    if unknown:
+        raise ConfigError(f"--holdout-player {unknown}: not in {data} (players: {players})")
+    held_out = np.isin(pairs.players, list(holdout_players))
+    if held_out.all():
+        raise ConfigError("--holdout-player: every player is held out; nothing is left to fit on")
+    initial = load_ball_params(ball_params)
+    names = tuple(parameters or DEFAULT_FIT_PARAMETERS)
+    fit_players = sorted(set(pairs.players[~held_out]))
+    progress(f"fitting {names} on {int((~held_out).sum())} pairs ({', '.join(fit_players)}); "
+             f"holding out {int(held_out.sum())} pairs ({', '.join(holdout_players)})")
+    result = fit_physics(pairs.subset(~held_out), initial, names, max_evaluations=max_evaluations, progress=progress)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # Every field that was fitted or differs from the paper's defaults (a --params start), rounded.
+    final, defaults = to_dict(result.params), to_dict(BallPhysicsParams())
+    nested: dict[str, dict] = {}
+    for group, fields in final.items():
+        for field, value in fields.items():
+            if f"{group}.{field}" in result.values or value != defaults[group][field]:
+                nested.setdefault(group, {})[field] = round(value, 6) if isinstance(value, float) else value
+    header = (
+        "# Ball-model coefficients fitted to recorded match data by `ace-drake physics-fit`.\n"
+        "# Fields not listed keep the paper's defaults (ace_drake/config.py); how this file was\n"
+        f"# produced, and its held-out figures, are in {sidecar_path(out).name}.\n"
+    )
+    out.write_text(header + yaml.safe_dump(nested, sort_keys=True))
+    fitted = load_ball_params(out)  # the figures are those of the file as written (rounded)
+    figures = {}
+    for label, mask in [("fit_players", ~held_out), ("held_out_players", held_out)]:
+        subset = pairs.subset(mask)
+        figures[label] = {
+            "initial": summarize(subset, predict_pairs(subset, initial)),
+            "fitted": summarize(subset, predict_pairs(subset, fitted)),
+        }
+    sidecar = write_sidecar(
+        out,
+        data=data_file(data, pairs=len(pairs)),
+        fit_players=fit_players,
+        held_out_players=sorted(holdout_players),
+        initial_params=str(ball_params) if ball_params else "paper",
+        fitted=result.values,
+        optimizer={"evaluations": result.evaluations, "message": result.message,
+                   "initial_cost": result.initial_cost, "final_cost": result.final_cost},
+        figures=figures,
+    )
+    progress(f"wrote {out} and {sidecar_path(out)}")
+    return sidecar

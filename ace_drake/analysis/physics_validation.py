@@ -11,12 +11,14 @@ error instead of dropping out of the statistics.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ace_drake.match_data import EventPairs
+from ace_drake.config import ConfigError
+from ace_drake.match_data import EventPairs, event_pairs, load_match_events
 from ace_drake.physics.flight import SPIN, VELOCITY
-from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.physics.params import BallPhysicsParams, load_ball_params
 from ace_drake.physics.propagate import ContactKind, simulate
 
 PREDICTION_MARGIN = 0.5  # s beyond the recorded flight time before a prediction counts as missing
@@ -139,3 +141,20 @@ def format_summary(summary: dict, title: str = "") -> str:
     if skipped:
         lines.append("left out, not finite in the data: " + ", ".join(f"{count} pair(s) of {name}" for name, count in skipped.items()))
     return "\n".join(lines)
+
+
+def validate_file(data, ball_params=None, players: Sequence[str] = (), progress: Callable[[str], None] = print) -> dict:
+    """``ace-drake physics-validate``: the recorded (shot or bounce) -> bounce pairs of the
+    match-data CSV ``data`` (of ``players`` only, if given) replayed through the ball model of the
+    YAML ``ball_params`` (None: the paper's). Returns ``summarize``'s figures with ``command``,
+    ``data`` and ``params``; raises ConfigError for a player the file does not hold."""
+    params = load_ball_params(ball_params)
+    pairs = event_pairs(load_match_events(data))
+    if players:
+        unknown = sorted(set(players) - set(pairs.players))
+        if unknown:
+            raise ConfigError(f"--player {unknown}: not in {data} (players: {sorted(set(pairs.players))})")
+        pairs = pairs.subset(np.isin(pairs.players, list(players)))
+    progress(f"replaying {len(pairs)} event pairs from {data} with {'the paper model' if ball_params is None else ball_params}")
+    summary = summarize(pairs, predict_pairs(pairs, params))
+    return {"command": "physics-validate", "data": str(data), "params": ball_params or "paper", **summary}

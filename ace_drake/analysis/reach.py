@@ -16,9 +16,10 @@ from collections.abc import Callable
 import numpy as np
 from scipy.optimize import differential_evolution
 
+from ace_drake.artefacts import sha256
 from ace_drake.config import InputError
 from ace_drake.match_data import load_match_events
-from ace_drake.robot.model import RobotModel
+from ace_drake.robot.model import RobotModel, load_scenario
 
 # Racket-centre heights above the playing surface at which the swing speed is measured, m: the
 # recorded robot contact points lie 0.10-0.42 m above the table.
@@ -135,3 +136,16 @@ def bench_reach(model: RobotModel, points: np.ndarray, seed: int = 0, progress: 
         },
         "wall_time_s": time.perf_counter() - start,
     }
+
+
+def bench_reach_on_file(data, scenario=None, seed: int = 0, progress: Callable[[str], None] | None = None) -> dict:
+    """``ace-drake bench reach``: ``bench_reach`` of the robot of the scenario YAML ``scenario``
+    (None: models/scenario.yaml) on the robot's contact points (shot_p1) of the match-data CSV
+    ``data``, with ``data``, its sha256 and ``scenario``."""
+    points = robot_contact_points(data)
+    model = RobotModel(load_scenario(scenario))
+    if progress:
+        progress(f"bench reach: {len(points)} robot contact points from {data}, and their mirror in y")
+    figures = bench_reach(model, points, seed=seed, progress=progress)
+    return {**figures, "data": str(data), "data_sha256": sha256(data), "scenario": str(scenario or "models/scenario.yaml")}
+

@@ -22,6 +22,7 @@ import time
 import numpy as np
 import torch
 
+from ace_drake.artefacts import provenance
 from ace_drake.learning.replay import EventReplay
 from ace_drake.learning.sac import SacConfig, SacLearner
 from ace_drake.training.workers import WorkerPool
@@ -55,7 +56,7 @@ def _collect(workers: int, seconds: float, episodes: int, seed: int, progress) -
 
 def bench_train(seconds: float = 60.0, episodes: int = 2, updates: int = 200, seed: int = 0, progress=print) -> dict:
     """The figures of the module docstring (keys ``env_steps_per_s`` {1, 2}, ``worker_speedup``,
-    ``updates_per_s``, ``updates_per_env_step``)."""
+    ``updates_per_s``, ``updates_per_env_step``), with the provenance (command, date)."""
 
 
     rates, episodes_played = {}, []
@@ -83,4 +84,5 @@ def bench_train(seconds: float = 60.0, episodes: int = 2, updates: int = 200, se
         "batch_size": learner.config.batch_size,
         "seconds_per_collection": seconds,
         "episodes_collected": len(episodes_played),
+        **provenance(),
     }

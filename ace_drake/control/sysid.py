@@ -14,14 +14,17 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import yaml
 from scipy.optimize import least_squares
 
-from ace_drake.config import InputError
-from ace_drake.control.joint_model import ProcessModel, simulate_joint
-from ace_drake.robot.params import JointDynamicsParams
+from ace_drake.artefacts import data_file, sidecar_path, write_sidecar
+from ace_drake.config import MODELS_DIR, ConfigError, InputError, load_config
+from ace_drake.control.joint_model import ProcessModel, ramp_tracking_lag, simulate_joint
+from ace_drake.robot.params import JOINT_NAMES, JointDynamicsParams, RobotDynamicsParams
 
 DELAY_GRID_STEP = 0.25e-3  # s
 MAX_DELAY = 0.02  # s
@@ -173,3 +176,47 @@ def _uniform_period(times: np.ndarray, where: str = "identify_joint") -> float:
     if np.max(np.abs(steps - period)) > 0.01 * period:
         raise JointLogError(f"{where}: samples are not uniform (period {period:.6g} s, steps from {steps.min():.6g} to {steps.max():.6g} s)")
     return period
+
+
+def identify_and_write(log, out=MODELS_DIR / "joint_dynamics_identified.yaml", progress: Callable[[str], None] = print) -> dict:
+    """``ace-drake sysid``: identifies each joint of the joint log CSV ``log`` (``identify_joint``)
+    and writes ``out``, a ``RobotDynamicsParams`` YAML (joints absent from the log keep the
+    defaults), and its sidecar (``artefacts.write_sidecar``: the log, per joint the process model
+    with its fit and ramp tracking lag in s, the defaulted joints). Returns the sidecar; raises
+    ConfigError for a joint the robot does not have."""
+    joint_log = load_joint_log(log)
+    unknown = sorted(set(joint_log.commands) - set(JOINT_NAMES))
+    if unknown:
+        raise ConfigError(f"{log}: unknown joint(s) {unknown}; the robot's joints are {list(JOINT_NAMES)}")
+    defaults = RobotDynamicsParams()
+    identified = {}
+    for name in joint_log.commands:
+        progress(f"identifying {name} from {joint_log.times.size} samples at {1 / joint_log.period:.0f} Hz")
+        result = identify_joint(joint_log.times, joint_log.commands[name], joint_log.positions[name])
+        identified[name] = result
+        progress(f"  K {result.process.gain:.4f}  w {result.process.natural_frequency:.1f} rad/s  "
+                 f"zeta {result.process.damping_ratio:.3f}  tau_d {1000 * result.process.delay:.3f} ms  fit {result.fit_percent:.2f} %")
+    joints = [identified[n].params if n in identified else defaults.joints[i] for i, n in enumerate(JOINT_NAMES)]
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    header = (
+        "# Joint dynamics (paper eq. (9)) identified by `ace-drake sysid`; joints in the order\n"
+        f"# {', '.join(JOINT_NAMES)}. Joints absent from the log keep the defaults. See {sidecar_path(out).name}.\n"
+    )
+    body = {"joints": [{"a": list(j.a), "b": list(j.b), "delay": j.delay} for j in joints],
+            "command_period": joint_log.period}
+    out.write_text(header + yaml.safe_dump(body, sort_keys=False))
+    load_config(RobotDynamicsParams, out)  # what was written must load
+    report = {
+        name: {**dataclasses.asdict(r.process), "rms_error": r.rms_error, "fit_percent": r.fit_percent,
+               "ramp_tracking_lag_s": ramp_tracking_lag(r.params)}
+        for name, r in identified.items()
+    }
+    sidecar = write_sidecar(
+        out,
+        log=data_file(log, samples=int(joint_log.times.size)),
+        identified=report,
+        defaulted=[n for n in JOINT_NAMES if n not in identified],
+    )
+    progress(f"wrote {out} and {sidecar_path(out)}")
+    return sidecar

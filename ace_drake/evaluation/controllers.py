@@ -16,15 +16,16 @@ import dataclasses
 import numpy as np
 
 from ace_drake.config import MODELS_DIR, ConfigError
-from ace_drake.contracts import ObservationLayout
+from ace_drake.contracts import DEFAULT_CONTROLLER, ObservationLayout  # noqa: F401 (DEFAULT_CONTROLLER: named here too)
 from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.control.returner import ModelBasedReturner
 from ace_drake.learning.networks import DeterministicPolicy
 from ace_drake.learning.sac import load_policy
+from ace_drake.perception.params import PerceptionParams
+from ace_drake.physics.params import load_ball_params
 from ace_drake.systems.policy_controller import as_policy
 
-DEFAULT_CONTROLLER = "returner"  # the best shipped controller: what ``ace-drake rally`` plays with
 POLICIES_DIR = MODELS_DIR / "policies"
 
 
@@ -164,3 +165,10 @@ def reads_hit_prediction(policy, params: RallyParams) -> bool:
 
     part = ObservationLayout(params.position_history, params.spin_history).indices(["hit_prediction"])
     return bool(np.isin(policy.index.numpy(), part).any())
+
+
+def rally_params(ball_params=None, sensors: str = "cameras", seed: int = 0) -> RallyParams:
+    """The rally diagram's config of the command line's options: the ball model of the YAML
+    ``ball_params`` (None: the paper's), ball positions from ``sensors`` ("cameras" or
+    "statistical"), ``seed``."""
+    return RallyParams(physics=load_ball_params(ball_params), perception=PerceptionParams(positions=sensors), seed=seed)

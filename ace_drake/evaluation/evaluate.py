@@ -19,18 +19,22 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy.stats import binomtest
 
+from ace_drake.artefacts import provenance, sha256
+from ace_drake.config import ConfigError
 from ace_drake.contracts import Outcome
 from ace_drake.control.params import RallyParams
 from ace_drake.diagrams import build_rally_diagram
-from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller
+from ace_drake.evaluation.controllers import NoisyActions, diagram_params_for, hit_state_controller, make_controller, rally_params
 from ace_drake.evaluation.runner import Episode, RallyRunner
 from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import terminal_reward, travel_frame_spin
+from ace_drake.play.params import ShotParams
+from ace_drake.play.shots import human_shots, make_distribution
 
 SPEED_BINS = (0.0, 6.0, 8.0, 10.0, 12.0, 14.0, np.inf)  # m/s, the shot's speed just after the hit
 SPIN_BINS = (0.0, 100.0, 200.0, 300.0, 400.0, np.inf)  # rad/s, its spin rate
@@ -161,3 +165,64 @@ def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarr
     runner = RallyRunner(build_rally_diagram(params, controller), params)
     episodes = run_episodes(runner, shots, serve, seed, progress, skills)
     return {**summarize(episodes), "wall_time_s": time.perf_counter() - start}
+
+
+def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int = 0, ball_params=None, data=None,
+                        players: Sequence[str] = (), episodes: int | None = None, skill: str | None = None, skill_sampling=None,
+                        action_noise: float = 0.0, progress: Callable[[str], None] = print) -> dict:
+    """``ace-drake evaluate``: ``evaluate`` of the controller named ``controller``
+    (``make_controller``; with ``action_noise`` > 0, Gaussian noise of that std in action units on
+    every action, seeded) in the rally diagram of ``rally_params(ball_params, sensors, seed)``,
+    on the human shots (shot_p2) of the match-data CSV ``data`` (of ``players`` only, if given),
+    else ``episodes`` (default 200) shots of the synthetic distribution; at most ``episodes``
+    episodes. The skill of every episode (``evaluation_skills``): ``skill`` "Y,WP,WS" for all, or
+    "sampled": one per shot from ``skill_sampling``, or None: the diagram's default. Returns
+    ``evaluate``'s figures with the settings, the provenance (command, date) and, with ``data``,
+    its sha256. Raises ConfigError for a bad option."""
+    if episodes is not None and episodes < 1:
+        raise ConfigError(f"evaluate: --episodes must be >= 1, got {episodes}")
+    players = tuple(players)
+    if players and not data:
+        raise ConfigError("evaluate: --players selects shots of --data; give a match-data CSV")
+    params = rally_params(ball_params, sensors, seed)
+    if data:
+        shots, serve = human_shots(data, players)
+        shots, serve = shots[:episodes], serve[:episodes]
+        of = f" of {', '.join(players)}" if players else ""
+        source = f"the {len(shots)} human shots (shot_p2){of} of {data}"
+    else:
+        sample = make_distribution(ShotParams(seed=seed), params.physics).draw(np.random.default_rng(seed), episodes or 200)
+        shots, serve = sample.states, sample.serve
+        source = f"{len(shots)} shots from the built-in synthetic distribution"
+    skills, skill_text = evaluation_skills(skill, len(shots), params, seed, skill_sampling)
+    player = make_controller(controller, params)
+    noise = f", Gaussian action noise {action_noise:g}" if action_noise else ""
+    if action_noise:
+        player = NoisyActions(player, action_noise, seed=seed)
+    progress(f"evaluate: '{controller}'{noise} on {source}, {sensors} sensors, seed {seed}, {skill_text}")
+    figures = evaluate(player, params, shots, serve, seed, progress=progress, skills=skills)
+    return {"controller": controller, "action_noise": action_noise, "data": data, "players": list(players), "sensors": sensors,
+            "seed": seed, "skills": skill or "default", **figures, **provenance(), **({"data_sha256": sha256(data)} if data else {})}
+
+
+def evaluation_skills(spec: str | None, count: int, params: RallyParams, seed: int, skill_sampling=None) -> tuple[np.ndarray | None, str]:
+    """The skills of ``evaluate --skill``: None (the diagram's default), one fixed skill
+    "Y,WP,WS" (y_desired in m, w_p in [0, 1], w_s in [-1, 1]) for every shot, or "sampled": one
+    per shot from ``skill_sampling`` (the training distribution, ``training.env.SkillSampling``:
+    its ``sample(rng, table_width)``) drawn with ``seed``. Returns (skills (count, 3) or None, a
+    phrase for the log); raises ConfigError for anything else."""
+    if spec is None:
+        return None, "the default skill (y_desired 0 m, w_p 1, w_s 0)"
+    if spec == "sampled":
+        if skill_sampling is None:
+            raise ValueError("evaluation_skills: 'sampled' needs the skill_sampling to draw from")
+        rng = np.random.default_rng([seed, 0x5C111])
+        skills = np.array([skill_sampling.sample(rng, params.physics.table.width) for _ in range(count)]).reshape(count, 3)
+        return skills, "skills sampled as in training"
+    try:
+        skill = np.array([float(value) for value in spec.split(",")])
+    except ValueError:
+        skill = np.array([])
+    if skill.shape != (3,) or not np.all(np.isfinite(skill)) or not (0.0 <= skill[1] <= 1.0 and -1.0 <= skill[2] <= 1.0):
+        raise ConfigError(f"evaluate: --skill must be 'sampled' or Y,WP,WS (y_desired in m, w_p in [0, 1], w_s in [-1, 1]), got {spec!r}")
+    return np.tile(skill, (count, 1)), f"skill y_desired {skill[0]:g} m, w_p {skill[1]:g}, w_s {skill[2]:g}"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 from pydrake.geometry import Meshcat
@@ -17,7 +18,7 @@ from pydrake.geometry import Meshcat
 from ace_drake.contracts import Outcome
 from ace_drake.control.params import RallyParams
 from ace_drake.diagrams import build_rally_diagram
-from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller
+from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller, make_controller, rally_params
 from ace_drake.evaluation.runner import Episode, RallyRunner
 from ace_drake.play.opponent import Launcher
 from ace_drake.play.params import ShotParams
@@ -86,3 +87,24 @@ def rally_rows(played: list[tuple[Episode, bool]]) -> list[dict]:
         }
         rows.append(row)
     return rows
+
+
+def run_rallies(controller: str, rallies: int = 5, sensors: str = "cameras", seed: int = 0, ball_params=None, html=None,
+                progress: Callable[[str], None] = print) -> dict:
+    """``ace-drake rally``: ``rallies`` rallies of the controller named ``controller``
+    (``make_controller``) against the launcher, with the rally diagram of ``rally_params``, and
+    with ``html`` (a path) a self-contained Meshcat replay written there. Returns ``returned`` (of
+    the playable shots), ``played`` (the playable shots) and ``rallies`` (``rally_rows``)."""
+    params = rally_params(ball_params, sensors, seed)
+    player = make_controller(controller, params)
+    meshcat = Meshcat() if html else None
+    progress(f"rally: {rallies} rallies of '{controller}' against the launcher ({sensors} sensors, seed {seed})")
+    rows = rally_rows(play_rallies(player, params, ShotParams(seed=seed), rallies, seed, meshcat, progress=progress))
+    if html:
+        path = Path(html)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(meshcat.StaticHtml())
+        progress(f"wrote Meshcat replay {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser")
+    return {"returned": sum(row["outcome"] == "returned" for row in rows),
+            "played": sum(row["outcome"] != "invalid" for row in rows), "rallies": rows}
+

@@ -29,8 +29,6 @@ lens gene is rounded down to an index into the catalogue.
 from __future__ import annotations
 
 import dataclasses
-import datetime
-import json
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -38,6 +36,7 @@ from pathlib import Path
 import cma
 import numpy as np
 
+from ace_drake.artefacts import write_sidecar
 from ace_drake.config import InputError
 from ace_drake.perception.cameras import (
     BALL_RADIUS,
@@ -375,15 +374,15 @@ def optimize_and_write(
     validation_spacing: float = 0.1,
     population_size: int | None = None,
     plot_path: str | Path | None = None,
-    command: str = "",
+    command: str | None = None,
     problem: PlacementProblem | None = None,
     progress: Callable[[int, float, PlacementFigures], None] | None = None,
 ) -> dict:
     """Optimises the placement (``optimize_placement`` over ``play_volume_points(spacing)``) and
-    writes the calibration file, its sidecar (same name, ``.json``: command, seed, settings,
-    figures, also on the finer ``play_volume_points(validation_spacing)``, date, per-camera lens
-    and mounting) and, when ``plot_path`` is given, the coverage plot. Returns the sidecar's
-    content."""
+    writes the calibration file, its sidecar (``artefacts.write_sidecar``, same name, ``.json``:
+    command, or ``command`` if given, date, seed, settings, figures, also on the finer
+    ``play_volume_points(validation_spacing)``, per-camera lens and mounting) and, when
+    ``plot_path`` is given, the coverage plot. Returns the sidecar's content."""
     problem = problem or PlacementProblem()
     points = play_volume_points(spacing)
     result = optimize_placement(problem, points, seed=seed, iterations=iterations, population_size=population_size, progress=progress)
@@ -413,12 +412,8 @@ def optimize_and_write(
                 "genes": [round(float(g), 6) for g in gene],
             }
         )
-    sidecar = {
-        "artefact": calibration_path.name,
+    fields = {
         "produced_by": "ace_drake.perception.placement.optimize_and_write",
-        "command": command,
-        "date": datetime.date.today().isoformat(),
-        "seed": seed,
         "iterations": iterations,
         "population_size": population_size,
         "evaluations": result.evaluations,
@@ -451,9 +446,8 @@ def optimize_and_write(
     }
     if plot_path is not None:
         write_coverage_plot(result.cameras, points, plot_path, problem)
-        sidecar["plot"] = Path(plot_path).name
-    calibration_path.with_suffix(".json").write_text(json.dumps(sidecar, indent=2) + "\n")
-    return sidecar
+        fields["plot"] = Path(plot_path).name
+    return write_sidecar(calibration_path, command=command, seed=seed, **fields)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from ace_drake.config import ConfigError, require_non_negative, require_positive
+from ace_drake.config import ConfigError, load_config, require_non_negative, require_positive
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,3 +127,8 @@ class BallPhysicsParams:
     floor: FloorParams = dataclasses.field(default_factory=FloorParams)
     perturbation: PerturbationParams = dataclasses.field(default_factory=PerturbationParams)
 
+
+def load_ball_params(path=None) -> BallPhysicsParams:
+    """The paper's ball model (``path`` None), or the parameter file ``path`` (a YAML like
+    models/ball_physics_fitted.yaml; fields not given keep the paper's values)."""
+    return BallPhysicsParams() if path is None else load_config(BallPhysicsParams, path)

@@ -18,7 +18,6 @@ pairs; ``save_residual`` / ``load_residual`` store it.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -26,6 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ace_drake.artefacts import dumps, sidecar_path, write_sidecar
 from ace_drake.physics.contact import racket_contact_features, racket_impact
 from ace_drake.physics.flight import SPIN, VELOCITY
 from ace_drake.physics.params import BallPhysicsParams
@@ -287,11 +287,12 @@ def fit_racket_residual(
 
 
 def save_residual(model: RacketResidualMLP, path, sidecar: dict | None = None) -> Path:
-    """Writes the model (torch state_dict plus architecture) to ``path`` and a JSON sidecar.
+    """Writes the model (torch state_dict plus architecture) to ``path`` and its JSON sidecar.
 
-    The sidecar, ``path`` with suffix ``.json``, records ``sidecar`` (must be JSON-serialisable,
-    e.g. the fit report's ``as_dict()`` and the data's provenance) plus the architecture under
-    "architecture". Returns the sidecar's path.
+    The sidecar (``artefacts.write_sidecar``), ``path`` with suffix ``.json``, records ``sidecar``
+    (must be JSON-serialisable, e.g. the fit report's ``as_dict()`` and the data's provenance)
+    plus the architecture under "architecture", with the command, date and the model file's
+    sha256. Returns the sidecar's path.
     """
     path = Path(path)
     if path.suffix == ".json":
@@ -305,7 +306,7 @@ def save_residual(model: RacketResidualMLP, path, sidecar: dict | None = None) -
     record = dict(sidecar or {})
     record["architecture"] = architecture
     try:
-        text = json.dumps(record, indent=2, sort_keys=True)
+        dumps(record)  # before anything is written
     except (TypeError, ValueError) as error:
         raise ValueError(f"sidecar must be JSON-serialisable: {error}") from None
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -317,9 +318,8 @@ def save_residual(model: RacketResidualMLP, path, sidecar: dict | None = None) -
         "state_dict": state,
     }
     torch.save(record_pt, path)
-    sidecar_path = path.with_suffix(".json")
-    sidecar_path.write_text(text + "\n")
-    return sidecar_path
+    write_sidecar(path, **record)
+    return sidecar_path(path)
 
 
 def load_residual(path) -> RacketResidualMLP:

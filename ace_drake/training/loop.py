@@ -30,18 +30,17 @@ and the number of resumptions, so a resumed run is reproducible but not identica
 uninterrupted one). Every ``evaluate_every`` steps the deterministic actor is evaluated in the
 rally diagram (``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best
 evaluated actor is kept. Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
-the ``progress`` callable. ``export`` writes a policy artefact (``models/policies/<name>.pt``),
+the ``progress`` callable. ``export.export`` writes a policy artefact (``models/policies/<name>.pt``),
 its sidecar JSON and the learning curve PNG.
+
+This module is the loop (``TrainConfig``, ``Progress``, ``Trainer``); ``training.checkpoint``
+saves, loads and resumes a run, ``training.export`` writes its artefacts.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
-import pickle
-import re
-import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -49,56 +48,20 @@ from pathlib import Path
 import numpy as np
 import torch
 import yaml
-from matplotlib.figure import Figure
 from torch.utils.tensorboard import SummaryWriter
 
-from ace_drake.config import ConfigError, from_dict, to_dict
+from ace_drake.config import ConfigError, from_dict
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
-from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig, load_weights_only
-from ace_drake.learning.sac import SacConfig, SacLearner, save_policy
+from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
+from ace_drake.learning.sac import SacConfig, SacLearner
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.shots import human_shots, make_distribution
+from ace_drake.training.checkpoint import Checkpointing, Progress
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
 from ace_drake.training.workers import WorkerPool
-
-PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
-CHECKPOINT = "checkpoint.pt"
-PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the one before, kept by every write (module docstring)
-CHECKPOINT_KEYS = ("config", "learner", "replay", "demonstrations", "progress", "recent")
-
-
-class CheckpointError(ConfigError):
-    """A training checkpoint that cannot be read: truncated, empty, or not a checkpoint."""
-
-
-def read_checkpoint(path) -> dict:
-    """The payload of the training checkpoint at ``path``. Raises CheckpointError naming the file
-    and what to do when it cannot be read (truncated, e.g. by a crash while it was written by an
-    older version, empty, or not a training checkpoint), FileNotFoundError when it is absent."""
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such checkpoint")
-    remedy = f"delete it to start the run afresh, or point at an earlier checkpoint (e.g. {path.with_name(PREVIOUS_CHECKPOINT)})"
-    if path.stat().st_size == 0:
-        raise CheckpointError(f"{path}: the checkpoint is empty; {remedy}")
-    try:
-        payload = load_weights_only(path)  # weights only: loading a checkpoint runs no code from it
-    except pickle.UnpicklingError as error:
-        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(error))
-        what = refused.group(1) if refused else "something other than tensors, plain containers and NumPy arrays"
-        raise CheckpointError(f"{path}: not a readable checkpoint (it holds {what}, which a weights-only load does not build); "
-                              f"{remedy}") from None
-    except Exception as error:  # torch raises several kinds (RuntimeError, EOFError, UnpicklingError) for a damaged file
-        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or damaged: {reason}); {remedy}") from None
-    missing = [key for key in CHECKPOINT_KEYS if not isinstance(payload, dict) or key not in payload]
-    if missing:
-        raise CheckpointError(f"{path}: not a training checkpoint (no {', '.join(missing)}); {remedy}")
-    return payload
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,34 +168,10 @@ def load_train_config(path) -> TrainConfig:
         raise ConfigError(f"{path}: {error}") from None
 
 
-@dataclasses.dataclass
-class Progress:
-    """The run's counters and history (all in the checkpoint)."""
-
-    phase: str = PHASES[0]
-    env_steps: int = 0
-    episodes: int = 0
-    demonstration_episodes: int = 0
-    ou_episodes: int = 0
-    pretrain_updates: int = 0
-    wall_time: float = 0.0  # s of training, summed over resumptions
-    resumptions: int = 0
-    next_checkpoint: int = 0
-    next_evaluation: int = 0
-    # (env_steps, updates, rollout return rate of the last 100 policy episodes) per log line
-    rollout_curve: list = dataclasses.field(default_factory=list)
-    # (env_steps, updates, evaluation figures) per evaluation
-    evaluations: list = dataclasses.field(default_factory=list)
-    learn_start: tuple = (0, 0)  # (env_steps, updates) when the learn phase began
-    initialized_at: int | None = None  # env_steps of the checkpoint the run started from (initialize_from)
-    best_rate: float = -1.0
-    best_actor: dict | None = None
-    best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
-
-
-class Trainer:
+class Trainer(Checkpointing):
     """One training run in ``run_dir`` (module docstring); ``run()`` trains to the end (resuming
-    from the checkpoint if there is one) and returns the final Progress."""
+    from the checkpoint if there is one) and returns the final Progress. Saving, loading and
+    resuming are ``checkpoint.Checkpointing``'s."""
 
     def __init__(self, config: TrainConfig, run_dir, progress=print):
         self.config = config
@@ -462,91 +401,6 @@ class Trainer:
     def _elapsed(self) -> float:
         return time.perf_counter() - self._started
 
-    # ------------------------------------------------------------------------------ checkpoints
-    def checkpoint(self) -> None:
-        """Writes the whole learner state atomically (module docstring)."""
-
-        self.state.wall_time += self._elapsed()
-        self._started = time.perf_counter()
-        payload = {
-            "config": to_dict(self.config),
-            "learner": self.learner.state_dict(),
-            "replay": self.replay.state_dict(),
-            "demonstrations": self.demonstrations.state_dict(),
-            "progress": dataclasses.asdict(self.state),
-            "recent": list(self._recent),
-        }
-        path = self.run_dir / CHECKPOINT
-        temporary = path.with_name(path.name + ".tmp")
-        with open(temporary, "wb") as file:
-            torch.save(payload, file)
-            file.flush()
-            os.fsync(file.fileno())
-        if path.is_file():  # a crash from here on leaves the previous checkpoint (and the new one)
-            os.replace(path, self.run_dir / PREVIOUS_CHECKPOINT)
-        os.replace(temporary, path)
-        _sync_directory(self.run_dir)
-
-    def _latest_checkpoint(self) -> tuple[Path, dict] | None:
-        """(path, payload) of the run's checkpoint to resume from: the latest, or the previous one
-        with a warning on stderr when the latest is missing or cannot be read; None when the run
-        has none. Raises CheckpointError when neither can be read."""
-        latest, previous = self.run_dir / CHECKPOINT, self.run_dir / PREVIOUS_CHECKPOINT
-        if not latest.is_file():
-            if not previous.is_file():
-                return None
-            print(f"warning: train: {latest} is missing; resuming from the previous checkpoint {previous}", file=sys.stderr)
-            return previous, read_checkpoint(previous)
-        try:
-            return latest, read_checkpoint(latest)
-        except CheckpointError as error:
-            if not previous.is_file():
-                raise
-            try:
-                payload = read_checkpoint(previous)
-            except CheckpointError as previous_error:
-                raise CheckpointError(f"{error}; the previous checkpoint cannot be read either: {previous_error}") from None
-            print(f"warning: train: {error}; resuming from the previous checkpoint {previous}", file=sys.stderr)
-            return previous, payload
-
-    def _load(self, path: Path, payload: dict) -> None:
-        # Read back through the config classes, so that a field added since the checkpoint was
-        # written compares at its default (a new field's default keeps the old behaviour).
-        saved = to_dict(from_dict(TrainConfig, payload["config"]))
-        if saved != to_dict(self.config):
-            differing = sorted(k for k, v in to_dict(self.config).items() if saved.get(k) != v)
-            raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
-        self.learner.load_state_dict(payload["learner"])
-        self.replay.load_state_dict(payload["replay"])
-        self.demonstrations.load_state_dict(payload["demonstrations"])
-        self.state = Progress(**payload["progress"])
-        self.state.resumptions += 1
-        self._recent.extend(payload["recent"])
-        self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
-
-    def _initialize_from(self, path: Path) -> None:
-        """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
-        must be the same), replay tables, demonstrations and counters, in ``initialize_phase``:
-        the learn phase, or the demonstrations phase, whose collections and cloning updates then
-        run on to this config's totals. Its best actor is forgotten (its evaluations may be of
-        other shots): this run evaluates its actor first (after its cloning updates, if any) and
-        chooses among its own evaluations."""
-        payload = read_checkpoint(path)
-        self.learner.load_state_dict(payload["learner"])
-        self.replay.load_state_dict(payload["replay"])
-        self.demonstrations.load_state_dict(payload["demonstrations"])
-        s = self.state = Progress(**payload["progress"])  # its counters and history
-        c = self.config
-        s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
-        s.initialized_at = s.env_steps
-        s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
-        s.next_checkpoint = s.env_steps + c.checkpoint_every
-        s.next_evaluation = s.env_steps
-        self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")
-
-    def _save_config(self) -> None:
-        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(self.config))), sort_keys=False))
-
 
 def _sync_directory(directory: Path) -> None:
     """Flushes ``directory``'s entries (the renames of a checkpoint write) to disk, where the
@@ -573,132 +427,3 @@ def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
     sample = make_distribution(dataclasses.replace(config.env.shots, seed=config.seed), config.env.rally.physics).draw(
         np.random.default_rng(config.seed + 2), config.evaluation_episodes)
     return sample.states, sample.serve
-
-
-def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict | None = None, provenance: dict | None = None) -> dict:
-    """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (the sidecar: config, seed,
-    steps, updates, wall time, the periodic evaluations and ``evaluation``, e.g. the human-shot
-    figures) and ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best"
-    (the best evaluated actor) or "final"; ``provenance``: e.g. the command line and date.
-    Returns the sidecar."""
-
-    s, c = trainer.state, trainer.config
-    actor, chosen = chosen_actor(trainer, which)
-    policies_dir = Path(policies_dir)
-    policies_dir.mkdir(parents=True, exist_ok=True)
-    save_policy(policies_dir / f"{c.name}.pt", trainer.learner, actor)
-    sidecar = {
-        "name": c.name,
-        **(provenance or {}),
-        "seed": c.seed,
-        "actor": "best evaluated" if which == "best" and s.best_actor is not None else "final",
-        "actor_at": None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
-        "env_steps": s.env_steps,
-        "episodes": s.episodes,
-        "updates": trainer.learner.updates,
-        "wall_time_s": round(s.wall_time, 1),
-        "evaluations": [{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
-        "final_evaluation": evaluation,
-        "config": json.loads(json.dumps(to_dict(c))),
-    }
-    (policies_dir / f"{c.name}.json").write_text(json.dumps(sidecar, indent=2, default=float) + "\n")
-    rollouts = "actor's mean" if c.exploration.policy_std_scale == 0.0 else (
-        "stochastic actor" if c.exploration.policy_std_scale == 1.0 else f"actor at {c.exploration.policy_std_scale:g} of its spread")
-    started_at = s.initialized_at
-    if started_at is None and c.initialize_from:
-        started_at = s.learn_start[0]  # a run initialised before Progress.initialized_at existed: the same step
-    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c), started_at, rollouts)
-    return sidecar
-
-
-def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
-    """The actor ``export`` writes: its state dict ("best": the best evaluated one, else the
-    final; "final": the learner's) and its evaluation entry (env_steps, updates, figures), None
-    when that actor was not evaluated."""
-    if which not in ("best", "final"):
-        raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
-    s = trainer.state
-    if which == "best" and s.best_actor is not None:
-        if s.best_evaluation >= 0:
-            return s.best_actor, s.evaluations[s.best_evaluation]
-        # A checkpoint from before best_evaluation was recorded: the highest evaluation.
-        return s.best_actor, max(s.evaluations, key=lambda e: e[2]["rate"] if e[2]["rate"] is not None else -1.0)
-    last = s.evaluations[-1] if s.evaluations and s.evaluations[-1][0] == s.env_steps else None
-    return trainer.learner.actor.state_dict(), last
-
-
-def chosen_policy(trainer: Trainer, which: str):
-    """The DeterministicPolicy of ``chosen_actor`` (what the exported file holds)."""
-    learner = SacLearner(trainer.config.sac, trainer.config.env.rally)
-    learner.actor.load_state_dict(chosen_actor(trainer, which)[0])
-    return learner.policy()
-
-
-def evaluation_description(config: TrainConfig) -> str:
-    """What the periodic evaluation plays, in words (for the learning curve's legend)."""
-    if not config.evaluation_data:
-        return f"{config.evaluation_episodes} synthetic shots"
-    of = f" of {', '.join(config.evaluation_players)}" if config.evaluation_players else ""
-    return f"first {config.evaluation_episodes} human shots{of}"
-
-
-def _draw_evaluations(axes, points: list, color: str, label: str) -> None:
-    """Evaluations [(x, figures)] as return rates with their 95 % intervals."""
-    if not points:
-        return
-    rates = np.array([e[1]["rate"] for e in points])
-    low = rates - np.array([e[1]["ci95"][0] for e in points])
-    high = np.array([e[1]["ci95"][1] for e in points]) - rates
-    axes.errorbar([e[0] for e in points], rates, yerr=[low, high], fmt="o-", color=color, capsize=3, label=label)
-
-
-def evaluation_series(state: Progress, description: str = "", started_at: int | None = None) -> list[tuple[list, str]]:
-    """The learning curve's evaluation series, [(points, label)], points (env_steps, figures):
-    one series, or for a run started from another's checkpoint at ``started_at`` steps the
-    earlier run's evaluations (at or before it) and this run's (after it)."""
-    evaluated = [(e[0], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
-    label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
-    if started_at is None:
-        return [(evaluated, label)]
-    return [([e for e in evaluated if e[0] <= started_at], "evaluation of the run it started from (its own shots)"),
-            ([e for e in evaluated if e[0] > started_at], label)]
-
-
-def cloning_curve(state: Progress) -> list[tuple[int, dict]] | None:
-    """A run that only clones (``pretrain_evaluate_every``): its evaluations as (learner updates,
-    figures), when there are several and all came at one environment step count; else None."""
-    evaluated = [e for e in state.evaluations if e[2]["rate"] is not None]
-    if len(evaluated) < 2 or len({e[0] for e in evaluated}) > 1:
-        return None
-    return [(updates, figures) for _, updates, figures in evaluated]
-
-
-def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None,
-                        rollouts: str = "stochastic actor") -> None:
-    """Return rate against environment steps: the rollout policy's (last 100 episodes; how it
-    acted: ``rollouts``) and the periodic evaluations' (with their 95 % intervals) on
-    ``description``'s shots. A run started from another's checkpoint at ``started_at`` steps
-    (``initialize_from``) draws the earlier run's evaluations, which may be of other shots, as a
-    separate series. A run that only clones (``cloning_curve``) is drawn against learner updates."""
-    figure = Figure(figsize=(6, 3.5), dpi=100)  # no pyplot: no display, no global figure state
-    axes = figure.subplots()
-    cloning = cloning_curve(state) if started_at is None else None
-    if cloning is not None:
-        ((_, label),) = evaluation_series(state, description)
-        _draw_evaluations(axes, cloning, "C0", label)
-        axes.set_xlabel(f"cloning updates (on {state.evaluations[0][0]:,} environment steps collected)")
-    else:
-        if state.rollout_curve:
-            steps, _, rates = zip(*state.rollout_curve)
-            axes.plot(steps, rates, color="0.6", label=f"rollouts ({rollouts}, last 100)")
-        series = evaluation_series(state, description, started_at)
-        for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
-            _draw_evaluations(axes, points, color, name)
-        axes.set_xlabel("environment steps (32 ms)")
-    axes.set_ylabel("return rate")
-    axes.set_ylim(0.0, 1.0)
-    axes.set_title(title)
-    axes.grid(alpha=0.3)
-    axes.legend(loc="upper left", fontsize=7)
-    figure.tight_layout()
-    figure.savefig(path)

@@ -1,0 +1,194 @@
+"""A training run's checkpoint (``training.loop``'s module docstring): every ``checkpoint_every``
+steps the whole learner state (networks, optimisers, generator, replay tables, demonstrations,
+counters, history) is written atomically to ``run_dir/checkpoint.pt`` (a temporary file, flushed and fsynced, renamed
+over the old one, which is kept as ``checkpoint.prev.pt``); a ``Trainer`` made on a
+run directory that holds one resumes from it, and one whose config names ``initialize_from``
+starts from another run's. ``Checkpointing`` holds these methods of ``loop.Trainer`` (its
+``config``, ``learner``, ``replay``, ``demonstrations``, ``state``, ``_recent``, ``run_dir``,
+``log``, ``_started`` and ``_elapsed``). ``Progress``, the run's counters and history, is what
+a checkpoint's ``progress`` holds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pickle
+import re
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+from ace_drake.config import ConfigError, from_dict, to_dict
+from ace_drake.learning.replay import load_weights_only
+
+# The phases of a run, in order (``loop.Trainer.run``); a checkpoint records the current one.
+PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
+CHECKPOINT = "checkpoint.pt"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the one before, kept by every write (module docstring)
+CHECKPOINT_KEYS = ("config", "learner", "replay", "demonstrations", "progress", "recent")
+
+
+class CheckpointError(ConfigError):
+    """A training checkpoint that cannot be read: truncated, empty, or not a checkpoint."""
+
+
+def read_checkpoint(path) -> dict:
+    """The payload of the training checkpoint at ``path``. Raises CheckpointError naming the file
+    and what to do when it cannot be read (truncated, e.g. by a crash while it was written by an
+    older version, empty, or not a training checkpoint), FileNotFoundError when it is absent."""
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such checkpoint")
+    remedy = f"delete it to start the run afresh, or point at an earlier checkpoint (e.g. {path.with_name(PREVIOUS_CHECKPOINT)})"
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path}: the checkpoint is empty; {remedy}")
+    try:
+        payload = load_weights_only(path)  # weights only: loading a checkpoint runs no code from it
+    except pickle.UnpicklingError as error:
+        refused = re.search(r"Unsupported global: GLOBAL (\S+)", str(error))
+        what = refused.group(1) if refused else "something other than tensors, plain containers and NumPy arrays"
+        raise CheckpointError(f"{path}: not a readable checkpoint (it holds {what}, which a weights-only load does not build); "
+                              f"{remedy}") from None
+    except Exception as error:  # torch raises several kinds (RuntimeError, EOFError, UnpicklingError) for a damaged file
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or damaged: {reason}); {remedy}") from None
+    missing = [key for key in CHECKPOINT_KEYS if not isinstance(payload, dict) or key not in payload]
+    if missing:
+        raise CheckpointError(f"{path}: not a training checkpoint (no {', '.join(missing)}); {remedy}")
+    return payload
+
+
+@dataclasses.dataclass
+class Progress:
+    """The run's counters and history (all in the checkpoint)."""
+
+    phase: str = PHASES[0]
+    env_steps: int = 0
+    episodes: int = 0
+    demonstration_episodes: int = 0
+    ou_episodes: int = 0
+    pretrain_updates: int = 0
+    wall_time: float = 0.0  # s of training, summed over resumptions
+    resumptions: int = 0
+    next_checkpoint: int = 0
+    next_evaluation: int = 0
+    # (env_steps, updates, rollout return rate of the last 100 policy episodes) per log line
+    rollout_curve: list = dataclasses.field(default_factory=list)
+    # (env_steps, updates, evaluation figures) per evaluation
+    evaluations: list = dataclasses.field(default_factory=list)
+    learn_start: tuple = (0, 0)  # (env_steps, updates) when the learn phase began
+    initialized_at: int | None = None  # env_steps of the checkpoint the run started from (initialize_from)
+    best_rate: float = -1.0
+    best_actor: dict | None = None
+    best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
+
+
+class Checkpointing:
+    """Saving, loading and resuming a ``loop.Trainer``'s run (module docstring)."""
+
+    # ------------------------------------------------------------------------------ checkpoints
+    def checkpoint(self) -> None:
+        """Writes the whole learner state atomically (module docstring)."""
+
+        self.state.wall_time += self._elapsed()
+        self._started = time.perf_counter()
+        payload = {
+            "config": to_dict(self.config),
+            "learner": self.learner.state_dict(),
+            "replay": self.replay.state_dict(),
+            "demonstrations": self.demonstrations.state_dict(),
+            "progress": dataclasses.asdict(self.state),
+            "recent": list(self._recent),
+        }
+        path = self.run_dir / CHECKPOINT
+        temporary = path.with_name(path.name + ".tmp")
+        with open(temporary, "wb") as file:
+            torch.save(payload, file)
+            file.flush()
+            os.fsync(file.fileno())
+        if path.is_file():  # a crash from here on leaves the previous checkpoint (and the new one)
+            os.replace(path, self.run_dir / PREVIOUS_CHECKPOINT)
+        os.replace(temporary, path)
+        _sync_directory(self.run_dir)
+
+    def _latest_checkpoint(self) -> tuple[Path, dict] | None:
+        """(path, payload) of the run's checkpoint to resume from: the latest, or the previous one
+        with a warning on stderr when the latest is missing or cannot be read; None when the run
+        has none. Raises CheckpointError when neither can be read."""
+        latest, previous = self.run_dir / CHECKPOINT, self.run_dir / PREVIOUS_CHECKPOINT
+        if not latest.is_file():
+            if not previous.is_file():
+                return None
+            print(f"warning: train: {latest} is missing; resuming from the previous checkpoint {previous}", file=sys.stderr)
+            return previous, read_checkpoint(previous)
+        try:
+            return latest, read_checkpoint(latest)
+        except CheckpointError as error:
+            if not previous.is_file():
+                raise
+            try:
+                payload = read_checkpoint(previous)
+            except CheckpointError as previous_error:
+                raise CheckpointError(f"{error}; the previous checkpoint cannot be read either: {previous_error}") from None
+            print(f"warning: train: {error}; resuming from the previous checkpoint {previous}", file=sys.stderr)
+            return previous, payload
+
+    def _load(self, path: Path, payload: dict) -> None:
+        # Read back through the config classes, so that a field added since the checkpoint was
+        # written compares at its default (a new field's default keeps the old behaviour).
+        saved = to_dict(from_dict(type(self.config), payload["config"]))
+        if saved != to_dict(self.config):
+            differing = sorted(k for k, v in to_dict(self.config).items() if saved.get(k) != v)
+            raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
+        self.learner.load_state_dict(payload["learner"])
+        self.replay.load_state_dict(payload["replay"])
+        self.demonstrations.load_state_dict(payload["demonstrations"])
+        self.state = Progress(**payload["progress"])
+        self.state.resumptions += 1
+        self._recent.extend(payload["recent"])
+        self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
+
+    def _initialize_from(self, path: Path) -> None:
+        """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
+        must be the same), replay tables, demonstrations and counters, in ``initialize_phase``:
+        the learn phase, or the demonstrations phase, whose collections and cloning updates then
+        run on to this config's totals. Its best actor is forgotten (its evaluations may be of
+        other shots): this run evaluates its actor first (after its cloning updates, if any) and
+        chooses among its own evaluations."""
+        payload = read_checkpoint(path)
+        self.learner.load_state_dict(payload["learner"])
+        self.replay.load_state_dict(payload["replay"])
+        self.demonstrations.load_state_dict(payload["demonstrations"])
+        s = self.state = Progress(**payload["progress"])  # its counters and history
+        c = self.config
+        s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
+        s.initialized_at = s.env_steps
+        s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
+        s.next_checkpoint = s.env_steps + c.checkpoint_every
+        s.next_evaluation = s.env_steps
+        self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")
+
+    def _save_config(self) -> None:
+        """Writes the run's config to ``run_dir/config.yaml`` (for reading; the checkpoint holds it too)."""
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(self.config))), sort_keys=False))
+
+
+def _sync_directory(directory: Path) -> None:
+    """Flushes ``directory``'s entries (the renames of a checkpoint write) to disk, where the
+    platform allows it."""
+    try:
+        descriptor = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)

@@ -1,0 +1,205 @@
+"""A training run's artefacts (``training.loop``'s module docstring): ``export`` writes the policy
+(``models/policies/<name>.pt``), its sidecar JSON (``artefacts.write_sidecar``) and the learning
+curve PNG; ``train_and_export`` is ``ace-drake train``: a run, then its export, with the exported
+actor evaluated on recorded human shots if asked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ace_drake.artefacts import sha256, write_sidecar
+from ace_drake.config import MODELS_DIR, ConfigError, to_dict
+from ace_drake.control.params import RallyParams
+from ace_drake.evaluation.evaluate import evaluate
+from ace_drake.learning.sac import SacLearner, save_policy
+from ace_drake.play.shots import held_out_players, human_shots
+from ace_drake.training.checkpoint import CHECKPOINT, PREVIOUS_CHECKPOINT
+from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
+
+
+def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict | None = None) -> dict:
+    """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (its sidecar, by
+    ``artefacts.write_sidecar``: command, date, seed, steps, updates, wall time in s, the periodic
+    evaluations and ``evaluation``, e.g. the human-shot figures of ``final_evaluation``, the
+    config) and ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best"
+    (the best evaluated actor) or "final". Returns the sidecar."""
+
+    s, c = trainer.state, trainer.config
+    actor, chosen = chosen_actor(trainer, which)
+    policies_dir = Path(policies_dir)
+    policies_dir.mkdir(parents=True, exist_ok=True)
+    policy_path = policies_dir / f"{c.name}.pt"
+    save_policy(policy_path, trainer.learner, actor)
+    sidecar = write_sidecar(
+        policy_path,
+        seed=c.seed,
+        name=c.name,
+        actor="best evaluated" if which == "best" and s.best_actor is not None else "final",
+        actor_at=None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
+        env_steps=s.env_steps,
+        episodes=s.episodes,
+        updates=trainer.learner.updates,
+        wall_time_s=round(s.wall_time, 1),
+        evaluations=[{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
+        final_evaluation=evaluation,
+        config=to_dict(c),
+    )
+    rollouts = "actor's mean" if c.exploration.policy_std_scale == 0.0 else (
+        "stochastic actor" if c.exploration.policy_std_scale == 1.0 else f"actor at {c.exploration.policy_std_scale:g} of its spread")
+    started_at = s.initialized_at
+    if started_at is None and c.initialize_from:
+        started_at = s.learn_start[0]  # a run initialised before Progress.initialized_at existed: the same step
+    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c), started_at, rollouts)
+    return sidecar
+
+
+def final_evaluation(trainer: Trainer, which: str, data, progress: Callable[[str], None] = print) -> dict:
+    """The export's evaluation of the ``which`` actor (``chosen_policy``) on the recorded human
+    shots (shot_p2) of the match-data CSV ``data``, through the cameras, at the run's seed:
+    ``evaluation.evaluate``'s figures with ``data``, ``data_sha256`` and ``sensors``, and for a run
+    trained on some players' shots, the others' figures under ``held_out``."""
+    policy = chosen_policy(trainer, which)
+    seed = trainer.config.seed
+
+    def human_evaluation(players: tuple[str, ...] = ()) -> dict:
+        shots, serve = human_shots(data, players)
+        of = f" of {', '.join(players)}" if players else ""
+        progress(f"train: evaluating the {which} actor on the {len(shots)} human shots{of} of {data} (cameras)")
+        return evaluate(policy, RallyParams(), shots, serve, seed, progress=progress)
+
+    evaluation = {"data": str(data), "data_sha256": sha256(data), "sensors": "cameras", **human_evaluation()}
+    held_out = held_out_players(trainer.config.env.shots, data)
+    if held_out:  # trained on some players' shots: the others' are reported on their own
+        evaluation["held_out"] = {"players": list(held_out), **human_evaluation(held_out)}
+    return evaluation
+
+
+def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policies", which: str = "best",
+                     evaluate_data=None, export_only: bool = False, progress: Callable[[str], None] = print,
+                     overwrite: bool = False) -> dict:
+    """``ace-drake train``: the run of the config YAML ``config_path`` in ``run_dir`` (default
+    out/train/<name>; resumed from its checkpoint if it has one; with ``export_only`` not trained
+    further), then ``export`` into ``export_dir`` with, given the match-data CSV
+    ``evaluate_data``, its ``final_evaluation``. Returns ``policy`` (the exported file), the run's
+    ``env_steps``, ``episodes``, ``updates``, ``wall_time_s`` (s) and ``actor_at``, and
+    ``final_evaluation`` (None without ``evaluate_data``). Raises ConfigError for a bad config,
+    with ``export_only`` for a run directory without a checkpoint, and, before anything is trained
+    or written, when ``export_dir`` already holds a policy of the config's name (a shipped one,
+    say) unless ``overwrite``."""
+    config = load_train_config(config_path)
+    run_dir = Path(run_dir or MODELS_DIR.parent / "out" / "train" / config.name)
+    progress(f"train: {config_path} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
+    if export_only and not any((run_dir / name).is_file() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
+        raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
+    existing = [path for path in (Path(export_dir) / f"{config.name}{suffix}" for suffix in (".pt", ".json", "_curve.png")) if path.exists()]
+    if existing and not overwrite:
+        raise ConfigError(f"train: {existing[0]} exists (a policy named {config.name!r}, e.g. a shipped one); give --overwrite to "
+                          "replace it, or another --export-dir or config name")
+    trainer = Trainer(config, run_dir, progress=progress)
+    if export_only:
+        progress(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
+    else:
+        trainer.run()
+    evaluation = final_evaluation(trainer, which, evaluate_data, progress) if evaluate_data else None
+    sidecar = export(trainer, export_dir, which, evaluation)
+    return {"policy": str(Path(export_dir) / f"{config.name}.pt"),
+            **{key: sidecar[key] for key in ("env_steps", "episodes", "updates", "wall_time_s", "actor_at")},
+            "final_evaluation": evaluation}
+
+
+def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
+    """The actor ``export`` writes: its state dict ("best": the best evaluated one, else the
+    final; "final": the learner's) and its evaluation entry (env_steps, updates, figures), None
+    when that actor was not evaluated."""
+    if which not in ("best", "final"):
+        raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
+    s = trainer.state
+    if which == "best" and s.best_actor is not None:
+        if s.best_evaluation >= 0:
+            return s.best_actor, s.evaluations[s.best_evaluation]
+        # A checkpoint from before best_evaluation was recorded: the highest evaluation.
+        return s.best_actor, max(s.evaluations, key=lambda e: e[2]["rate"] if e[2]["rate"] is not None else -1.0)
+    last = s.evaluations[-1] if s.evaluations and s.evaluations[-1][0] == s.env_steps else None
+    return trainer.learner.actor.state_dict(), last
+
+
+def chosen_policy(trainer: Trainer, which: str):
+    """The DeterministicPolicy of ``chosen_actor`` (what the exported file holds)."""
+    learner = SacLearner(trainer.config.sac, trainer.config.env.rally)
+    learner.actor.load_state_dict(chosen_actor(trainer, which)[0])
+    return learner.policy()
+
+
+def evaluation_description(config: TrainConfig) -> str:
+    """What the periodic evaluation plays, in words (for the learning curve's legend)."""
+    if not config.evaluation_data:
+        return f"{config.evaluation_episodes} synthetic shots"
+    of = f" of {', '.join(config.evaluation_players)}" if config.evaluation_players else ""
+    return f"first {config.evaluation_episodes} human shots{of}"
+
+
+def _draw_evaluations(axes, points: list, color: str, label: str) -> None:
+    """Evaluations [(x, figures)] as return rates with their 95 % intervals."""
+    if not points:
+        return
+    rates = np.array([e[1]["rate"] for e in points])
+    low = rates - np.array([e[1]["ci95"][0] for e in points])
+    high = np.array([e[1]["ci95"][1] for e in points]) - rates
+    axes.errorbar([e[0] for e in points], rates, yerr=[low, high], fmt="o-", color=color, capsize=3, label=label)
+
+
+def evaluation_series(state: Progress, description: str = "", started_at: int | None = None) -> list[tuple[list, str]]:
+    """The learning curve's evaluation series, [(points, label)], points (env_steps, figures):
+    one series, or for a run started from another's checkpoint at ``started_at`` steps the
+    earlier run's evaluations (at or before it) and this run's (after it)."""
+    evaluated = [(e[0], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
+    label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
+    if started_at is None:
+        return [(evaluated, label)]
+    return [([e for e in evaluated if e[0] <= started_at], "evaluation of the run it started from (its own shots)"),
+            ([e for e in evaluated if e[0] > started_at], label)]
+
+
+def cloning_curve(state: Progress) -> list[tuple[int, dict]] | None:
+    """A run that only clones (``pretrain_evaluate_every``): its evaluations as (learner updates,
+    figures), when there are several and all came at one environment step count; else None."""
+    evaluated = [e for e in state.evaluations if e[2]["rate"] is not None]
+    if len(evaluated) < 2 or len({e[0] for e in evaluated}) > 1:
+        return None
+    return [(updates, figures) for _, updates, figures in evaluated]
+
+
+def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None,
+                        rollouts: str = "stochastic actor") -> None:
+    """Return rate against environment steps: the rollout policy's (last 100 episodes; how it
+    acted: ``rollouts``) and the periodic evaluations' (with their 95 % intervals) on
+    ``description``'s shots. A run started from another's checkpoint at ``started_at`` steps
+    (``initialize_from``) draws the earlier run's evaluations, which may be of other shots, as a
+    separate series. A run that only clones (``cloning_curve``) is drawn against learner updates."""
+    figure = Figure(figsize=(6, 3.5), dpi=100)  # no pyplot: no display, no global figure state
+    axes = figure.subplots()
+    cloning = cloning_curve(state) if started_at is None else None
+    if cloning is not None:
+        ((_, label),) = evaluation_series(state, description)
+        _draw_evaluations(axes, cloning, "C0", label)
+        axes.set_xlabel(f"cloning updates (on {state.evaluations[0][0]:,} environment steps collected)")
+    else:
+        if state.rollout_curve:
+            steps, _, rates = zip(*state.rollout_curve)
+            axes.plot(steps, rates, color="0.6", label=f"rollouts ({rollouts}, last 100)")
+        series = evaluation_series(state, description, started_at)
+        for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
+            _draw_evaluations(axes, points, color, name)
+        axes.set_xlabel("environment steps (32 ms)")
+    axes.set_ylabel("return rate")
+    axes.set_ylim(0.0, 1.0)
+    axes.set_title(title)
+    axes.grid(alpha=0.3)
+    axes.legend(loc="upper left", fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path)
