@@ -490,15 +490,13 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
         assert action.shape == (1, ACTION_SIZE) and torch.all(action.abs() <= 1.0)
 
 
-@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state_braking", 5), ("policy:rally_skill", 4),
-                                            ("returner:hit_state", 5), ("returner:hit_memory", 5)])
+@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state_braking", 5), ("policy:rally_skill", 4)])
 def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # The first 12 recorded shots of Elite A (a training player), cameras, seed 0: 7 are playable;
     # rally_hit_state_braking (cloned from the labeller whose IK starts where braking would stop
     # the arm) returned 7, rally_skill (the same recipe, the labeller following the skill; default
-    # skill here) 5, returner:hit_state (the returner's planned hit states through the layer) 7,
-    # returner:hit_memory (the same on an observation that keeps its predicted hit) 5 (6 with the
-    # IK from the segment start), rally_sac 3,
+    # skill here) 5, rally_sac 3 (the returner's planned hit states through the layer:
+    # tests/test_experiments.py),
     # still 0 (measured). A behaviour, not a benchmark (docs/experiments/2026-12-01-hit-state-actor.md
     # has the measured rates).
     from ace_drake.control.params import RallyParams
@@ -575,8 +573,8 @@ def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path)
     params = RallyParams()
     on = {name: controllers.diagram_params_for(controllers.make_controller(name, params), params).hit_prediction
-          for name in ("still", "returner", "returner:memoryless", "policy:paper", "policy:hit")}
-    assert on == {"still": False, "returner": False, "returner:memoryless": False, "policy:paper": False, "policy:hit": True}
+          for name in ("still", "returner", "policy:paper", "policy:hit")}  # the study variants: tests/test_experiments.py
+    assert on == {"still": False, "returner": False, "policy:paper": False, "policy:hit": True}
     noisy = controllers.NoisyActions(controllers.make_controller("policy:hit", params), 0.1)
     assert controllers.diagram_params_for(noisy, params).hit_prediction
     assert not controllers.diagram_params_for(controllers.make_controller("policy:hit", params), RallyParams(hit_prediction=False)).hit_prediction
@@ -596,9 +594,8 @@ def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_pat
     assert load_policy(tmp_path / "remembering.pt").hit_memory and not load_policy(tmp_path / "forgetful.pt").hit_memory
     params = RallyParams()
     memory = {name: controllers.diagram_params_for(controllers.make_controller(name, params), params).hit_memory
-              for name in ("returner", "returner:hit_state", "returner:hit_memory", "policy:forgetful", "policy:remembering")}
-    assert memory == {"returner": False, "returner:hit_state": False, "returner:hit_memory": True, "policy:forgetful": False,
-                      "policy:remembering": True}
+              for name in ("returner", "policy:forgetful", "policy:remembering")}  # the study variants: tests/test_experiments.py
+    assert memory == {"returner": False, "policy:forgetful": False, "policy:remembering": True}
     # Whatever the given params say: a returner predicts the ball itself.
     assert not controllers.diagram_params_for(controllers.make_controller("returner", params), RallyParams(hit_memory=True)).hit_memory
     assert SacLearner(dataclasses.replace(hit_state, hit_memory=True)).policy().hit_memory

@@ -36,8 +36,8 @@ centre sits 3.3 cm (median; 9.4 cm at the 90th percentile, against a blade radiu
 
 ``PlannedHitState`` is the memoryless returner's planned hit state as such an action: the
 demonstrator and the labels of a hit-state actor (``training.rollout``), and with the layer a
-controller (``returner:hit_state``: the layer's ceiling, what an actor that imitated the returner's
-hit states perfectly would do).
+controller (``returner:hit_state`` in ``analysis.experiments``: the layer's ceiling, what an actor
+that imitated the returner's hit states perfectly would do).
 
 Why: an actor that outputs eq. (12)'s per-segment terminal states must re-derive the whole swing
 every 32 ms and its errors from call to call make the swing jitter; one that outputs the hit
