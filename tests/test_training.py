@@ -128,125 +128,120 @@ def _config(**overrides) -> TrainConfig:
     return TrainConfig(**fields)
 
 
-def test_the_shipped_training_config_loads():
+# The kept policies and their one config each: models/train_<name>.yaml.
+KEPT_POLICIES = ("rally_hit_state_braking", "rally_sac", "rally_skill")
+# Fields that do not change a run: the earlier run it started from, named by its checkpoint's path
+# in a sidecar (initialize_from) and by its config in models/ (after: training.stages).
+NOT_THE_RUN = ("initialize_from", "after")
+# Fields added after a shipped run, so absent from its recorded config, with the value that gives
+# the behaviour its run had: the returner ignored the skill's w_s before skill_brush (a586949) and
+# started its full IK at the segment start before ik_nominal (29a7992).
+ADDED_SINCE = {("returner", "skill_brush"): 0.0, ("returner", "ik_nominal"): "segment_start"}
+
+
+def _recorded_config(sidecar: dict) -> dict:
+    """A sidecar's recorded config as the run it describes: the fields added since at the values
+    that run had (ADDED_SINCE), then the rest read through TrainConfig (at their defaults, which
+    keep the old behaviour), without NOT_THE_RUN."""
+    import copy
+    import json
+
+    from ace_drake.config import from_dict, to_dict
+
+    recorded = copy.deepcopy(sidecar["config"])
+    for (section, name), value in ADDED_SINCE.items():
+        recorded.setdefault(section, {}).setdefault(name, value)
+    recorded["initialize_from"] = ""  # a path on the training machine
+    recorded = json.loads(json.dumps(to_dict(from_dict(TrainConfig, recorded))))
+    return {key: value for key, value in recorded.items() if key not in NOT_THE_RUN}
+
+
+@pytest.mark.parametrize("name", KEPT_POLICIES)
+def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
+    import json
+
+    from ace_drake.config import MODELS_DIR, to_dict
+
+    sidecar = json.loads((MODELS_DIR / "policies" / f"{name}.json").read_text())
+    if not Path(sidecar["config"]["evaluation_data"]).is_file():
+        pytest.skip(f"the match data is not at {sidecar['config']['evaluation_data']} (run from the project root)")
+    config = json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / f"train_{name}.yaml"))))
+    config = {key: value for key, value in config.items() if key not in NOT_THE_RUN}
+    recorded = _recorded_config(sidecar)
+    if "--export-only" in sidecar["command"]:  # stopped by hand and exported: the run ran to its recorded steps
+        assert config.pop("env_steps") == sidecar["env_steps"] and recorded.pop("env_steps") > sidecar["env_steps"]
+    assert config == recorded
+    assert (MODELS_DIR / "policies" / f"{name}.pt").is_file()
+
+
+def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
     from ace_drake.config import MODELS_DIR
 
-    config = load_train_config(MODELS_DIR / "train_rally.yaml")
-    assert config.name == "rally_sac" and config.demonstrations > 0 and config.learn_mode == "dagger"
+    assert {path.name for path in MODELS_DIR.glob("train_*.yaml")} == {"train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES)}
+    assert {path.stem for path in (MODELS_DIR / "policies").glob("*.pt")} == set(KEPT_POLICIES)
 
 
-def _continuation(name: str, first: str) -> tuple[TrainConfig, TrainConfig]:
-    """(the shipped config ``models/<name>.yaml``, which starts from another run's checkpoint,
-    without its ``initialize_from``; the config ``models/<first>.yaml`` of that run). Asserts that
-    ``initialize_from`` is the first run's default run directory's checkpoint; skips without the
-    match data the configs name."""
-    import yaml
-
-    from ace_drake.config import MODELS_DIR, from_dict
-
-    data = yaml.safe_load((MODELS_DIR / f"{name}.yaml").read_text())
-    if not Path(data["evaluation_data"]).is_file():
-        pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
-    earlier = load_train_config(MODELS_DIR / f"{first}.yaml")
-    assert data.pop("initialize_from") == f"out/train/{earlier.name}/checkpoint.pt"
-    return from_dict(TrainConfig, data), earlier
-
-
-def test_the_shipped_second_stage_config_continues_the_first():
-    second, first = _continuation("train_rally_human", "train_rally")
-    assert second.sac == first.sac  # initialize_from loads the first stage's learner
-    assert second.env.shots.players and not set(second.env.shots.players) & {"Elite D", "Elite E"}
-    assert second.evaluation_players == second.env.shots.players  # the exported actor is chosen on training players only
-
-
-def test_the_shipped_stage_5_config_continues_stage_4():
-    import yaml
-
+def test_the_paper_action_policy_trains_in_its_three_stages_from_one_config():
     from ace_drake.config import MODELS_DIR
 
-    fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
-    fourth = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
-    assert fifth.pop("initialize_from") == "out/train/rally_sac_human/checkpoint.pt"  # stage 4's run directory (docs/training.md)
-    assert fifth.pop("seed") != fourth.pop("seed")
-    fourth.pop("initialize_from")
-    assert fifth == fourth  # the same recipe, the learner's config included
+    data = Path("../shared/data/ace_match_events_elite.csv")
+    if not data.is_file():
+        pytest.skip(f"the match data is not at {data} (run from the project root)")
+    fifth = load_train_config(MODELS_DIR / "train_rally_sac.yaml")
+    fourth = fifth.after
+    third = fourth.after
+    assert third.after is None and not third.initialize_from and third.demonstrations > 0  # from scratch
+    assert [stage.seed for stage in (third, fourth, fifth)] == [0, 1, 2]
+    assert third.env_steps < fourth.env_steps < fifth.env_steps  # totals, counted from the first stage's start
+    assert third.env.shots.source == "synthetic" and fourth.env.shots.players == ("Elite A", "Elite B", "Elite C")
+    assert third.sac == fourth.sac == fifth.sac  # each loads the one before's learner
 
 
-def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
-    import yaml
-
-    from ace_drake.config import MODELS_DIR
-
-    sixth = yaml.safe_load((MODELS_DIR / "train_rally_human_memoryless.yaml").read_text())
-    fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
-    assert sixth.pop("initialize_from") == "out/train/rally_sac_human2/checkpoint.pt"  # stage 5's run directory (docs/training.md)
-    # Both labelled with the IK from the segment start and no spin skill (the rules of their time); the sixth without memory.
-    assert sixth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start", "memory": False}
-    assert fifth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start"}
-    assert sixth.pop("seed") != fifth.pop("seed")
-    fifth.pop("initialize_from")
-    assert sixth == fifth
-
-
-def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labeller():
+def _write_yaml(path: Path, data: dict) -> Path:
     import json
 
     import yaml
 
-    from ace_drake.config import MODELS_DIR, from_dict, to_dict
-
-    skill = yaml.safe_load((MODELS_DIR / "train_rally_skill.yaml").read_text())
-    if not Path(skill["evaluation_data"]).is_file():
-        pytest.skip(f"the match data is not at {skill['evaluation_data']} (run from the project root)")
-    braking = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_braking.yaml").read_text())
-    assert braking["returner"].pop("skill_brush") == 0.0 and "skill_brush" not in skill["returner"]  # the default, 2 m/s
-    assert skill.pop("name") == "rally_skill" and skill.pop("seed") != braking.pop("seed")
-    for name in ("demonstrations", "pretrain_updates", "env_steps"):  # a smaller run (docs/training.md, *The shipped policies*)
-        assert skill.pop(name) < braking.pop(name)
-    braking.pop("name")
-    assert skill == braking
-    # The shipped artefact was trained with this very config.
-    sidecar = json.loads((MODELS_DIR / "policies" / "rally_skill.json").read_text())
-    recorded = json.loads(json.dumps(to_dict(from_dict(TrainConfig, sidecar["config"]))))  # fields added since at their defaults
-    assert recorded == json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / "train_rally_skill.yaml"))))
+    path.write_text(yaml.safe_dump(json.loads(json.dumps(data)), sort_keys=False))
+    return path
 
 
-def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
-    second, first = _continuation("train_rally_hit_state_dagger", "train_rally_hit_state")
-    assert first.sac.action == "hit_state" and second.sac == first.sac  # initialize_from loads stage 1's learner
-    assert first.demonstrations > 0 and first.env_steps < 41_940  # below the steps its demonstrations and OU took: it stops after cloning
-    assert second.seed != first.seed and second.learn_mode == "dagger" and second.exploration.policy_std_scale == 0.0
-    assert not first.returner.memory and not second.returner.memory  # PlannedHitState needs a memoryless returner
-    assert second.env.shots.players and not set(second.env.shots.players) & {"Elite D", "Elite E"}
+def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_checkpoint(tmp_path):
+    from ace_drake.config import to_dict
+    from ace_drake.training.stages import EARLIER_STAGE_DIR
 
-
-def test_the_meeting_config_is_stage_1_with_more_demonstrations_and_the_ball_meeting_layer():
-    import dataclasses
-
-    import yaml
-
-    from ace_drake.config import MODELS_DIR
-
-    source = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_meet.yaml").read_text())["env"]["shots"]["source"]
-    if not Path(source).is_file():  # both configs name it; loading them checks that it exists
-        pytest.skip(f"the match data is not at {source} (run from the project root)")
-    stage_1 = load_train_config(MODELS_DIR / "train_rally_hit_state.yaml")
-    meeting = load_train_config(MODELS_DIR / "train_rally_hit_state_meet.yaml")
-    assert meeting.sac.meet_ball and not stage_1.sac.meet_ball
-    assert dataclasses.replace(meeting.sac, meet_ball=False) == stage_1.sac  # the same learner and loss
-    assert meeting.demonstrations > stage_1.demonstrations and meeting.seed != stage_1.seed
-    assert meeting.env_steps < 16 * meeting.demonstrations  # below what its demonstrations take (~16.6 steps each): it stops after cloning
-    assert meeting.env.shots.players == stage_1.env.shots.players and not set(meeting.env.shots.players) & {"Elite D", "Elite E"}
-    assert not meeting.returner.memory
-
-
-def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations():
-    more, meeting = _continuation("train_rally_hit_state_meet_more", "train_rally_hit_state_meet")
-    assert more.sac == meeting.sac  # initialize_from loads its learner
-    assert more.initialize_phase == "demonstrations" and more.seed != meeting.seed
-    assert more.demonstrations > meeting.demonstrations and more.pretrain_updates > meeting.pretrain_updates
-    assert more.ou_episodes == meeting.ou_episodes and more.env_steps < 16 * meeting.demonstrations  # no OU, no learn phase
-    assert more.env == meeting.env and more.returner == meeting.returner and more.exploration == meeting.exploration
+    base = to_dict(_config(env_steps=30))
+    del base["after"]
+    _write_yaml(tmp_path / "base.yaml", base)
+    path = _write_yaml(tmp_path / "run.yaml", {"base": "base.yaml", "seed": 4, "env_steps": 60, "after": {"seed": 3, "env_steps": 30}})
+    config = load_train_config(path)
+    assert (config.seed, config.env_steps, config.after.seed, config.after.env_steps) == (4, 60, 3, 30)
+    assert config.after == _config(env_steps=30) and config.after.after is None  # the changes over this stage's config
+    lines = []
+    second = Trainer(config, tmp_path / "run", progress=lines.append)
+    earlier = tmp_path / "run" / EARLIER_STAGE_DIR
+    first = Trainer(config.after, earlier, progress=lambda line: None)  # the earlier stage's finished run
+    assert first.state.phase == "done" and first.state.env_steps >= 30
+    assert second.state.phase == "learn" and second.state.initialized_at == first.state.env_steps
+    assert second.learner.updates == first.learner.updates and second.state.evaluations == first.state.evaluations
+    state = second.run()
+    assert state.phase == "done" and state.env_steps >= 60 and second.learner.updates > first.learner.updates
+    # Again in the same run directory without the later stage's checkpoint: the finished earlier
+    # stage is reused, not trained again.
+    (tmp_path / "run" / "checkpoint.pt").unlink()
+    lines.clear()
+    again = Trainer(config, tmp_path / "run", progress=lines.append)
+    assert any("has finished" in line for line in lines) and again.state.initialized_at == first.state.env_steps
+    with pytest.raises(ConfigError, match="after"):
+        _config(after=_config(), initialize_from=str(earlier / "checkpoint.pt"))
+    with pytest.raises(ConfigError, match="same sac"):
+        _config(after=_config(sac=SMALL))
+    _write_yaml(path, {"base": "base.yaml", "after": [1]})
+    with pytest.raises(ConfigError, match="after: expected a mapping"):
+        load_train_config(path)
+    _write_yaml(path, {"base": "base.yaml", "after": {"sead": 1}})
+    with pytest.raises(ConfigError, match="sead"):
+        load_train_config(path)
 
 
 def test_the_workers_label_with_the_configured_returner():

@@ -48,7 +48,7 @@ import yaml
 from matplotlib.figure import Figure
 from torch.utils.tensorboard import SummaryWriter
 
-from ace_drake.config import ConfigError, from_dict, to_dict
+from ace_drake.config import ConfigError, from_dict, load_yaml, to_dict
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
@@ -58,6 +58,7 @@ from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.shots import human_shots, make_distribution
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
+from ace_drake.training.stages import earlier_stage_checkpoint, with_earlier_stages
 from ace_drake.training.workers import WorkerPool
 
 PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
@@ -104,6 +105,9 @@ class TrainConfig:
     # collecting demonstrations, OU episodes and cloning updates up to this config's totals
     # (demonstrations, ou_episodes, pretrain_updates), counted from the checkpoint's own.
     initialize_phase: str = "learn"
+    # The earlier stage this run continues (training.stages): run first, then started from as from
+    # initialize_from. None: no earlier stage.
+    after: TrainConfig | None = None
     mirror: bool = False  # mirror augmentation; the shipped robot is not mirror-symmetric (mirror.py)
     torch_threads: int = 1
     log_every: float = 30.0  # s between progress lines
@@ -145,6 +149,8 @@ class TrainConfig:
                               "must agree: the actor reads the observation the env's diagram builds")
         if self.initialize_phase not in ("demonstrations", "learn"):
             raise ConfigError(f"TrainConfig.initialize_phase must be 'demonstrations' or 'learn', got {self.initialize_phase!r}")
+        if self.after is not None and (self.initialize_from or self.after.sac != self.sac):
+            raise ConfigError("TrainConfig.after: give it or initialize_from, not both, and the same sac as this stage's (its learner is loaded)")
         if self.initialize_from and not Path(self.initialize_from).is_file():
             raise ConfigError(f"TrainConfig.initialize_from: no such file {self.initialize_from}")
         for path in self.demonstration_files:
@@ -153,17 +159,16 @@ class TrainConfig:
 
 
 def load_train_config(path) -> TrainConfig:
-    """A TrainConfig from a YAML file (missing fields keep their defaults). Raises ConfigError
-    naming the field for unknown names, wrong types and rejected values."""
+    """A TrainConfig from a YAML file (missing fields keep their defaults; ``base:`` composes it
+    over another file, ``config.load_yaml``; ``after:`` is an earlier stage, ``training.stages``).
+    Raises ConfigError naming the field for unknown names, wrong types and rejected values."""
 
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"train: config file not found: {path}")
+    data = load_yaml(path)
     try:
-        data = yaml.safe_load(path.read_text())
-        return from_dict(TrainConfig, data)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+        return from_dict(TrainConfig, with_earlier_stages(data))
     except (ConfigError, ValueError) as error:
         raise ConfigError(f"{path}: {error}") from None
 
@@ -221,6 +226,8 @@ class Trainer:
             self._load(checkpoint)
         elif config.initialize_from:
             self._initialize_from(Path(config.initialize_from))
+        elif config.after is not None:
+            self._initialize_from(earlier_stage_checkpoint(self))
         self._save_config()
 
     # ------------------------------------------------------------------------------ the run
