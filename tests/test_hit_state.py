@@ -22,7 +22,7 @@ from ace_drake.control.returner import ModelBasedReturner
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.hit_state import HitStateCloning, RacketKinematics
 from ace_drake.learning.replay import DemonstrationBuffer
-from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
+from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
 from ace_drake.robot.model import RobotModel
@@ -275,7 +275,7 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
     np.testing.assert_allclose(controller(obs), controller.layer(obs, y))
     assert not controller.layer.meets_ball
     # A policy trained for the ball-meeting layer keeps it in its artefact and plays through it.
-    save_policy(tmp_path / "meeting.pt", SacLearner(dataclasses.replace(SMALL, meet_ball=True)))
+    save_policy(tmp_path / "meeting.pt", SacLearner(SMALL, play=PlayOptions(meet_ball=True)))
     assert load_policy(tmp_path / "meeting.pt").meet_ball
     assert controllers.make_controller("policy:meeting", RallyParams()).layer.meets_ball
     with pytest.raises(ConfigError, match="hit_prediction"):

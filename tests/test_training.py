@@ -13,7 +13,7 @@ import torch
 from ace_drake.config import ConfigError
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
-from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
+from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.training.rollout import OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
 from ace_drake.training.trainer import TrainConfig, Trainer, chosen_actor, evaluation_series, export, load_train_config
 
@@ -148,7 +148,9 @@ def _recorded_config(sidecar: dict) -> dict:
 
     from ace_drake.config import from_dict, to_dict
 
-    recorded = copy.deepcopy(sidecar["config"])
+    from ace_drake.training.trainer import play_options_moved
+
+    recorded = play_options_moved(copy.deepcopy(sidecar["config"]))  # sac.meet_ball, sac.hit_memory: play's since
     for (section, name), value in ADDED_SINCE.items():
         recorded.setdefault(section, {}).setdefault(name, value)
     recorded["initialize_from"] = ""  # a path on the training machine
@@ -584,7 +586,7 @@ def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_pat
 
     hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
     save_policy(tmp_path / "forgetful.pt", SacLearner(hit_state))
-    save_policy(tmp_path / "remembering.pt", SacLearner(dataclasses.replace(hit_state, hit_memory=True)))
+    save_policy(tmp_path / "remembering.pt", SacLearner(hit_state, play=PlayOptions(hit_memory=True)))
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path)
     assert load_policy(tmp_path / "remembering.pt").hit_memory and not load_policy(tmp_path / "forgetful.pt").hit_memory
     params = RallyParams()
@@ -593,21 +595,39 @@ def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_pat
     assert memory == {"returner": False, "policy:forgetful": False, "policy:remembering": True}
     # Whatever the given params say: a returner predicts the ball itself.
     assert not controllers.diagram_params_for(controllers.make_controller("returner", params), RallyParams(hit_memory=True)).hit_memory
-    assert SacLearner(dataclasses.replace(hit_state, hit_memory=True)).policy().hit_memory
+    assert SacLearner(hit_state, play=PlayOptions(hit_memory=True)).policy().hit_memory
     with pytest.raises(ConfigError, match="needs hit_prediction"):
         RallyParams(hit_prediction=False, hit_memory=True)
     with pytest.raises(ConfigError, match="must agree"):
-        _config(sac=dataclasses.replace(SMALL, hit_memory=True))
+        _config(play=PlayOptions(hit_memory=True))
     from ace_drake.training.env import RallyEnvParams, training_rally_params
 
     env = RallyEnvParams(rally=dataclasses.replace(training_rally_params(), hit_memory=True))
-    assert _config(sac=dataclasses.replace(SMALL, hit_memory=True), env=env).env.rally.hit_memory
+    assert _config(play=PlayOptions(hit_memory=True), env=env).env.rally.hit_memory
 
 
 def test_a_checkpoint_written_before_a_learner_field_existed_loads_with_its_default():
     learner = SacLearner(SMALL)
     state = learner.state_dict()
-    del state["config"]["hit_memory"]  # as written before SacConfig.hit_memory existed
+    del state["config"]["consistency_weight"]  # as written before SacConfig.consistency_weight existed
     SacLearner(SMALL).load_state_dict(state)
-    with pytest.raises(ValueError, match="hit_memory"):
-        SacLearner(dataclasses.replace(SMALL, hit_memory=True)).load_state_dict(state)
+    with pytest.raises(ValueError, match="consistency_weight"):
+        SacLearner(dataclasses.replace(SMALL, consistency_weight=1.0)).load_state_dict(state)
+    # Written when the play options were among the learner's fields: they are not the learner's.
+    state["config"].update(meet_ball=True, hit_memory=True)
+    SacLearner(SMALL).load_state_dict(state)
+
+
+def test_a_checkpoint_written_with_the_play_options_among_the_learners_resumes_with_them(tmp_path):
+    from ace_drake.training.trainer import play_options_moved
+
+    config = _config(env_steps=1, demonstrations=0, ou_episodes=1, pretrain_updates=0)
+    Trainer(config, tmp_path / "run", progress=lambda line: None).checkpoint()
+    payload = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    old = {**payload["config"], "sac": {**payload["config"]["sac"], "meet_ball": False, "hit_memory": False}}
+    del old["play"]  # as written before PlayOptions
+    assert play_options_moved(old) == payload["config"]
+    torch.save({**payload, "config": old}, tmp_path / "run" / "checkpoint.pt")
+    assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.resumptions == 1
+    with pytest.raises(ConfigError, match="play"):
+        Trainer(dataclasses.replace(config, play=PlayOptions(meet_ball=True)), tmp_path / "run", progress=lambda line: None)

@@ -130,7 +130,7 @@ def main() -> None:
         rows = {"obs": t["obs"][labelled], "demo_action": t["demo_action"][labelled]}
         print(f"   the untrained actor's cloning loss on them (task space + joints + consistency): "
               f"{learner.behaviour_cloning_loss(rows).item():.1f}")
-        # The layer that meets the ball (SacConfig.meet_ball): an actor's hit state a little off
+        # The layer that meets the ball (PlayOptions.meet_ball): an actor's hit state a little off
         # (here the plan with a 0.05 rad shoulder error) is moved so the blade meets the predicted ball.
         from ace_drake.control.hit_state import HitStateLayer
 

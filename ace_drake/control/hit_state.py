@@ -21,7 +21,7 @@ preferred hit, ``control.hit_prediction``) at t_p seconds, whose boundary is k s
 k = round((t_p - lead - lag) / T), D = k T (the predictor samples hits on that grid); k <= 0
 follows through; no predicted hit gives no action (the supervisor resets).
 
-A layer built to meet the ball (``meet_ball``; ``SacConfig.meet_ball``) also moves q_hit so that
+A layer built to meet the ball (``meet_ball``; ``sac.PlayOptions.meet_ball``) also moves q_hit so
 the blade centre sits at the contact standoff behind the predicted hit's ball position along the
 blade's own normal, the blade's orientation kept: Gauss-Newton steps on the racket Jacobian J
 (6 x 8), weighted as the returner weights its joint velocities (W = diag(v_max^2)),

@@ -53,7 +53,7 @@ from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
-from ace_drake.learning.sac import SacConfig, SacLearner, save_policy
+from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, save_policy, split_play_options
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.shots import human_shots, make_distribution
 from ace_drake.training.env import RallyEnvParams
@@ -112,6 +112,7 @@ class TrainConfig:
     torch_threads: int = 1
     log_every: float = 30.0  # s between progress lines
     sac: SacConfig = dataclasses.field(default_factory=SacConfig)
+    play: PlayOptions = dataclasses.field(default_factory=PlayOptions)  # what the actor needs from its diagram
     replay: ReplayConfig = dataclasses.field(default_factory=ReplayConfig)
     env: RallyEnvParams = dataclasses.field(default_factory=RallyEnvParams)
     exploration: ExplorationParams = dataclasses.field(default_factory=ExplorationParams)
@@ -144,8 +145,8 @@ class TrainConfig:
             raise ConfigError("TrainConfig.evaluation_players selects shots of evaluation_data; give a match-data CSV")
         if self.evaluation_data and not Path(self.evaluation_data).is_file():
             raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
-        if self.sac.hit_memory != self.env.rally.hit_memory:
-            raise ConfigError(f"TrainConfig: sac.hit_memory ({self.sac.hit_memory}) and env.rally.hit_memory ({self.env.rally.hit_memory}) "
+        if self.play.hit_memory != self.env.rally.hit_memory:
+            raise ConfigError(f"TrainConfig: play.hit_memory ({self.play.hit_memory}) and env.rally.hit_memory ({self.env.rally.hit_memory}) "
                               "must agree: the actor reads the observation the env's diagram builds")
         if self.initialize_phase not in ("demonstrations", "learn"):
             raise ConfigError(f"TrainConfig.initialize_phase must be 'demonstrations' or 'learn', got {self.initialize_phase!r}")
@@ -171,6 +172,13 @@ def load_train_config(path) -> TrainConfig:
         return from_dict(TrainConfig, with_earlier_stages(data))
     except (ConfigError, ValueError) as error:
         raise ConfigError(f"{path}: {error}") from None
+
+
+def play_options_moved(config: dict) -> dict:
+    """A TrainConfig mapping written before PlayOptions (a checkpoint's, a sidecar's: its
+    ``sac.meet_ball`` and ``sac.hit_memory``) with those under ``play``."""
+    sac, play = split_play_options(config.get("sac") or {})
+    return {**config, "sac": sac, "play": {**play, **(config.get("play") or {})}}
 
 
 @dataclasses.dataclass
@@ -208,7 +216,7 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = progress
         torch.set_num_threads(config.torch_threads)
-        self.learner = SacLearner(config.sac, config.env.rally)
+        self.learner = SacLearner(config.sac, config.env.rally, play=config.play)
         augment = ()
         if config.mirror:
             augment = (Mirror.from_robot().transitions,)
@@ -262,7 +270,7 @@ class Trainer:
     def _workers(self):
         if self._pool is None:
             c = self.config
-            args = {"env_params": c.env, "sac": c.sac, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
+            args = {"env_params": c.env, "sac": c.sac, "play": c.play, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
                     "returner": c.returner}
             self._pool = WorkerPool(c.workers, args, c.backend, c.address or None)
             self._pool.publish(self.learner.actor.state_dict())
@@ -455,7 +463,7 @@ class Trainer:
         payload = torch.load(path, weights_only=False)
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
-        saved = to_dict(from_dict(TrainConfig, payload["config"]))
+        saved = to_dict(from_dict(TrainConfig, play_options_moved(payload["config"])))
         if saved != to_dict(self.config):
             differing = sorted(k for k, v in to_dict(self.config).items() if saved.get(k) != v)
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
@@ -558,7 +566,7 @@ def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
 
 def chosen_policy(trainer: Trainer, which: str):
     """The DeterministicPolicy of ``chosen_actor`` (what the exported file holds)."""
-    learner = SacLearner(trainer.config.sac, trainer.config.env.rally)
+    learner = SacLearner(trainer.config.sac, trainer.config.env.rally, play=trainer.config.play)
     learner.actor.load_state_dict(chosen_actor(trainer, which)[0])
     return learner.policy()
 
