@@ -360,7 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     def add_rally_options(command, controller_default):
-        command.add_argument("--controller", default=controller_default, help="still, returner, returner:memoryless, returner:forget=<part>[+<part>...], returner:hit_state, returner:hit_memory or policy:<name> (default: %(default)s)")
+        command.add_argument("--controller", default=controller_default, help="still, returner or policy:<name>, a shipped policy of models/policies (default: %(default)s)")
         command.add_argument("--sensors", choices=("cameras", "statistical"), default="cameras", help="ball positions from the nine cameras + triangulator, or the training sensor model")
         command.add_argument("--seed", type=int, default=0)
         command.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
@@ -382,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")
-    train.add_argument("config", help="training config YAML (training.loop.TrainConfig; e.g. models/train_rally_hit_state.yaml)")
+    train.add_argument("config", help="training config YAML (training.loop.TrainConfig; e.g. models/train_rally_hit_state_braking.yaml)")
     train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
     train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")

@@ -75,14 +75,10 @@ def from_dict(cls: type[T], data: Any, path: str = "") -> T:
 
 
 def load_config(cls: type[T], path: str | Path, section: str | None = None) -> T:
-    """Loads dataclass ``cls`` from a YAML file (optionally from one top-level ``section``)."""
+    """Loads dataclass ``cls`` from a YAML file (optionally from one top-level ``section``), its
+    ``base:`` composed first (``load_yaml``)."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    data = load_yaml(path)
     if section is not None:
         if not isinstance(data, dict) or section not in data:
             raise ConfigError(f"{path}: no top-level section '{section}'")
@@ -91,6 +87,51 @@ def load_config(cls: type[T], path: str | Path, section: str | None = None) -> T
         return from_dict(cls, data)
     except ConfigError as error:
         raise ConfigError(f"{path}: {error}") from None
+
+
+def load_yaml(path: str | Path) -> Any:
+    """The data of a YAML file with its top-level ``base:`` composed: ``base: other.yaml`` (a path
+    relative to this file) names a file whose mapping, itself composed the same way, this file's
+    mapping is deep-merged over (``merge``). So a config can be written as another with some fields
+    changed. Raises ConfigError naming the file for a missing or invalid file, a ``base`` that is
+    not a file name or a mapping, and a cycle of bases."""
+    return _load_composed(Path(path), ())
+
+
+def merge(base: dict, overrides: dict) -> dict:
+    """``overrides`` deep-merged over ``base`` (neither is changed): mappings merge key by key;
+    any other value, a list included, replaces the base's."""
+    merged = dict(base)
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _load_composed(path: Path, including: tuple[Path, ...]) -> Any:
+    if path.resolve() in including:
+        chain = " -> ".join(str(p) for p in (*including, path.resolve()))
+        raise ConfigError(f"{path}: a cycle of base: files ({chain})")
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}" + (f" (the base of {including[-1]})" if including else ""))
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    if not isinstance(data, dict) or "base" not in data:
+        return data
+    data = dict(data)
+    base = data.pop("base")
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{path}: base: expected a YAML file's name (relative to this file), got {base!r}")
+    base_data = _load_composed(path.parent / base, (*including, path.resolve()))
+    if base_data is None:
+        base_data = {}
+    if not isinstance(base_data, dict):
+        raise ConfigError(f"{path.parent / base}: expected a mapping (the base of {path}), got {type(base_data).__name__}")
+    return merge(base_data, data)
 
 
 def to_dict(config: Any) -> dict:

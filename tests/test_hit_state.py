@@ -22,7 +22,7 @@ from ace_drake.control.returner import ModelBasedReturner
 from ace_drake.control.stack import ControlStack
 from ace_drake.learning.hit_state import HitStateCloning, RacketKinematics
 from ace_drake.learning.replay import DemonstrationBuffer
-from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
+from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
 from ace_drake.robot.model import RobotModel
@@ -275,7 +275,7 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
     np.testing.assert_allclose(controller(obs), controller.layer(obs, y))
     assert not controller.layer.meets_ball
     # A policy trained for the ball-meeting layer keeps it in its artefact and plays through it.
-    save_policy(tmp_path / "meeting.pt", SacLearner(dataclasses.replace(SMALL, meet_ball=True)))
+    save_policy(tmp_path / "meeting.pt", SacLearner(SMALL, play=PlayOptions(meet_ball=True)))
     assert load_policy(tmp_path / "meeting.pt").meet_ball
     assert controllers.make_controller("policy:meeting", RallyParams()).layer.meets_ball
     with pytest.raises(ConfigError, match="hit_prediction"):
@@ -290,10 +290,15 @@ def test_the_returners_planned_hit_state_plays_through_the_layer(layer):
     from ace_drake.evaluation import controllers
 
     params = RallyParams()
-    planned = controllers.make_controller("returner:hit_state", params)
+
+    def planned_hit_state(hit_memory):  # as the rollout workers label (analysis.experiments names them)
+        return PlannedHitState(ModelBasedReturner.for_rally(params, ReturnerParams(memory=False)), HitStateLayer.for_rally(params),
+                               hit_memory=hit_memory)
+
+    planned = planned_hit_state(False)
     assert isinstance(planned, PlannedHitState) and controllers.diagram_params_for(planned, params) == params
     with pytest.raises(ConfigError, match="hit_prediction"):
-        controllers.make_controller("returner:hit_state", RallyParams(hit_prediction=False))
+        HitStateLayer.for_rally(RallyParams(hit_prediction=False))
     with pytest.raises(ValueError, match="memoryless"):
         PlannedHitState(ModelBasedReturner.for_rally(params), layer)
     estimate = simulate(INCOMING_BALL, BallPhysicsParams(), 0.1).final_state[0]
@@ -307,7 +312,7 @@ def test_the_returners_planned_hit_state_plays_through_the_layer(layer):
     assert planned.plan(no_hit)[0] is None
     # On an observation that keeps its predicted hit, the returner plans the observed hit first:
     # here one segment past the one it prefers, which it then plans, and labels.
-    remembering = controllers.make_controller("returner:hit_memory", params)
+    remembering = planned_hit_state(True)
     assert remembering.hit_memory and not planned.hit_memory
     preferred = planned.returner.predictor.preferred_hit(estimate)[0]
     later = obs.copy()

@@ -18,7 +18,7 @@ def small_sidecar() -> dict:
     """A policy sidecar with only the keys the table reads (the shape ``ace-drake train`` writes)."""
     return {
         "name": "rally_sac",
-        "command": "ace-drake train models/train_rally.yaml",
+        "command": "ace-drake train models/train_rally_sac.yaml",
         "date": "2026-01-02",
         "seed": 3,
         "final_evaluation": {

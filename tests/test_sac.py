@@ -1,5 +1,6 @@
 """SacLearner: losses on hand-built batches, checkpoints, and a short run that learns."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -177,3 +178,38 @@ def test_config_errors_name_the_field():
         SacConfig(gamma=1.0)
     with pytest.raises(ValueError, match="tau"):
         SacConfig(tau=0.0)
+
+
+# What each kept policy needs from its diagram, as its sidecar's recorded config gives it
+# (sac.meet_ball, sac.hit_memory before PlayOptions existed).
+KEPT_POLICY_PLAY = {"rally_hit_state_braking": (True, True), "rally_skill": (True, True), "rally_sac": (False, False)}
+
+
+@pytest.mark.parametrize("name", sorted(KEPT_POLICY_PLAY))
+def test_each_kept_policy_loads_with_the_play_options_it_was_trained_with(name):
+    import json
+
+    from ace_drake.config import MODELS_DIR
+    from ace_drake.learning.sac import PlayOptions, load_policy
+
+    path = MODELS_DIR / "policies" / f"{name}.pt"
+    payload = torch.load(path, weights_only=False)
+    assert "play" not in payload  # written before PlayOptions: its SacConfig holds them, read from there
+    policy = load_policy(path)
+    meet_ball, hit_memory = KEPT_POLICY_PLAY[name]
+    assert (policy.meet_ball, policy.hit_memory) == (meet_ball, hit_memory)
+    recorded = json.loads((MODELS_DIR / "policies" / f"{name}.json").read_text())["config"]["sac"]
+    assert (recorded.get("meet_ball", False), recorded.get("hit_memory", False)) == (meet_ball, hit_memory)
+    assert not {"meet_ball", "hit_memory"} & {f.name for f in dataclasses.fields(SacConfig)}  # not the learner's
+    assert dataclasses.fields(PlayOptions)
+
+
+def test_a_policy_artefact_stores_its_play_options_beside_the_learners_config(tmp_path):
+    from ace_drake.learning.sac import PlayOptions, load_policy, save_policy
+
+    config = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
+    save_policy(tmp_path / "p.pt", SacLearner(config, play=PlayOptions(meet_ball=True)))
+    payload = torch.load(tmp_path / "p.pt", weights_only=False)
+    assert payload["play"] == {"meet_ball": True, "hit_memory": False} and "meet_ball" not in payload["sac_config"]
+    policy = load_policy(tmp_path / "p.pt")
+    assert policy.meet_ball and not policy.hit_memory

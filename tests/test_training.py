@@ -3,6 +3,7 @@ diagram, the trainer's phases, checkpoints and resumption, export and the policy
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 from pathlib import Path
@@ -20,9 +21,9 @@ from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation import controllers
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
-from ace_drake.learning.sac import SacConfig, SacLearner, load_policy, save_policy
+from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.play.shots import human_shots
-from ace_drake.training.checkpoint import CheckpointError, read_checkpoint
+from ace_drake.training.checkpoint import CheckpointError, play_options_moved, read_checkpoint
 from ace_drake.training.env import RallyEnvParams, training_rally_params
 from ace_drake.training.export import (
     chosen_actor,
@@ -35,6 +36,7 @@ from ace_drake.training.export import (
 )
 from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
 from ace_drake.training.rollout import ExplorationParams, OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
+from ace_drake.training.stages import EARLIER_STAGE_DIR
 from ace_drake.training.workers import WorkerPool
 
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
@@ -148,107 +150,105 @@ def _config(**overrides) -> TrainConfig:
     return TrainConfig(**fields)
 
 
-def test_the_shipped_training_config_loads():
-    config = load_train_config(MODELS_DIR / "train_rally.yaml")
-    assert config.name == "rally_sac" and config.demonstrations > 0 and config.learn_mode == "dagger"
+# The kept policies and their one config each: models/train_<name>.yaml.
+KEPT_POLICIES = ("rally_hit_state_braking", "rally_sac", "rally_skill")
+# Fields that do not change a run: the earlier run it started from, named by its checkpoint's path
+# in a sidecar (initialize_from) and by its config in models/ (after: training.stages).
+NOT_THE_RUN = ("initialize_from", "after")
+# Fields added after a shipped run, so absent from its recorded config, with the value that gives
+# the behaviour its run had: the returner ignored the skill's w_s before skill_brush (a586949) and
+# started its full IK at the segment start before ik_nominal (29a7992).
+ADDED_SINCE = {("returner", "skill_brush"): 0.0, ("returner", "ik_nominal"): "segment_start"}
 
 
-def _continuation(name: str, first: str) -> tuple[TrainConfig, TrainConfig]:
-    """(the shipped config ``models/<name>.yaml``, which starts from another run's checkpoint,
-    without its ``initialize_from``; the config ``models/<first>.yaml`` of that run). Asserts that
-    ``initialize_from`` is the first run's default run directory's checkpoint; skips without the
-    match data the configs name."""
+def _recorded_config(sidecar: dict) -> dict:
+    """A sidecar's recorded config as the run it describes: the fields added since at the values
+    that run had (ADDED_SINCE), then the rest read through TrainConfig (at their defaults, which
+    keep the old behaviour), without NOT_THE_RUN."""
 
 
-    data = yaml.safe_load((MODELS_DIR / f"{name}.yaml").read_text())
-    if not Path(data["evaluation_data"]).is_file():
-        pytest.skip(f"the match data is not at {data['evaluation_data']} (run from the project root)")
-    earlier = load_train_config(MODELS_DIR / f"{first}.yaml")
-    assert data.pop("initialize_from") == f"out/train/{earlier.name}/checkpoint.pt"
-    return from_dict(TrainConfig, data), earlier
+
+    recorded = play_options_moved(copy.deepcopy(sidecar["config"]))  # sac.meet_ball, sac.hit_memory: play's since
+    for (section, name), value in ADDED_SINCE.items():
+        recorded.setdefault(section, {}).setdefault(name, value)
+    recorded["initialize_from"] = ""  # a path on the training machine
+    recorded = json.loads(json.dumps(to_dict(from_dict(TrainConfig, recorded))))
+    return {key: value for key, value in recorded.items() if key not in NOT_THE_RUN}
 
 
-def test_the_shipped_second_stage_config_continues_the_first():
-    second, first = _continuation("train_rally_human", "train_rally")
-    assert second.sac == first.sac  # initialize_from loads the first stage's learner
-    assert second.env.shots.players and not set(second.env.shots.players) & {"Elite D", "Elite E"}
-    assert second.evaluation_players == second.env.shots.players  # the exported actor is chosen on training players only
+@pytest.mark.parametrize("name", KEPT_POLICIES)
+def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
+
+    sidecar = json.loads((MODELS_DIR / "policies" / f"{name}.json").read_text())
+    if not Path(sidecar["config"]["evaluation_data"]).is_file():
+        pytest.skip(f"the match data is not at {sidecar['config']['evaluation_data']} (run from the project root)")
+    config = json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / f"train_{name}.yaml"))))
+    config = {key: value for key, value in config.items() if key not in NOT_THE_RUN}
+    recorded = _recorded_config(sidecar)
+    if "--export-only" in sidecar["command"]:  # stopped by hand and exported: the run ran to its recorded steps
+        assert config.pop("env_steps") == sidecar["env_steps"] and recorded.pop("env_steps") > sidecar["env_steps"]
+    assert config == recorded
+    assert (MODELS_DIR / "policies" / f"{name}.pt").is_file()
 
 
-def test_the_shipped_stage_5_config_continues_stage_4():
-
-    fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
-    fourth = yaml.safe_load((MODELS_DIR / "train_rally_human.yaml").read_text())
-    assert fifth.pop("initialize_from") == "out/train/rally_sac_human/checkpoint.pt"  # stage 4's run directory (docs/training.md)
-    assert fifth.pop("seed") != fourth.pop("seed")
-    fourth.pop("initialize_from")
-    assert fifth == fourth  # the same recipe, the learner's config included
+def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
+    assert {path.name for path in MODELS_DIR.glob("train_*.yaml")} == {"train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES)}
+    assert {path.stem for path in (MODELS_DIR / "policies").glob("*.pt")} == set(KEPT_POLICIES)
 
 
-def test_the_shipped_stage_6_config_continues_stage_5_with_memoryless_labels():
-
-    sixth = yaml.safe_load((MODELS_DIR / "train_rally_human_memoryless.yaml").read_text())
-    fifth = yaml.safe_load((MODELS_DIR / "train_rally_human_continued.yaml").read_text())
-    assert sixth.pop("initialize_from") == "out/train/rally_sac_human2/checkpoint.pt"  # stage 5's run directory (docs/training.md)
-    # Both labelled with the IK from the segment start and no spin skill (the rules of their time); the sixth without memory.
-    assert sixth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start", "memory": False}
-    assert fifth.pop("returner") == {"skill_brush": 0.0, "ik_nominal": "segment_start"}
-    assert sixth.pop("seed") != fifth.pop("seed")
-    fifth.pop("initialize_from")
-    assert sixth == fifth
-
-
-def test_the_skill_config_is_the_braking_recipe_with_the_skill_following_labeller():
+def test_the_paper_action_policy_trains_in_its_three_stages_from_one_config():
+    data = Path("../shared/data/ace_match_events_elite.csv")
+    if not data.is_file():
+        pytest.skip(f"the match data is not at {data} (run from the project root)")
+    fifth = load_train_config(MODELS_DIR / "train_rally_sac.yaml")
+    fourth = fifth.after
+    third = fourth.after
+    assert third.after is None and not third.initialize_from and third.demonstrations > 0  # from scratch
+    assert [stage.seed for stage in (third, fourth, fifth)] == [0, 1, 2]
+    assert third.env_steps < fourth.env_steps < fifth.env_steps  # totals, counted from the first stage's start
+    assert third.env.shots.source == "synthetic" and fourth.env.shots.players == ("Elite A", "Elite B", "Elite C")
+    assert third.sac == fourth.sac == fifth.sac  # each loads the one before's learner
 
 
-    skill = yaml.safe_load((MODELS_DIR / "train_rally_skill.yaml").read_text())
-    if not Path(skill["evaluation_data"]).is_file():
-        pytest.skip(f"the match data is not at {skill['evaluation_data']} (run from the project root)")
-    braking = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_braking.yaml").read_text())
-    assert braking["returner"].pop("skill_brush") == 0.0 and "skill_brush" not in skill["returner"]  # the default, 2 m/s
-    assert skill.pop("name") == "rally_skill" and skill.pop("seed") != braking.pop("seed")
-    for name in ("demonstrations", "pretrain_updates", "env_steps"):  # a smaller run (docs/training.md, *The shipped policies*)
-        assert skill.pop(name) < braking.pop(name)
-    braking.pop("name")
-    assert skill == braking
-    # The shipped artefact was trained with this very config.
-    sidecar = json.loads((MODELS_DIR / "policies" / "rally_skill.json").read_text())
-    recorded = json.loads(json.dumps(to_dict(from_dict(TrainConfig, sidecar["config"]))))  # fields added since at their defaults
-    assert recorded == json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / "train_rally_skill.yaml"))))
+def _write_yaml(path: Path, data: dict) -> Path:
+
+    path.write_text(yaml.safe_dump(json.loads(json.dumps(data)), sort_keys=False))
+    return path
 
 
-def test_the_hit_state_configs_clone_then_continue_with_the_same_learner():
-    second, first = _continuation("train_rally_hit_state_dagger", "train_rally_hit_state")
-    assert first.sac.action == "hit_state" and second.sac == first.sac  # initialize_from loads stage 1's learner
-    assert first.demonstrations > 0 and first.env_steps < 41_940  # below the steps its demonstrations and OU took: it stops after cloning
-    assert second.seed != first.seed and second.learn_mode == "dagger" and second.exploration.policy_std_scale == 0.0
-    assert not first.returner.memory and not second.returner.memory  # PlannedHitState needs a memoryless returner
-    assert second.env.shots.players and not set(second.env.shots.players) & {"Elite D", "Elite E"}
-
-
-def test_the_meeting_config_is_stage_1_with_more_demonstrations_and_the_ball_meeting_layer():
-
-
-    source = yaml.safe_load((MODELS_DIR / "train_rally_hit_state_meet.yaml").read_text())["env"]["shots"]["source"]
-    if not Path(source).is_file():  # both configs name it; loading them checks that it exists
-        pytest.skip(f"the match data is not at {source} (run from the project root)")
-    stage_1 = load_train_config(MODELS_DIR / "train_rally_hit_state.yaml")
-    meeting = load_train_config(MODELS_DIR / "train_rally_hit_state_meet.yaml")
-    assert meeting.sac.meet_ball and not stage_1.sac.meet_ball
-    assert dataclasses.replace(meeting.sac, meet_ball=False) == stage_1.sac  # the same learner and loss
-    assert meeting.demonstrations > stage_1.demonstrations and meeting.seed != stage_1.seed
-    assert meeting.env_steps < 16 * meeting.demonstrations  # below what its demonstrations take (~16.6 steps each): it stops after cloning
-    assert meeting.env.shots.players == stage_1.env.shots.players and not set(meeting.env.shots.players) & {"Elite D", "Elite E"}
-    assert not meeting.returner.memory
-
-
-def test_the_more_demonstrations_config_takes_up_the_meeting_runs_demonstrations():
-    more, meeting = _continuation("train_rally_hit_state_meet_more", "train_rally_hit_state_meet")
-    assert more.sac == meeting.sac  # initialize_from loads its learner
-    assert more.initialize_phase == "demonstrations" and more.seed != meeting.seed
-    assert more.demonstrations > meeting.demonstrations and more.pretrain_updates > meeting.pretrain_updates
-    assert more.ou_episodes == meeting.ou_episodes and more.env_steps < 16 * meeting.demonstrations  # no OU, no learn phase
-    assert more.env == meeting.env and more.returner == meeting.returner and more.exploration == meeting.exploration
+def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_checkpoint(tmp_path):
+    base = to_dict(_config(env_steps=30))
+    del base["after"]
+    _write_yaml(tmp_path / "base.yaml", base)
+    path = _write_yaml(tmp_path / "run.yaml", {"base": "base.yaml", "seed": 4, "env_steps": 60, "after": {"seed": 3, "env_steps": 30}})
+    config = load_train_config(path)
+    assert (config.seed, config.env_steps, config.after.seed, config.after.env_steps) == (4, 60, 3, 30)
+    assert config.after == _config(env_steps=30) and config.after.after is None  # the changes over this stage's config
+    lines = []
+    second = Trainer(config, tmp_path / "run", progress=lines.append)
+    earlier = tmp_path / "run" / EARLIER_STAGE_DIR
+    first = Trainer(config.after, earlier, progress=lambda line: None)  # the earlier stage's finished run
+    assert first.state.phase == "done" and first.state.env_steps >= 30
+    assert second.state.phase == "learn" and second.state.initialized_at == first.state.env_steps
+    assert second.learner.updates == first.learner.updates and second.state.evaluations == first.state.evaluations
+    state = second.run()
+    assert state.phase == "done" and state.env_steps >= 60 and second.learner.updates > first.learner.updates
+    # Again in the same run directory without the later stage's checkpoint: the finished earlier
+    # stage is reused, not trained again.
+    (tmp_path / "run" / "checkpoint.pt").unlink()
+    lines.clear()
+    again = Trainer(config, tmp_path / "run", progress=lines.append)
+    assert any("has finished" in line for line in lines) and again.state.initialized_at == first.state.env_steps
+    with pytest.raises(ConfigError, match="after"):
+        _config(after=_config(), initialize_from=str(earlier / "checkpoint.pt"))
+    with pytest.raises(ConfigError, match="same sac"):
+        _config(after=_config(sac=SMALL))
+    _write_yaml(path, {"base": "base.yaml", "after": [1]})
+    with pytest.raises(ConfigError, match="after: expected a mapping"):
+        load_train_config(path)
+    _write_yaml(path, {"base": "base.yaml", "after": {"sead": 1}})
+    with pytest.raises(ConfigError, match="sead"):
+        load_train_config(path)
 
 
 def test_the_workers_label_with_the_configured_returner():
@@ -473,19 +473,13 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
         assert action.shape == (1, ACTION_SIZE) and torch.all(action.abs() <= 1.0)
 
 
-@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state", 4), ("policy:rally_hit_state_meet", 5),
-                                            ("policy:rally_hit_state_meet_more", 5), ("policy:rally_hit_state_braking", 5),
-                                            ("policy:rally_skill", 4),
-                                            ("returner:hit_state", 5), ("returner:hit_memory", 5)])
+@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state_braking", 5), ("policy:rally_skill", 4)])
 def test_the_hit_state_controllers_return_recorded_human_shots(name, at_least):
     # The first 12 recorded shots of Elite A (a training player), cameras, seed 0: 7 are playable;
-    # rally_hit_state returned 5 of them, rally_hit_state_meet (the layer meeting the ball) 7,
-    # rally_hit_state_meet_more (cloned from more demonstrations) 7, rally_hit_state_braking (cloned
-    # from the labeller whose IK starts where braking would stop the arm) 7, rally_skill (the same
-    # recipe, the labeller following the skill; default skill here) 5,
-    # returner:hit_state (the returner's planned hit states through the layer) 7, returner:hit_memory
-    # (the same on an observation that keeps its predicted hit) 5 (6 with the IK from the segment
-    # start), rally_sac 3,
+    # rally_hit_state_braking (cloned from the labeller whose IK starts where braking would stop
+    # the arm) returned 7, rally_skill (the same recipe, the labeller following the skill; default
+    # skill here) 5, rally_sac 3 (the returner's planned hit states through the layer:
+    # tests/test_experiments.py),
     # still 0 (measured). A behaviour, not a benchmark (docs/experiments/2026-12-01-hit-state-actor.md
 
     data = Path(__file__).resolve().parents[2] / "shared/data/ace_match_events_elite.csv"
@@ -547,8 +541,8 @@ def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path)
     params = RallyParams()
     on = {name: controllers.diagram_params_for(controllers.make_controller(name, params), params).hit_prediction
-          for name in ("still", "returner", "returner:memoryless", "policy:paper", "policy:hit")}
-    assert on == {"still": False, "returner": False, "returner:memoryless": False, "policy:paper": False, "policy:hit": True}
+          for name in ("still", "returner", "policy:paper", "policy:hit")}  # the study variants: tests/test_experiments.py
+    assert on == {"still": False, "returner": False, "policy:paper": False, "policy:hit": True}
     noisy = controllers.NoisyActions(controllers.make_controller("policy:hit", params), 0.1)
     assert controllers.diagram_params_for(noisy, params).hit_prediction
     assert not controllers.diagram_params_for(controllers.make_controller("policy:hit", params), RallyParams(hit_prediction=False)).hit_prediction
@@ -560,33 +554,36 @@ def test_the_diagram_computes_the_hit_prediction_only_for_controllers_that_read_
 def test_the_diagram_keeps_the_predicted_hit_for_controllers_made_for_it(tmp_path, monkeypatch):
     hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
     save_policy(tmp_path / "forgetful.pt", SacLearner(hit_state))
-    save_policy(tmp_path / "remembering.pt", SacLearner(dataclasses.replace(hit_state, hit_memory=True)))
+    save_policy(tmp_path / "remembering.pt", SacLearner(hit_state, play=PlayOptions(hit_memory=True)))
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path)
     assert load_policy(tmp_path / "remembering.pt").hit_memory and not load_policy(tmp_path / "forgetful.pt").hit_memory
     params = RallyParams()
     memory = {name: controllers.diagram_params_for(controllers.make_controller(name, params), params).hit_memory
-              for name in ("returner", "returner:hit_state", "returner:hit_memory", "policy:forgetful", "policy:remembering")}
-    assert memory == {"returner": False, "returner:hit_state": False, "returner:hit_memory": True, "policy:forgetful": False,
-                      "policy:remembering": True}
+              for name in ("returner", "policy:forgetful", "policy:remembering")}  # the study variants: tests/test_experiments.py
+    assert memory == {"returner": False, "policy:forgetful": False, "policy:remembering": True}
     # Whatever the given params say: a returner predicts the ball itself.
     assert not controllers.diagram_params_for(controllers.make_controller("returner", params), RallyParams(hit_memory=True)).hit_memory
-    assert SacLearner(dataclasses.replace(hit_state, hit_memory=True)).policy().hit_memory
+    assert SacLearner(hit_state, play=PlayOptions(hit_memory=True)).policy().hit_memory
     with pytest.raises(ConfigError, match="needs hit_prediction"):
         RallyParams(hit_prediction=False, hit_memory=True)
     with pytest.raises(ConfigError, match="must agree"):
-        _config(sac=dataclasses.replace(SMALL, hit_memory=True))
+        _config(play=PlayOptions(hit_memory=True))
 
     env = RallyEnvParams(rally=dataclasses.replace(training_rally_params(), hit_memory=True))
-    assert _config(sac=dataclasses.replace(SMALL, hit_memory=True), env=env).env.rally.hit_memory
+    assert _config(play=PlayOptions(hit_memory=True), env=env).env.rally.hit_memory
 
 
 def test_a_checkpoint_written_before_a_learner_field_existed_loads_with_its_default():
     learner = SacLearner(SMALL)
     state = learner.state_dict()
-    del state["config"]["hit_memory"]  # as written before SacConfig.hit_memory existed
+    del state["config"]["consistency_weight"]  # as written before SacConfig.consistency_weight existed
     SacLearner(SMALL).load_state_dict(state)
-    with pytest.raises(ValueError, match="hit_memory"):
-        SacLearner(dataclasses.replace(SMALL, hit_memory=True)).load_state_dict(state)
+    with pytest.raises(ValueError, match="consistency_weight"):
+        SacLearner(dataclasses.replace(SMALL, consistency_weight=1.0)).load_state_dict(state)
+    # Written when the play options were among the learner's fields: they are not the learner's.
+    state["config"].update(meet_ball=True, hit_memory=True)
+    SacLearner(SMALL).load_state_dict(state)
+
 
 
 def test_a_checkpoint_write_keeps_the_previous_one(tmp_path):
@@ -639,9 +636,8 @@ def test_each_shipped_policy_loads_weights_only(path):
     assert isinstance(dut, torch.nn.Module)
 
 
-def test_there_are_six_shipped_policies():
-    assert [path.stem for path in SHIPPED_POLICIES] == ["rally_hit_state", "rally_hit_state_braking", "rally_hit_state_meet",
-                                                        "rally_hit_state_meet_more", "rally_sac", "rally_skill"]
+def test_there_are_three_shipped_policies():
+    assert [path.stem for path in SHIPPED_POLICIES] == ["rally_hit_state_braking", "rally_sac", "rally_skill"]
 
 
 @dataclasses.dataclass
@@ -680,3 +676,16 @@ def test_train_refuses_to_overwrite_a_policy_of_the_same_name_without_overwrite(
     assert f"error: train: {policies / 'shipped.pt'} exists" in error and "give --overwrite to replace it" in error
     assert (policies / "shipped.pt").read_bytes() == b"the shipped policy" and [p.name for p in policies.iterdir()] == ["shipped.pt"]
     assert not (tmp_path / "run").exists()  # refused before anything was trained or written
+
+
+def test_a_checkpoint_written_with_the_play_options_among_the_learners_resumes_with_them(tmp_path):
+    config = _config(env_steps=1, demonstrations=0, ou_episodes=1, pretrain_updates=0)
+    Trainer(config, tmp_path / "run", progress=lambda line: None).checkpoint()
+    payload = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    old = {**payload["config"], "sac": {**payload["config"]["sac"], "meet_ball": False, "hit_memory": False}}
+    del old["play"]  # as written before PlayOptions
+    assert play_options_moved(old) == payload["config"]
+    torch.save({**payload, "config": old}, tmp_path / "run" / "checkpoint.pt")
+    assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.resumptions == 1
+    with pytest.raises(ConfigError, match="play"):
+        Trainer(dataclasses.replace(config, play=PlayOptions(meet_ball=True)), tmp_path / "run", progress=lambda line: None)

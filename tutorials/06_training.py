@@ -2,7 +2,7 @@
 
 Read this file top to bottom like a notebook. The paper's policy is trained with Soft
 Actor-Critic (Methods *Algorithm*); this tutorial runs the same machinery as
-``ace-drake train models/train_rally.yaml``, only very small, so that every part shows:
+``ace-drake train models/train_rally_sac.yaml``, only very small, so that every part shows:
 
   1. the environment: one episode of ``RallyEnv`` (the training diagram: ball, robot, the cheap
      statistical sensors, control stack) played by a rollout worker, what a transition holds;
@@ -131,7 +131,7 @@ def main() -> None:
         rows = {"obs": t["obs"][labelled], "demo_action": t["demo_action"][labelled]}
         print(f"   the untrained actor's cloning loss on them (task space + joints + consistency): "
               f"{learner.behaviour_cloning_loss(rows).item():.1f}")
-        # The layer that meets the ball (SacConfig.meet_ball): an actor's hit state a little off
+        # The layer that meets the ball (PlayOptions.meet_ball): an actor's hit state a little off
         # (here the plan with a 0.05 rad shoulder error) is moved so the blade meets the predicted ball.
         from ace_drake.control.hit_state import HitStateLayer
 

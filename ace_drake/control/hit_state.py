@@ -21,7 +21,7 @@ preferred hit, ``control.hit_prediction``) at t_p seconds, whose boundary is k s
 k = round((t_p - lead - lag) / T), D = k T (the predictor samples hits on that grid); k <= 0
 follows through; no predicted hit gives no action (the supervisor resets).
 
-A layer built to meet the ball (``meet_ball``; ``SacConfig.meet_ball``) also moves q_hit so that
+A layer built to meet the ball (``meet_ball``; ``sac.PlayOptions.meet_ball``) also moves q_hit so
 the blade centre sits at the contact standoff behind the predicted hit's ball position along the
 blade's own normal, the blade's orientation kept: Gauss-Newton steps on the racket Jacobian J
 (6 x 8), weighted as the returner weights its joint velocities (W = diag(v_max^2)),
@@ -36,8 +36,8 @@ centre sits 3.3 cm (median; 9.4 cm at the 90th percentile, against a blade radiu
 
 ``PlannedHitState`` is the memoryless returner's planned hit state as such an action: the
 demonstrator and the labels of a hit-state actor (``training.rollout``), and with the layer a
-controller (``returner:hit_state``: the layer's ceiling, what an actor that imitated the returner's
-hit states perfectly would do).
+controller (``returner:hit_state`` in ``analysis.experiments``: the layer's ceiling, what an actor
+that imitated the returner's hit states perfectly would do).
 
 Why: an actor that outputs eq. (12)'s per-segment terminal states must re-derive the whole swing
 every 32 ms and its errors from call to call make the swing jitter; one that outputs the hit

@@ -67,7 +67,8 @@ takes the preferred hit of step 2 afresh (the same grid of hit instants every ca
 holds while the estimate does), follows through when that hit falls in the segment being
 commanded, and solves the full IK afresh (from where braking would stop the arm: step 4).
 ``ReturnerParams.forget`` drops parts of the memory one at a time instead (its bounce, hit time,
-follow-through, racket plan, hit configuration, fallback; ``returner:forget=...``), to measure
+follow-through, racket plan, hit configuration, fallback; ``returner:forget=...`` in
+``analysis.experiments``), to measure
 what each is worth (docs/experiments/2026-12-01-returner-memory.md).
 """
 

@@ -1,8 +1,8 @@
-"""The rally controllers a command line can name: ``still``, ``returner``, ``returner:memoryless``
-(``ReturnerParams.memory`` off), ``returner:hit_state`` (the memoryless returner's planned hit
-states through the hit-state layer: ``control.hit_state.PlannedHitState``), ``returner:hit_memory``
-(the same on an observation that keeps its predicted hit, ``RallyParams.hit_memory``, the hit
-the returner then plans first), ``policy:<name>``.
+"""The rally controllers the product's command line can name: ``still``, ``returner`` (the
+default: the model-based returner, ``control.returner``) and ``policy:<name>`` (a shipped policy
+of ``models/policies/``). The returner's variants that exist for the studies of
+docs/experiments/ (``returner:memoryless``, ``returner:forget=...``, ``returner:hit_state``,
+``returner:hit_memory``) are named in ``analysis.experiments``.
 
 Every controller has a policy's interface (a callable observation -> action (16,) | None, or a
 torch module), so that the PolicyController runs any of them in the same rally diagram. A policy
@@ -18,7 +18,7 @@ import numpy as np
 from ace_drake.config import MODELS_DIR, ConfigError
 from ace_drake.contracts import DEFAULT_CONTROLLER, ObservationLayout  # noqa: F401 (DEFAULT_CONTROLLER: named here too)
 from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
-from ace_drake.control.params import RallyParams, ReturnerParams
+from ace_drake.control.params import RallyParams
 from ace_drake.control.returner import ModelBasedReturner
 from ace_drake.learning.networks import DeterministicPolicy
 from ace_drake.learning.sac import load_policy
@@ -98,8 +98,7 @@ def hit_state_controller(controller, params: RallyParams):
 def controller_names() -> list[str]:
     """The names ``make_controller`` accepts, shipped policies included."""
     policies = sorted(path.stem for path in POLICIES_DIR.glob("*.pt")) if POLICIES_DIR.is_dir() else []
-    return ["still", "returner", "returner:memoryless", "returner:forget=<part>[+<part>...]", "returner:hit_state", "returner:hit_memory",
-            *(f"policy:{name}" for name in policies)]
+    return ["still", "returner", *(f"policy:{name}" for name in policies)]
 
 
 def make_controller(name: str, params: RallyParams):
@@ -107,14 +106,8 @@ def make_controller(name: str, params: RallyParams):
     naming the choices for an unknown name."""
     if name == "still":
         return still
-    if name in ("returner", "returner:memoryless"):
-        return ModelBasedReturner.for_rally(params, ReturnerParams(memory=name == "returner"))
-    if name.startswith("returner:forget="):
-        # The returner with memory, some of it forgotten (ReturnerParams.forget: a study of its memory).
-        return ModelBasedReturner.for_rally(params, ReturnerParams(forget=tuple(name.removeprefix("returner:forget=").split("+"))))
-    if name in ("returner:hit_state", "returner:hit_memory"):
-        return PlannedHitState(ModelBasedReturner.for_rally(params, ReturnerParams(memory=False)), HitStateLayer.for_rally(params),
-                               hit_memory=name == "returner:hit_memory")
+    if name == "returner":
+        return ModelBasedReturner.for_rally(params)
     if name.startswith("policy:"):
         path = POLICIES_DIR / f"{name.removeprefix('policy:')}.pt"
         if not path.is_file():

@@ -140,8 +140,8 @@ class DeterministicPolicy(nn.Module):
     ``action``: what the output is (``sac.SacConfig.action``); for "hit_state", ``hit_state`` is
     its ``control.hit_state.HitStateAction`` and the policy plays through
     ``evaluation.controllers.hit_state_controller``, whose layer meets the ball if ``meet_ball``
-    (``sac.SacConfig.meet_ball``); ``hit_memory``: it reads an observation whose predicted hit is
-    kept from step to step (``sac.SacConfig.hit_memory``, ``evaluation.controllers.diagram_params_for``)."""
+    (``sac.PlayOptions.meet_ball``); ``hit_memory``: it reads an observation whose predicted hit is
+    kept from step to step (``sac.PlayOptions.hit_memory``, ``evaluation.controllers.diagram_params_for``)."""
 
     def __init__(self, actor: Actor, index: torch.Tensor, scale: torch.Tensor, action: str = "terminal", hit_state=None,
                  meet_ball: bool = False, hit_memory: bool = False):

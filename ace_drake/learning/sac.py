@@ -105,14 +105,6 @@ class SacConfig:
     # 0-100: docs/experiments/2026-12-01-hit-state-actor.md) and the task-space scales (blade position m, normal, blade velocity m/s).
     consistency_weight: float = 30.0
     hit_loss_scales: tuple[float, float, float] = (0.02, 0.05, 0.2)
-    # The hit-state layer moves the actor's q_hit so the blade meets the predicted ball
-    # (control.hit_state, HitStateLayer.meet_ball; this project's). Read where the actor plays
-    # (rollout workers, the policy controller); the cloning loss is the same either way.
-    meet_ball: bool = False
-    # The actor reads an observation whose predicted hit is kept from step to step (RallyParams.
-    # hit_memory; this project's): the training env's diagram must be built with it (TrainConfig
-    # checks), and the policy's diagram is (evaluation.controllers.diagram_params_for).
-    hit_memory: bool = False
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -146,18 +138,46 @@ def soft_target(reward, done, next_q1, next_q2, next_log_prob, gamma: float, alp
     return reward + gamma * (1.0 - done) * (torch.minimum(next_q1, next_q2) - alpha * next_log_prob)
 
 
+@dataclasses.dataclass(frozen=True)
+class PlayOptions:
+    """What a policy needs from the diagram it plays in: not a learner hyper-parameter (the
+    learner's losses and updates are the same either way). Stored beside the SacConfig in a policy
+    artefact (``save_policy``) and read where the actor plays: the rollout workers and the policy
+    controller (``evaluation.controllers``). This project's, both."""
+
+    # The hit-state layer moves the actor's q_hit so the blade meets the predicted ball
+    # (control.hit_state, HitStateLayer.meet_ball).
+    meet_ball: bool = False
+    # The actor reads an observation whose predicted hit is kept from step to step (RallyParams.
+    # hit_memory): the training env's diagram must be built with it (TrainConfig checks), and the
+    # policy's diagram is (evaluation.controllers.diagram_params_for).
+    hit_memory: bool = False
+
+
+PLAY_OPTIONS = tuple(field.name for field in dataclasses.fields(PlayOptions))
+
+
+def split_play_options(sac: dict) -> tuple[dict, dict]:
+    """A SacConfig mapping as (the SacConfig's fields, the PlayOptions' fields): those written
+    before PlayOptions (policy artefacts, checkpoints and sidecars) hold its fields among the
+    learner's."""
+    return {k: v for k, v in sac.items() if k not in PLAY_OPTIONS}, {k: v for k, v in sac.items() if k in PLAY_OPTIONS}
+
+
 class SacLearner:
     """The learner: actor, twin critics, target critics and their Adam optimisers (module
     docstring). Seeded by ``config.seed``: network initialisation and every sampled action come
     from its own torch generator, so the same seed and batches give the same updates, bit for
     bit, and a learner restored from ``state_dict`` continues exactly as the original would."""
 
-    def __init__(self, config: SacConfig | None = None, rally=None, hit_state_action=None):
+    def __init__(self, config: SacConfig | None = None, rally=None, hit_state_action=None, play: PlayOptions | None = None):
         """``rally``: the RallyParams of the diagram the actor plays in (default RallyParams()),
         read only by the hit-state action's cloning loss and parameterisation;
         ``hit_state_action``: the hit-state parameterisation (``control.hit_state.HitStateAction``)
-        if not the one of ``rally``'s command limits (a loaded artefact's own)."""
+        if not the one of ``rally``'s command limits (a loaded artefact's own); ``play``: what
+        its policy needs from the diagram it plays in (``PlayOptions``)."""
         self.config = config or SacConfig()
+        self.play = play or PlayOptions()
         self.rally = rally
         self._hit_cloning = None
         self._hit_state_action = hit_state_action
@@ -213,7 +233,7 @@ class SacLearner:
         """A copy of the actor as a standalone deterministic policy module (networks), with its
         action kind and, for hit states, their parameterisation."""
         return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale,
-                                   self.config.action, self.hit_state_action, self.config.meet_ball, self.config.hit_memory)
+                                   self.config.action, self.hit_state_action, self.play.meet_ball, self.play.hit_memory)
 
     @property
     def hit_state_action(self):
@@ -333,7 +353,8 @@ class SacLearner:
         """Restores a ``state_dict``; raises ValueError if it was written with another config (a
         field added since it was written counts as its default)."""
         mine = dataclasses.asdict(self.config)
-        written = {**{k: v for k, v in dataclasses.asdict(SacConfig()).items() if k not in state["config"]}, **state["config"]}
+        config = split_play_options(state["config"])[0]  # play options written among the learner's: not the learner's
+        written = {**{k: v for k, v in dataclasses.asdict(SacConfig()).items() if k not in config}, **config}
         saved = {k: tuple(v) if isinstance(v, list) else v for k, v in written.items()}
         if saved != mine:
             differing = sorted(k for k in mine if saved.get(k) != mine[k])
@@ -351,13 +372,14 @@ POLICY_FORMAT = 1
 
 
 def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> None:
-    """Writes a policy artefact: the SacConfig (as a dict) and the actor's weights
-    (``actor_state``, default the learner's actor), atomically. A few hundred kB."""
+    """Writes a policy artefact: the SacConfig and the PlayOptions (as dicts) and the actor's
+    weights (``actor_state``, default the learner's actor), atomically. A few hundred kB."""
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
-    payload = {"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config), "actor": actor_state or learner.actor.state_dict()}
+    payload = {"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config), "play": dataclasses.asdict(learner.play),
+               "actor": actor_state or learner.actor.state_dict()}
     if learner.hit_state_action is not None:
         payload["hit_state"] = learner.hit_state_action.as_dict()
     torch.save(payload, temporary)
@@ -365,7 +387,8 @@ def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> N
 
 
 def load_policy(path) -> DeterministicPolicy:
-    """The DeterministicPolicy of a ``save_policy`` artefact (what ``policy:<name>`` runs)."""
+    """The DeterministicPolicy of a ``save_policy`` artefact (what ``policy:<name>`` runs). An
+    artefact written before PlayOptions holds its fields in its SacConfig: read from there."""
 
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)  # tensors and plain containers only
@@ -377,6 +400,7 @@ def load_policy(path) -> DeterministicPolicy:
     if "hit_state" in payload:  # the hit-state parameterisation it was trained with, not today's default
 
         hit_state_action = HitStateAction.from_dict(payload["hit_state"])
-    learner = SacLearner(from_dict(SacConfig, payload["sac_config"]), hit_state_action=hit_state_action)
+    sac, play = split_play_options(payload["sac_config"])
+    learner = SacLearner(from_dict(SacConfig, sac), hit_state_action=hit_state_action, play=from_dict(PlayOptions, payload.get("play", play)))
     learner.actor.load_state_dict(payload["actor"])
     return learner.policy()

@@ -25,6 +25,7 @@ import yaml
 
 from ace_drake.config import ConfigError, from_dict, to_dict
 from ace_drake.learning.replay import load_weights_only
+from ace_drake.learning.sac import split_play_options
 
 # The phases of a run, in order (``loop.Trainer.run``); a checkpoint records the current one.
 PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
@@ -89,6 +90,13 @@ class Progress:
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
 
 
+def play_options_moved(config: dict) -> dict:
+    """A TrainConfig mapping written before PlayOptions (a checkpoint's, a sidecar's: its
+    ``sac.meet_ball`` and ``sac.hit_memory``) with those under ``play``."""
+    sac, play = split_play_options(config.get("sac") or {})
+    return {**config, "sac": sac, "play": {**play, **(config.get("play") or {})}}
+
+
 class Checkpointing:
     """Saving, loading and resuming a ``loop.Trainer``'s run (module docstring)."""
 
@@ -142,7 +150,7 @@ class Checkpointing:
     def _load(self, path: Path, payload: dict) -> None:
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
-        saved = to_dict(from_dict(type(self.config), payload["config"]))
+        saved = to_dict(from_dict(type(self.config), play_options_moved(payload["config"])))
         if saved != to_dict(self.config):
             differing = sorted(k for k, v in to_dict(self.config).items() if saved.get(k) != v)
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")

@@ -130,7 +130,7 @@ def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
 
 def chosen_policy(trainer: Trainer, which: str):
     """The DeterministicPolicy of ``chosen_actor`` (what the exported file holds)."""
-    learner = SacLearner(trainer.config.sac, trainer.config.env.rally)
+    learner = SacLearner(trainer.config.sac, trainer.config.env.rally, play=trainer.config.play)
     learner.actor.load_state_dict(chosen_actor(trainer, which)[0])
     return learner.policy()
 

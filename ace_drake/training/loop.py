@@ -40,27 +40,26 @@ saves, loads and resumes a run, ``training.export`` writes its artefacts.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from collections import deque
 from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from torch.utils.tensorboard import SummaryWriter
 
-from ace_drake.config import ConfigError, from_dict
+from ace_drake.config import ConfigError, from_dict, load_yaml
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
-from ace_drake.learning.sac import SacConfig, SacLearner
+from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.shots import human_shots, make_distribution
 from ace_drake.training.checkpoint import Checkpointing, Progress
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
+from ace_drake.training.stages import earlier_stage_checkpoint, with_earlier_stages
 from ace_drake.training.workers import WorkerPool
 
 
@@ -104,10 +103,14 @@ class TrainConfig:
     # collecting demonstrations, OU episodes and cloning updates up to this config's totals
     # (demonstrations, ou_episodes, pretrain_updates), counted from the checkpoint's own.
     initialize_phase: str = "learn"
+    # The earlier stage this run continues (training.stages): run first, then started from as from
+    # initialize_from. None: no earlier stage.
+    after: TrainConfig | None = None
     mirror: bool = False  # mirror augmentation; the shipped robot is not mirror-symmetric (mirror.py)
     torch_threads: int = 1
     log_every: float = 30.0  # s between progress lines
     sac: SacConfig = dataclasses.field(default_factory=SacConfig)
+    play: PlayOptions = dataclasses.field(default_factory=PlayOptions)  # what the actor needs from its diagram
     replay: ReplayConfig = dataclasses.field(default_factory=ReplayConfig)
     env: RallyEnvParams = dataclasses.field(default_factory=RallyEnvParams)
     exploration: ExplorationParams = dataclasses.field(default_factory=ExplorationParams)
@@ -140,11 +143,13 @@ class TrainConfig:
             raise ConfigError("TrainConfig.evaluation_players selects shots of evaluation_data; give a match-data CSV")
         if self.evaluation_data and not Path(self.evaluation_data).is_file():
             raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
-        if self.sac.hit_memory != self.env.rally.hit_memory:
-            raise ConfigError(f"TrainConfig: sac.hit_memory ({self.sac.hit_memory}) and env.rally.hit_memory ({self.env.rally.hit_memory}) "
+        if self.play.hit_memory != self.env.rally.hit_memory:
+            raise ConfigError(f"TrainConfig: play.hit_memory ({self.play.hit_memory}) and env.rally.hit_memory ({self.env.rally.hit_memory}) "
                               "must agree: the actor reads the observation the env's diagram builds")
         if self.initialize_phase not in ("demonstrations", "learn"):
             raise ConfigError(f"TrainConfig.initialize_phase must be 'demonstrations' or 'learn', got {self.initialize_phase!r}")
+        if self.after is not None and (self.initialize_from or self.after.sac != self.sac):
+            raise ConfigError("TrainConfig.after: give it or initialize_from, not both, and the same sac as this stage's (its learner is loaded)")
         if self.initialize_from and not Path(self.initialize_from).is_file():
             raise ConfigError(f"TrainConfig.initialize_from: no such file {self.initialize_from}")
         for path in self.demonstration_files:
@@ -153,17 +158,16 @@ class TrainConfig:
 
 
 def load_train_config(path) -> TrainConfig:
-    """A TrainConfig from a YAML file (missing fields keep their defaults). Raises ConfigError
-    naming the field for unknown names, wrong types and rejected values."""
+    """A TrainConfig from a YAML file (missing fields keep their defaults; ``base:`` composes it
+    over another file, ``config.load_yaml``; ``after:`` is an earlier stage, ``training.stages``).
+    Raises ConfigError naming the field for unknown names, wrong types and rejected values."""
 
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"train: config file not found: {path}")
+    data = load_yaml(path)
     try:
-        data = yaml.safe_load(path.read_text())
-        return from_dict(TrainConfig, data)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+        return from_dict(TrainConfig, with_earlier_stages(data))
     except (ConfigError, ValueError) as error:
         raise ConfigError(f"{path}: {error}") from None
 
@@ -179,7 +183,7 @@ class Trainer(Checkpointing):
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = progress
         torch.set_num_threads(config.torch_threads)
-        self.learner = SacLearner(config.sac, config.env.rally)
+        self.learner = SacLearner(config.sac, config.env.rally, play=config.play)
         augment = ()
         if config.mirror:
             augment = (Mirror.from_robot().transitions,)
@@ -197,6 +201,8 @@ class Trainer(Checkpointing):
             self._load(*latest)
         elif config.initialize_from:
             self._initialize_from(Path(config.initialize_from))
+        elif config.after is not None:
+            self._initialize_from(earlier_stage_checkpoint(self))
         self._save_config()
 
     # ------------------------------------------------------------------------------ the run
@@ -231,7 +237,7 @@ class Trainer(Checkpointing):
     def _workers(self):
         if self._pool is None:
             c = self.config
-            args = {"env_params": c.env, "sac": c.sac, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
+            args = {"env_params": c.env, "sac": c.sac, "play": c.play, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
                     "returner": c.returner}
             self._pool = WorkerPool(c.workers, args, c.backend, c.address or None)
             self._pool.publish(self.learner.actor.state_dict())
@@ -402,19 +408,6 @@ class Trainer(Checkpointing):
         return time.perf_counter() - self._started
 
 
-def _sync_directory(directory: Path) -> None:
-    """Flushes ``directory``'s entries (the renames of a checkpoint write) to disk, where the
-    platform allows it."""
-    try:
-        descriptor = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(descriptor)
-    except OSError:
-        pass
-    finally:
-        os.close(descriptor)
 
 
 def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -154,11 +154,12 @@ class RolloutWorker:
     Args: env_params (default RallyEnvParams()); sac (a ``sac.SacConfig``: the actor's shape and
     observation parts; default SacConfig()); seed, index: the run's seed and this worker's
     number; exploration: the noise parameters; distribution: a shared ``ShotDistribution``;
-    returner: the demonstrating and labelling returner's ``ReturnerParams`` (default ones).
+    returner: the demonstrating and labelling returner's ``ReturnerParams`` (default ones); play:
+    what the actor needs from the diagram it plays in (a ``sac.PlayOptions``; default PlayOptions()).
     """
 
     def __init__(self, env_params: RallyEnvParams | None = None, sac=None, seed: int = 0, index: int = 0,
-                 exploration: ExplorationParams | None = None, distribution=None, returner=None):
+                 exploration: ExplorationParams | None = None, distribution=None, returner=None, play=None):
 
         self.env = RallyEnv(env_params, distribution)
         self.index = index
@@ -168,7 +169,7 @@ class RolloutWorker:
         self.env.reset(seed=int(env_seed))  # seeds the env's stream; the first episode resets again
         self.rng = np.random.default_rng(int(noise_seed))
         config = sac or SacConfig()
-        self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31), self.env.params.rally)
+        self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31), self.env.params.rally, play=play)
         self._layer = None
         self._planned = None
         self.generator = torch.Generator().manual_seed(int(torch_seed) % 2**63)
@@ -186,7 +187,7 @@ class RolloutWorker:
     def layer(self):
         """The hit-state layer (``control.hit_state.HitStateLayer``) of the env's rally diagram."""
         if self._layer is None:
-            self._layer = HitStateLayer.for_rally(self.env.params.rally, meet_ball=self.learner.config.meet_ball)
+            self._layer = HitStateLayer.for_rally(self.env.params.rally, meet_ball=self.learner.play.meet_ball)
         return self._layer
 
     @property
@@ -276,7 +277,7 @@ class RolloutWorker:
         fallback for a missing action is left to the one caller that plays it (a collision check
         per step saved in DAgger mode)."""
         if self._planned is None:
-            self._planned = PlannedHitState(self.returner, self.layer, hit_memory=self.learner.config.hit_memory)
+            self._planned = PlannedHitState(self.returner, self.layer, hit_memory=self.learner.play.hit_memory)
         planned, at_prediction, action = self._planned.plan(obs)
         label = planned if planned is not None and at_prediction else np.full(ACTION_SIZE, np.nan)
         return planned, label, action

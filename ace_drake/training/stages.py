@@ -1,0 +1,49 @@
+"""A training run in stages (``TrainConfig.after``): a run that continues an earlier one.
+
+``after`` is the earlier stage's whole config. ``Trainer`` with ``after`` and no checkpoint of its
+own first runs that stage to its end in its own run directory, ``<run_dir>/after`` (resuming it
+there if it was stopped, reusing it if it has finished), then starts from its checkpoint as from
+``initialize_from`` (its learner, replay tables, demonstrations and counters, in
+``initialize_phase``): one config and one command for a policy trained in stages
+(``models/train_rally_sac.yaml``; docs/training.md, *The shipped policies*). The stages share the
+learner's config (``TrainConfig`` checks), as its checkpoint is loaded.
+
+In a config file (``trainer.load_train_config``), ``after:`` is written as the earlier stage's
+changes from the stage that follows it (``with_earlier_stages``), and may hold an ``after:`` of its
+own.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ace_drake.config import ConfigError, merge
+
+EARLIER_STAGE_DIR = "after"  # the earlier stage's run directory, inside the later stage's
+
+
+def with_earlier_stages(data):
+    """A training config's YAML mapping with its ``after:`` (the earlier stage's changes from this
+    stage) made the earlier stage's whole mapping: this one without ``after``, those changes
+    deep-merged over it (``config.merge``); recursively for the earlier stage's own ``after:``."""
+    if not isinstance(data, dict) or data.get("after") is None:
+        return data
+    changes = data["after"]
+    if not isinstance(changes, dict):
+        raise ConfigError(f"after: expected a mapping (the earlier stage's changes from this one), got {changes!r}")
+    stage = {key: value for key, value in data.items() if key != "after"}
+    return {**data, "after": with_earlier_stages(merge(stage, changes))}
+
+
+def earlier_stage_checkpoint(trainer) -> Path:
+    """Runs ``trainer.config.after`` to its end in ``trainer.run_dir / EARLIER_STAGE_DIR`` with
+    ``trainer``'s class and progress callable (resuming it there, or nothing if it has finished)
+    and returns its checkpoint."""
+    run_dir = trainer.run_dir / EARLIER_STAGE_DIR
+    earlier = type(trainer)(trainer.config.after, run_dir, trainer.log)
+    if earlier.state.phase != "done":
+        trainer.log(f"train: the earlier stage (after:) first, in {run_dir}")
+        earlier.run()
+    else:
+        trainer.log(f"train: the earlier stage (after:) has finished in {run_dir}: continuing from its checkpoint")
+    return run_dir / "checkpoint.pt"
