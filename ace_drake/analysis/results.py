@@ -22,8 +22,9 @@ import dataclasses
 import json
 from pathlib import Path
 
+from ace_drake.contracts import DEFAULT_CONTROLLER  # the row the table starts with
+
 SHIPPED_POLICIES = ("rally_hit_state_braking", "rally_sac", "rally_skill")
-DEFAULT_CONTROLLER = "returner"  # play.controllers.DEFAULT_CONTROLLER, the row the table starts with
 POLICY_ROLES = {
     "rally_hit_state_braking": "best policy (hit-state actor)",
     "rally_sac": "the paper's action (eq. 12)",
