@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from test_returner import assert_returns_an_easy_shot
 
 from ace_drake.analysis import experiments
-from ace_drake.analysis.scripted_swing import INCOMING_BALL
 from ace_drake.config import ConfigError
 from ace_drake.control.hit_state import PlannedHitState
 from ace_drake.control.params import RETURNER_MEMORY_PARTS, RallyParams, ReturnerParams
@@ -40,19 +40,10 @@ def test_forget_names_parts_of_the_memory():
 
 @pytest.mark.parametrize("name", ["returner:memoryless", "returner:forget=" + "+".join(RETURNER_MEMORY_PARTS)])
 def test_an_easy_shot_is_returned_through_the_full_rally_diagram(name):
-    from ace_drake.contracts import Outcome
-    from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.evaluation.runner import RallyRunner
-
     params = RallyParams()  # cameras, triangulation, EKF, perturbations: the full stack
     dut = experiments.make_controller(name, params)
     assert isinstance(dut, ModelBasedReturner) and dut.params.memory == (name != "returner:memoryless")
-    runner = RallyRunner(build_rally_diagram(params, dut), params)
-    episode = runner.run(INCOMING_BALL, seed=0)
-    assert episode.result.outcome == Outcome.RETURNED, episode.result.reason
-    assert episode.segments[1] == 0  # no refused segment
-    landing = episode.result.landing.state_pre
-    assert 0.0 < landing[0] < 1.37 and abs(landing[1]) < 0.7625
+    assert_returns_an_easy_shot(dut, params)
 
 
 def test_the_planned_hit_state_controllers_and_their_diagrams():

@@ -252,22 +252,29 @@ def test_the_returner_plays_a_ball_with_any_part_of_its_memory_forgotten(returne
         assert action is not None and np.all(np.abs(action) <= 1.0) and dut.last_plan is not None
 
 
-@pytest.mark.parametrize("name", ["returner"])  # the study variants: tests/test_experiments.py
-def test_an_easy_shot_is_returned_through_the_full_rally_diagram(name):
+def assert_returns_an_easy_shot(dut, params) -> None:
+    """``dut`` (a controller) returns the scripted swing's incoming ball through the full rally
+    diagram of ``params``, with no segment refused, onto the opponent's half (shared with
+    tests/test_experiments.py, for the study variants)."""
     from ace_drake.contracts import Outcome
     from ace_drake.diagrams import build_rally_diagram
-    from ace_drake.evaluation.controllers import make_controller
     from ace_drake.evaluation.runner import RallyRunner
 
-    params = RallyParams()  # cameras, triangulation, EKF, perturbations: the full stack
-    dut = make_controller(name, params)
-    assert isinstance(dut, ModelBasedReturner) and dut.params.memory == (name != "returner:memoryless")
     runner = RallyRunner(build_rally_diagram(params, dut), params)
     episode = runner.run(INCOMING_BALL, seed=0)
     assert episode.result.outcome == Outcome.RETURNED, episode.result.reason
     assert episode.segments[1] == 0  # no refused segment
     landing = episode.result.landing.state_pre
     assert 0.0 < landing[0] < 1.37 and abs(landing[1]) < 0.7625
+
+
+def test_an_easy_shot_is_returned_through_the_full_rally_diagram():
+    from ace_drake.evaluation.controllers import make_controller
+
+    params = RallyParams()  # cameras, triangulation, EKF, perturbations: the full stack
+    dut = make_controller("returner", params)
+    assert isinstance(dut, ModelBasedReturner) and dut.params.memory
+    assert_returns_an_easy_shot(dut, params)
 
 
 def test_the_returner_plays_the_same_episode_without_the_observations_hit_prediction():
