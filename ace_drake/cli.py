@@ -14,12 +14,11 @@ from pathlib import Path
 
 from ace_drake import artefacts
 from ace_drake.analysis.results import render_results, stale_files, update_files
-from ace_drake.config import ConfigError, InputError
+from ace_drake.config import MODELS_DIR, ConfigError, InputError
 from ace_drake.contracts import DEFAULT_CONTROLLER
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-MODELS = REPO_ROOT / "models"
-DEFAULT_FITTED_PARAMS = MODELS / "ball_physics_fitted.yaml"
+REPO_ROOT = MODELS_DIR.parent
+DEFAULT_FITTED_PARAMS = MODELS_DIR / "ball_physics_fitted.yaml"
 
 # The function that does each command's work, "module:function", imported by ``work`` when the
 # command runs and not at the top of this module: these modules load Drake, torch or Ray (seconds
@@ -384,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")
     train.add_argument("config", help="training config YAML (training.loop.TrainConfig; e.g. models/train_rally_hit_state_braking.yaml)")
     train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
-    train.add_argument("--export-dir", default=str(MODELS / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
+    train.add_argument("--export-dir", default=str(MODELS_DIR / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
     train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
     train.add_argument("--evaluate-data", help="match-data CSV: evaluate the exported policy on its human shots (cameras) into the sidecar")
     train.add_argument("--export-only", action="store_true", help="export the run's checkpoint as it stands (e.g. a run stopped early) without training")
@@ -411,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sysid = commands.add_parser("sysid", help="identify the joints' delayed LTI models from a log")
     sysid.add_argument("--log", required=True, help="CSV: time, <joint>_command, <joint>_position per joint")
-    sysid.add_argument("--out", default=str(MODELS / "joint_dynamics_identified.yaml"))
+    sysid.add_argument("--out", default=str(MODELS_DIR / "joint_dynamics_identified.yaml"))
     sysid.add_argument("--json", action="store_true")
     sysid.set_defaults(run=cmd_sysid)
 
@@ -435,7 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     cameras.add_argument("--seed", type=int, default=0)
     cameras.add_argument("--iterations", type=int, default=300, help="CMA-ES generations")
     cameras.add_argument("--spacing", type=float, default=0.2, help="grid spacing of the play volume, m")
-    cameras.add_argument("--output", default=str(REPO_ROOT / "models" / "cameras.yaml"), help="calibration file to write")
+    cameras.add_argument("--output", default=str(MODELS_DIR / "cameras.yaml"), help="calibration file to write")
     cameras.add_argument("--plot", default="", help="coverage plot (default: <output>_coverage.png)")
     cameras.add_argument("--json", action="store_true")
     cameras.set_defaults(run=cmd_cameras)
