@@ -289,7 +289,7 @@ class ModelBasedReturner:
             # No track, or the ball is not coming (the robot has hit it): no new segment.
             self._flight = None if valid else flight
             return _no_action
-        plan_follows = self.params.memory and "follow" not in self.params.forget  # else the preferred hit decides
+        plan_follows = self._plan_follows
         if flight.hit is not None and flight.hit.time - flight.clock < self.lead + self.lag + 0.5 * self.segment:
             if plan_follows and flight.hit.time - flight.clock > self.lead + self.lag - 0.5 * self.segment:
                 return functools.partial(self.driver.follow_through, q0, v0, a0)  # the hit happens in the segment this action commands
@@ -318,18 +318,24 @@ class ModelBasedReturner:
         boundary = hit.time - flight.clock - self.lag  # when the command must be at (q_hit, v_hit), s after the observation
         return functools.partial(self.driver.drive, q0, v0, a0, hit.q, hit.v, boundary - self.lead)  # steps 5-6
 
+    @property
+    def _plan_follows(self) -> bool:
+        """Whether the plan's hit decides the follow-through (else the preferred hit does)."""
+        return self.params.memory and "follow" not in self.params.forget
+
     def _keep_plan(self, flight: Flight, q0: np.ndarray, v0: np.ndarray, a0: np.ndarray) -> Callable[[], np.ndarray | None]:
         """A call on an estimate that is not finite (a track whose numbers are NaN or infinite:
         nothing to predict from): the plan stands. The remembered hit is driven on towards as
-        planned (followed through when it falls in the segment this action commands); without
-        one, or once its time has passed, no new segment (the supervisor keeps its plan, which
+        planned (followed through when it falls in the segment this action commands and the plan
+        decides the follow-through, as in ``_act``); without one, or once its time has passed, no
+        new segment (the supervisor keeps its plan, which
         ends at the reset pose)."""
         hit = flight.hit
         if hit is None:
             return _no_action
         to_hit = hit.time - flight.clock
         if to_hit < self.lead + self.lag + 0.5 * self.segment:
-            if to_hit > self.lead + self.lag - 0.5 * self.segment:
+            if self._plan_follows and to_hit > self.lead + self.lag - 0.5 * self.segment:
                 return functools.partial(self.driver.follow_through, q0, v0, a0)  # the hit happens in this segment
             flight.hit = None  # its time has passed
             return _no_action

@@ -18,8 +18,8 @@ from ace_drake.control.params import RallyParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.sac import SacLearner, save_policy
 from ace_drake.play.shots import held_out_players, human_shots
-from ace_drake.training.checkpoint import CHECKPOINT, PREVIOUS_CHECKPOINT
-from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
+from ace_drake.training.checkpoint import CHECKPOINT, PREVIOUS_CHECKPOINT, Progress
+from ace_drake.training.loop import TrainConfig, Trainer, load_train_config
 
 
 def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict | None = None) -> dict:

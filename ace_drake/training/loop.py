@@ -33,8 +33,8 @@ evaluated actor is kept. Logs go to TensorBoard (``run_dir/tensorboard``) and pr
 the ``progress`` callable. ``export.export`` writes a policy artefact (``models/policies/<name>.pt``),
 its sidecar JSON and the learning curve PNG.
 
-This module is the loop (``TrainConfig``, ``Progress``, ``Trainer``); ``training.checkpoint``
-saves, loads and resumes a run, ``training.export`` writes its artefacts.
+This module is the loop (``TrainConfig``, ``Trainer``); ``training.checkpoint`` saves, loads and
+resumes a run (and holds ``Progress``, the counters a checkpoint records), ``training.export`` writes its artefacts.
 """
 
 from __future__ import annotations
@@ -406,8 +406,6 @@ class Trainer(Checkpointing):
 
     def _elapsed(self) -> float:
         return time.perf_counter() - self._started
-
-
 
 
 def evaluation_shots(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:

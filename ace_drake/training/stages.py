@@ -8,7 +8,7 @@ there if it was stopped, reusing it if it has finished), then starts from its ch
 (``models/train_rally_sac.yaml``; docs/training.md, *The shipped policies*). The stages share the
 learner's config (``TrainConfig`` checks), as its checkpoint is loaded.
 
-In a config file (``trainer.load_train_config``), ``after:`` is written as the earlier stage's
+In a config file (``loop.load_train_config``), ``after:`` is written as the earlier stage's
 changes from the stage that follows it (``with_earlier_stages``), and may hold an ``after:`` of its
 own.
 """
@@ -46,4 +46,7 @@ def earlier_stage_checkpoint(trainer) -> Path:
         earlier.run()
     else:
         trainer.log(f"train: the earlier stage (after:) has finished in {run_dir}: continuing from its checkpoint")
-    return run_dir / "checkpoint.pt"
+    latest = earlier._latest_checkpoint()  # the latest, or the one before it if that cannot be read
+    if latest is None:
+        raise ConfigError(f"train: the earlier stage in {run_dir} has no checkpoint")
+    return latest[0]
