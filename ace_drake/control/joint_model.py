@@ -150,6 +150,64 @@ class JointPropagator:
         )
         return out
 
+    def propagate_many(self, zeta: np.ndarray, u_old: np.ndarray, u_new: np.ndarray, elapsed: np.ndarray) -> np.ndarray:
+        """``propagate`` for k independent cases at once: zeta (k, n, 2), u_old and u_new (k, n),
+        elapsed (k,) s, each in [0, T]. Row i equals ``propagate(zeta[i], u_old[i], u_new[i],
+        elapsed[i])`` bit for bit (the same compiled loop, row by row)."""
+        zeta = np.ascontiguousarray(zeta, dtype=float)
+        u_old = np.ascontiguousarray(u_old, dtype=float)
+        u_new = np.ascontiguousarray(u_new, dtype=float)
+        elapsed = np.ascontiguousarray(np.broadcast_to(np.asarray(elapsed, dtype=float), zeta.shape[:1]))
+        n = self.fractional_delays.size
+        if zeta.ndim != 3 or zeta.shape[1:] != (n, 2) or u_old.shape != zeta.shape[:2] or u_new.shape != zeta.shape[:2]:
+            raise ValueError(f"JointPropagator.propagate_many: expected zeta (k, {n}, 2) and inputs (k, {n}), got {zeta.shape}, {u_old.shape}, {u_new.shape}")
+        out = np.empty_like(zeta)
+        _propagate_many(zeta, u_old, u_new, elapsed, self.fractional_delays, self._equilibrium_per_input, self._half_trace, self._A_shifted, self._omega_squared, out)
+        return out
+
+    def propagate_samples(self, zeta: np.ndarray, u_old: np.ndarray, u_new: np.ndarray) -> np.ndarray:
+        """zeta at every sample of m command periods for B joint sets: zeta (B, n, 2) at the first
+        sample, u_old and u_new (B, m, n) each period's two delayed inputs; returns (B, m + 1, n, 2),
+        row 0 the start. Each period is ``propagate(..., T)`` from the previous sample, so the
+        samples equal the 1 kHz DelayedJointPlant's bit for bit."""
+        zeta = np.ascontiguousarray(zeta, dtype=float)
+        u_old = np.ascontiguousarray(u_old, dtype=float)
+        u_new = np.ascontiguousarray(u_new, dtype=float)
+        B, m, n = u_old.shape
+        if zeta.shape != (B, n, 2) or u_new.shape != (B, m, n):
+            raise ValueError(f"JointPropagator.propagate_samples: expected zeta ({B}, {n}, 2) and inputs ({B}, {m}, {n}), got {zeta.shape}, {u_new.shape}")
+        out = np.empty((B, m + 1, n, 2))
+        _propagate_samples(zeta, u_old, u_new, self.period, self.fractional_delays, self._equilibrium_per_input, self._half_trace, self._A_shifted, self._omega_squared, out)
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class JointMotion:
+    """The joints' exact motion (paper eq. (9)) over m command periods for B environments: zeta
+    (B, m + 1, n, 2) at the samples (row 0 the start), and each period's delayed inputs u_old,
+    u_new (B, m, n) (``JointPropagator.propagate``'s), at the propagator's period T."""
+
+    propagator: JointPropagator
+    zeta: np.ndarray
+    u_old: np.ndarray
+    u_new: np.ndarray
+
+    @property
+    def states(self) -> np.ndarray:
+        """[q, v] at the samples, (B, m + 1, 2 n): rad or m, per s."""
+        return np.concatenate([self.zeta[..., 0], self.zeta[..., 1]], axis=-1)
+
+    def state_at(self, rows: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """[q, v] (k, 2 n) of environments ``rows`` (k,) at times ``tau`` (k,) s after the first
+        sample, each in [0, m T]: exact between the samples."""
+        rows = np.asarray(rows, dtype=int)
+        tau = np.asarray(tau, dtype=float)
+        period = self.propagator.period
+        periods = self.u_old.shape[1]
+        index = np.clip(np.floor(tau / period).astype(int), 0, periods - 1)
+        zeta = self.propagator.propagate_many(self.zeta[rows, index], self.u_old[rows, index], self.u_new[rows, index], tau - index * period)
+        return np.concatenate([zeta[..., 0], zeta[..., 1]], axis=-1)
+
 
 @numba.njit(cache=True)
 def _propagate(zeta, u_old, u_new, elapsed, fractional, equilibrium, half_trace, A_shifted, omega_squared, out):
@@ -163,6 +221,22 @@ def _propagate(zeta, u_old, u_new, elapsed, fractional, equilibrium, half_trace,
             q, q_dot = _hold(i, q, q_dot, u_old[i], elapsed, equilibrium, half_trace, A_shifted, omega_squared)
         out[i, 0] = q
         out[i, 1] = q_dot
+
+
+@numba.njit(cache=True)
+def _propagate_many(zeta, u_old, u_new, elapsed, fractional, equilibrium, half_trace, A_shifted, omega_squared, out):
+    """``JointPropagator.propagate_many`` into ``out`` (k, n, 2)."""
+    for row in range(zeta.shape[0]):
+        _propagate(zeta[row], u_old[row], u_new[row], elapsed[row], fractional, equilibrium, half_trace, A_shifted, omega_squared, out[row])
+
+
+@numba.njit(cache=True)
+def _propagate_samples(zeta, u_old, u_new, period, fractional, equilibrium, half_trace, A_shifted, omega_squared, out):
+    """``JointPropagator.propagate_samples`` into ``out`` (B, m + 1, n, 2)."""
+    for row in range(zeta.shape[0]):
+        out[row, 0] = zeta[row]
+        for sample in range(u_old.shape[1]):
+            _propagate(out[row, sample], u_old[row, sample], u_new[row, sample], period, fractional, equilibrium, half_trace, A_shifted, omega_squared, out[row, sample + 1])
 
 
 @numba.njit(cache=True)

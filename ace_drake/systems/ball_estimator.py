@@ -31,6 +31,40 @@ class EstimatorState:
         return self
 
 
+def fuse_measurements(ekf: BallEkf, current: EstimatorState, positions_history: MeasurementHistory, spins_history: MeasurementHistory, events, time: float) -> EstimatorState:
+    """``current`` with every measurement the histories show numbered above the last ones read, and
+    every new racket contact in ``events``, fused (``BallEkf.update``); ``current`` itself when
+    there is nothing new. ``time`` (s) only names the instant in the error raised when a history
+    no longer holds what was released since the last fusion. The BallEstimator's rule, shared by
+    the segment-stepped estimator."""
+    # A sensor or plant that started a new episode numbers from the start again.
+    last_position = current.last_position_sequence if positions_history.last_sequence >= current.last_position_sequence else 0
+    last_spin = current.last_spin_sequence if spins_history.last_sequence >= current.last_spin_sequence else 0
+    contacts_seen = current.contacts_seen if len(events) >= current.contacts_seen else 0
+    for kind, history, last in (("position", positions_history, last_position), ("spin", spins_history, last_spin)):
+        if history.measurements and history.measurements[0].sequence > last + 1:
+            raise RuntimeError(
+                f"BallEstimator: at {time:.4f} s the {kind} sensor's history starts at measurement "
+                f"{history.measurements[0].sequence}, but the filter has read only up to {last}: more were released "
+                f"since its last update than the history holds ({history.capacity}). Raise the sensor's "
+                "history_capacity or shorten EstimatorParams.update_period."
+            )
+    positions = positions_history.since(last_position)
+    spins = spins_history.since(last_spin)
+    racket_times = [event.time for event in events[contacts_seen:] if event.kind == ContactKind.RACKET]
+    if not (positions or spins or racket_times) and len(events) == contacts_seen:
+        return current
+    return EstimatorState(ekf.update(current.filter, positions, spins, racket_times), positions_history.last_sequence, spins_history.last_sequence, len(events))
+
+
+def estimate_outputs(estimate) -> tuple[np.ndarray, np.ndarray]:
+    """The estimator's ball_state_estimate (9,) and estimate_status (3,) for a BallEstimate or
+    None (zeros and [0, 0, -1] without a track)."""
+    if estimate is None:
+        return np.zeros(9), np.array([0.0, 0.0, -1.0])
+    return estimate.mean, np.array([1.0, float(estimate.spin_valid), estimate.time - estimate.last_capture_time])
+
+
 class BallEstimator(LeafSystem):
     """The ball state estimator: an EKF over position, velocity and spin whose process model is the
     project's ball physics (``perception.ball_ekf.BallEkf``; notes.md, *Perception*), fed by any
@@ -131,34 +165,11 @@ class BallEstimator(LeafSystem):
 
     def _CalcFused(self, context, value):
         """The stored state with what the inputs released since fused (the same object if nothing)."""
-        current = context.get_abstract_state(self._state_index).get_value()
-        positions_history = self.position_measurements_port.Eval(context)
-        spins_history = self.spin_measurements_port.Eval(context)
         events = self.contact_events_port.Eval(context) if self.contact_events_port.HasValue(context) else ()
-        # A sensor or plant that started a new episode numbers from the start again.
-        last_position = current.last_position_sequence if positions_history.last_sequence >= current.last_position_sequence else 0
-        last_spin = current.last_spin_sequence if spins_history.last_sequence >= current.last_spin_sequence else 0
-        contacts_seen = current.contacts_seen if len(events) >= current.contacts_seen else 0
-        for kind, history, last in (("position", positions_history, last_position), ("spin", spins_history, last_spin)):
-            if history.measurements and history.measurements[0].sequence > last + 1:
-                raise RuntimeError(
-                    f"BallEstimator: at {context.get_time():.4f} s the {kind} sensor's history starts at measurement "
-                    f"{history.measurements[0].sequence}, but the filter has read only up to {last}: more were released "
-                    f"since its last update than the history holds ({history.capacity}). Raise the sensor's "
-                    "history_capacity or shorten EstimatorParams.update_period."
-                )
-        positions = positions_history.since(last_position)
-        spins = spins_history.since(last_spin)
-        racket_times = [event.time for event in events[contacts_seen:] if event.kind == ContactKind.RACKET]
-        if not (positions or spins or racket_times) and len(events) == contacts_seen:
-            value.set_value(current)
-            return
         value.set_value(
-            EstimatorState(
-                self.ekf.update(current.filter, positions, spins, racket_times),
-                positions_history.last_sequence,
-                spins_history.last_sequence,
-                len(events),
+            fuse_measurements(
+                self.ekf, context.get_abstract_state(self._state_index).get_value(), self.position_measurements_port.Eval(context),
+                self.spin_measurements_port.Eval(context), events, context.get_time(),
             )
         )
 
@@ -167,16 +178,11 @@ class BallEstimator(LeafSystem):
         value.set_value((self.ekf.estimate(self.estimator_state(context).filter, context.get_time()),))
 
     def CalcBallStateEstimate(self, context, output):
-        estimate = self.estimate(context)
-        output.SetFromVector(np.zeros(9) if estimate is None else estimate.mean)
+        output.SetFromVector(estimate_outputs(self.estimate(context))[0])
 
     def CalcBallCovariance(self, context, output):
         estimate = self.estimate(context)
         output.SetFromVector(np.zeros(81) if estimate is None else estimate.covariance.ravel())
 
     def CalcEstimateStatus(self, context, output):
-        estimate = self.estimate(context)
-        if estimate is None:
-            output.SetFromVector([0.0, 0.0, -1.0])
-        else:
-            output.SetFromVector([1.0, float(estimate.spin_valid), estimate.time - estimate.last_capture_time])
+        output.SetFromVector(estimate_outputs(self.estimate(context))[1])

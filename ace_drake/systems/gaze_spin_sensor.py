@@ -46,6 +46,43 @@ class SpinSensorState:
         return self
 
 
+def start_spin_sensor(params: SpinSensorParams, empty: SpinSensorState, seed: int, now: float) -> SpinSensorState:
+    """A new episode's state at time ``now`` (s): ``empty``, its first sample one random interval
+    later (drawn from [seed, START_STREAM])."""
+    rng = np.random.default_rng([seed, START_STREAM])
+    return dataclasses.replace(empty, next_capture_time=first_spin_capture_time(now, params, rng))
+
+
+def poll_spin_sensor(params: SpinSensorParams, current: SpinSensorState, seed: int, now: float, w_now: np.ndarray, events) -> SpinSensorState:
+    """One poll at ``now`` (s; a multiple of ``poll_period``): samples every capture time reached
+    since the last poll, with the ball's spin ``w_now`` (3,) rad/s and its contact ``events`` up to
+    now, and releases what is due (the GazeSpinSensor's rule; the segment-stepped sensor runs the
+    same polls). Draws from [seed, SPIN_STREAM, poll index] and [seed, BIAS_STREAM, interval]."""
+    rng = np.random.default_rng([seed, SPIN_STREAM, round(now / params.poll_period)])
+    captures, next_capture_time = spin_capture_times(current.next_capture_time, now, params, rng)
+    sampled, biases = (), current.biases
+    if captures.size:
+        contact_times = np.array([event.time for event in events])
+        spins_before = np.array([event.state_pre[6:9] for event in events]).reshape(-1, 3)
+        w_WB, intervals = spin_at_times(captures, w_now, contact_times, spins_before)
+        # paper: "accuracy is sampled once per contact event"
+        biases = biases + tuple(
+            draw_spin_bias(params, np.random.default_rng([seed, BIAS_STREAM, index]))
+            for index in range(len(biases), int(intervals.max()) + 1)
+        )
+        racket_times = [event.time for event in events if event.kind == ContactKind.RACKET]
+        sampled = sample_spin_measurements(
+            w_WB,
+            captures,
+            np.array([biases[i].magnitude for i in intervals]),
+            np.array([biases[i].rotation_vector for i in intervals]),
+            racket_tracking_loss(captures, racket_times, params),
+            params,
+            rng,
+        )
+    return SpinSensorState(current.queue.sampled(sampled, now), next_capture_time, biases)
+
+
 class GazeSpinSensor(LeafSystem):
     """Spin measurements of the gaze-control systems (GCS) as the paper's statistical model
     (paper, Methods *Sensor modelling*; ``perception.sensor_models``, numbers in
@@ -119,32 +156,9 @@ class GazeSpinSensor(LeafSystem):
         current = self._sensor_state(context)
         if math.isnan(current.next_capture_time):  # Simulator not initialized: start now
             current = self._started(context)
-        seed = self._seed(context)
-        rng = np.random.default_rng([seed, SPIN_STREAM, round(now / self.params.poll_period)])
-        captures, next_capture_time = spin_capture_times(current.next_capture_time, now, self.params, rng)
-        sampled, biases = (), current.biases
-        if captures.size:
-            events = self.contact_events_port.Eval(context) if self.contact_events_port.HasValue(context) else ()
-            contact_times = np.array([event.time for event in events])
-            spins_before = np.array([event.state_pre[6:9] for event in events]).reshape(-1, 3)
-            w_WB, intervals = spin_at_times(captures, self.ball_state_port.Eval(context)[6:9], contact_times, spins_before)
-            # paper: "accuracy is sampled once per contact event"
-            biases = biases + tuple(
-                draw_spin_bias(self.params, np.random.default_rng([seed, BIAS_STREAM, index]))
-                for index in range(len(biases), int(intervals.max()) + 1)
-            )
-            racket_times = [event.time for event in events if event.kind == ContactKind.RACKET]
-            sampled = sample_spin_measurements(
-                w_WB,
-                captures,
-                np.array([biases[i].magnitude for i in intervals]),
-                np.array([biases[i].rotation_vector for i in intervals]),
-                racket_tracking_loss(captures, racket_times, self.params),
-                self.params,
-                rng,
-            )
-        queue = current.queue.sampled(sampled, now)
-        state.get_mutable_abstract_state(self._state_index).set_value(SpinSensorState(queue, next_capture_time, biases))
+        events = self.contact_events_port.Eval(context) if self.contact_events_port.HasValue(context) else ()
+        updated = poll_spin_sensor(self.params, current, self._seed(context), now, self.ball_state_port.Eval(context)[6:9], events)
+        state.get_mutable_abstract_state(self._state_index).set_value(updated)
 
     # ------------------------------------------------------------------------------ outputs
     def CalcSpinMeasurements(self, context, output):
@@ -153,8 +167,7 @@ class GazeSpinSensor(LeafSystem):
 
     # ------------------------------------------------------------------------------ helpers
     def _started(self, context) -> SpinSensorState:
-        rng = np.random.default_rng([self._seed(context), START_STREAM])
-        return dataclasses.replace(self._empty, next_capture_time=first_spin_capture_time(context.get_time(), self.params, rng))
+        return start_spin_sensor(self.params, self._empty, self._seed(context), context.get_time())
 
     def _sensor_state(self, context) -> SpinSensorState:
         return context.get_abstract_state(self._state_index).get_value()

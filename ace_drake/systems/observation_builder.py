@@ -20,6 +20,29 @@ from ace_drake.perception.measurements import MeasurementHistory
 DEFAULT_SKILL = (0.0, 1.0, 0.0)  # y_desired 0 m (the centre line), w_p = 1, w_s = 0
 
 
+def assemble_observation(layout: ObservationLayout, predictor: HitPredictor | None, now: float, positions, spins, robot_state, end_effector,
+                         skill, estimate, status, kept_hit: float = np.nan) -> np.ndarray:
+    """The observation vector (layout.size,) at time ``now`` (s) from the sensors' histories, the
+    robot state and end effector where the next segment starts, the skill and the estimator's
+    outputs; the ``hit_prediction`` part from ``predictor`` (zeros without one), keeping the hit at
+    time ``kept_hit`` (s; NaN for none) while it is still a candidate. The ObservationBuilder's
+    rule, shared by the segment-stepped builder."""
+    hit = None
+    if predictor is not None:
+        keep = kept_hit - now if np.isfinite(kept_hit) else None
+        hit = predictor.features(estimate, valid=status[0] > 0.5, keep=keep)
+    return layout.assemble(
+        positions=positions.as_array(layout.position_history, now),
+        spins=spins.as_array(layout.spin_history, now),
+        robot_state=robot_state,
+        end_effector=end_effector,
+        skill=skill,
+        estimate=estimate,
+        estimate_status=status,
+        hit_prediction=hit,
+    )
+
+
 class ObservationBuilder(LeafSystem):
     """Builds s_t (paper, Methods *States*; layout in ``contracts``) on demand, at
     whatever time the PolicyController evaluates it (5 ms before its segment starts).
@@ -87,26 +110,13 @@ class ObservationBuilder(LeafSystem):
         return context.get_numeric_parameter(self._skill_index).get_value().copy()
 
     def CalcObservation(self, context, output: BasicVector) -> None:
-        now = context.get_time()
-        estimate = self.ball_state_estimate_port.Eval(context)
-        status = self.estimate_status_port.Eval(context)
-        hit = None
-        if self.predictor is not None:
-            keep = None
-            if self.hit_memory:
-                kept = context.get_discrete_state(self._memory_index).get_value()[0]
-                keep = kept - now if np.isfinite(kept) else None
-            hit = self.predictor.features(estimate, valid=status[0] > 0.5, keep=keep)
+        kept = context.get_discrete_state(self._memory_index).get_value()[0] if self.hit_memory else np.nan
         output.SetFromVector(
-            self.layout.assemble(
-                positions=self.position_measurements_port.Eval(context).as_array(self.layout.position_history, now),
-                spins=self.spin_measurements_port.Eval(context).as_array(self.layout.spin_history, now),
-                robot_state=self.robot_state_port.Eval(context),
-                end_effector=self.end_effector_state_port.Eval(context),
-                skill=context.get_numeric_parameter(self._skill_index).get_value(),
-                estimate=estimate,
-                estimate_status=status,
-                hit_prediction=hit,
+            assemble_observation(
+                self.layout, self.predictor, context.get_time(), self.position_measurements_port.Eval(context),
+                self.spin_measurements_port.Eval(context), self.robot_state_port.Eval(context), self.end_effector_state_port.Eval(context),
+                context.get_numeric_parameter(self._skill_index).get_value(), self.ball_state_estimate_port.Eval(context),
+                self.estimate_status_port.Eval(context), kept,
             )
         )
 

@@ -46,6 +46,15 @@ class SensorQueue:
         return SensorQueue(*release_due(self.history, insert_pending(self.pending, new), now))
 
 
+def trigger_position_sensor(params: PositionSensorParams, queue: SensorQueue, seed: int, now: float, p_WB: np.ndarray) -> SensorQueue:
+    """One camera trigger at ``now`` (s; a multiple of ``trigger_period``): the ball at ``p_WB``
+    (3,) m sampled (drawn from [seed, POSITION_STREAM, trigger index]) and what is due released
+    (the StatisticalPositionSensor's rule; the segment-stepped sensor runs the same triggers)."""
+    rng = np.random.default_rng([seed, POSITION_STREAM, round(now / params.trigger_period)])
+    sampled = sample_position_measurements(np.asarray(p_WB, dtype=float)[None, :3], np.array([now]), params, rng)
+    return queue.sampled(sampled, now)
+
+
 class StatisticalPositionSensor(LeafSystem):
     """Triangulated ball positions as the paper's statistical sensor model (paper, Methods *Sensor
     modelling*): at each 200 Hz camera trigger the true ball centre, with zero-mean Gaussian noise,
@@ -106,11 +115,8 @@ class StatisticalPositionSensor(LeafSystem):
         """Samples the ball now (a camera trigger) and releases the measurements that are due."""
         now = context.get_time()
         queue = self._queue(context)
-        trigger = round(now / self.params.trigger_period)
-        rng = np.random.default_rng([self._seed(context), POSITION_STREAM, trigger])
         p_WB = self.ball_state_port.Eval(context)[:3]
-        sampled = sample_position_measurements(p_WB[None, :], np.array([now]), self.params, rng)
-        state.get_mutable_abstract_state(self._queue_index).set_value(queue.sampled(sampled, now))
+        state.get_mutable_abstract_state(self._queue_index).set_value(trigger_position_sensor(self.params, queue, self._seed(context), now, p_WB))
 
     # ------------------------------------------------------------------------------ outputs
     def CalcPositionMeasurements(self, context, output):

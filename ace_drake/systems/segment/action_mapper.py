@@ -1,0 +1,47 @@
+"""SegmentActionMapper: eq. (12) for B environments."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+
+from ace_drake.control.action_mapping import ACTION_SIZE
+from ace_drake.control.stack import NO_ACTION, ControlStack, Stage
+from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
+
+
+class SegmentActionMapper(LeafSystem):
+    """The continuous-time ``ActionMapper`` for B environments: maps each valid action onto the
+    feasible set of terminal (q, v) 32 ms after its segment's start (paper eq. (12);
+    ``ControlStack.map``).
+
+    Input ports:
+        action (abstract float (B, 17)): the SegmentPolicyController's [action, valid].
+        segment_start_state (abstract float (B, 24)): [q, v, a] where each next segment starts.
+    Output ports:
+        target (abstract tuple of B Stage): (q_T, v_T) per environment when ok, else why not.
+    State: none (direct feedthrough).
+    """
+
+    def __init__(self, stack: ControlStack, batch: int):
+        """Args: stack, the shared control stack; batch, B."""
+        super().__init__()
+        self.stack = stack
+        self.batch = int(batch)
+        self.action_port = self.DeclareAbstractInputPort("action", AbstractValue.Make(np.zeros((self.batch, ACTION_SIZE + 1))))
+        self.segment_start_state_port = self.DeclareAbstractInputPort(
+            "segment_start_state", AbstractValue.Make(np.zeros((self.batch, SEGMENT_START_STATE_SIZE)))
+        )
+        self.target_port = self.DeclareAbstractOutputPort("target", lambda: AbstractValue.Make(()), self.CalcTarget)
+
+    def CalcTarget(self, context, output):
+        actions = self.action_port.Eval(context)
+        acting = actions[:, ACTION_SIZE] > 0.5
+        stages = [Stage(False, reason=NO_ACTION)] * self.batch
+        if acting.any():
+            start = self.segment_start_state_port.Eval(context)
+            for row in np.flatnonzero(acting):
+                q, v, a = np.split(start[row], 3)
+                stages[row] = self.stack.map(q, v, a, actions[row, :ACTION_SIZE])
+        output.set_value(tuple(stages))

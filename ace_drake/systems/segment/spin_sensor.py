@@ -1,0 +1,82 @@
+"""SegmentSpinSensor: the gaze-control spin sensor of B environments."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+
+from ace_drake.control.segment_timing import SegmentTiming
+from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.params import SpinSensorParams
+from ace_drake.systems.gaze_spin_sensor import SpinSensorState, poll_spin_sensor, start_spin_sensor
+from ace_drake.systems.segment.position_sensor import trigger_samples
+from ace_drake.systems.statistical_position_sensor import SensorQueue
+
+
+class SegmentSpinSensor(LeafSystem):
+    """The continuous-time ``GazeSpinSensor`` for B environments: the same 200 Hz polls inside
+    each tick (``gaze_spin_sensor.poll_spin_sensor``: variable rate, latency, dropout, racket
+    tracking loss, precision noise and per-contact bias; the reference's draws, so a seed gives
+    its measurements bit for bit).
+
+    Input ports:
+        ball_flight (abstract BallSegment): the SegmentBallPlant's samples and contact events.
+        episode_ticks (abstract int64 (B,)): the EpisodeClock's.
+    Output ports:
+        spin_measurements (abstract tuple of B MeasurementHistory): spins w_WB (rad/s) with the
+            precision noise's covariance, everything released at or before the tick's start.
+    State:
+        abstract tuple of B SpinSensorState; abstract int64 (B,): each episode's seed.
+    Events:
+        periodic unrestricted update every T (offset 0): the tick's polls.
+    """
+
+    def __init__(self, params: SpinSensorParams, batch: int, timing: SegmentTiming):
+        """Args: params, the sensor model; batch, B; timing, the segment time line."""
+        super().__init__()
+        self.params = params
+        self.batch = int(batch)
+        self.timing = timing
+        self._poll = trigger_samples(params.poll_period, timing, "SegmentSpinSensor")
+        self._empty = SpinSensorState(SensorQueue(MeasurementHistory(capacity=params.history_capacity)))
+        self._state_index = self.DeclareAbstractState(AbstractValue.Make((self._empty,) * self.batch))
+        self._seed_index = self.DeclareAbstractState(AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
+        self.ball_flight_port = self.DeclareAbstractInputPort("ball_flight", AbstractValue.Make(None))
+        self.episode_ticks_port = self.DeclareAbstractInputPort("episode_ticks", AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
+        self.spin_measurements_port = self.DeclareAbstractOutputPort(
+            "spin_measurements", lambda: AbstractValue.Make(()), self.CalcSpinMeasurements,
+            prerequisites_of_calc={self.abstract_state_ticket(self._state_index), self.input_port_ticket(self.episode_ticks_port.get_index())},
+        )
+        self.DeclarePeriodicUnrestrictedUpdateEvent(timing.duration, 0.0, self.Poll)
+
+    def StartEpisodes(self, context, rows, seeds) -> None:
+        """Starts environments ``rows`` at episode time 0 with their seeds (k,): empty history,
+        the first capture one random interval after 0."""
+        states, all_seeds = list(self._states(context)), context.get_abstract_state(self._seed_index).get_value().copy()
+        for row, seed in zip(np.asarray(rows, dtype=int), np.asarray(seeds, dtype=np.int64)):
+            states[row] = start_spin_sensor(self.params, self._empty, int(seed), 0.0)
+            all_seeds[row] = seed
+        context.SetAbstractState(self._state_index, tuple(states))
+        context.SetAbstractState(self._seed_index, all_seeds)
+
+    def CalcSpinMeasurements(self, context, output):
+        now = self.timing.tick_time(self.episode_ticks_port.Eval(context))
+        output.set_value(tuple(state.queue.released(float(now[row]))[0] for row, state in enumerate(self._states(context))))
+
+    def Poll(self, context, state):
+        flight = self.ball_flight_port.Eval(context)
+        first = self.timing.first_sample(self.episode_ticks_port.Eval(context))
+        seeds = context.get_abstract_state(self._seed_index).get_value()
+        states = list(self._states(context))
+        for row in range(self.batch):
+            start = max(int(first[row]), 0)
+            events = flight.events[row]
+            for sample in range(-(-start // self._poll) * self._poll, int(first[row]) + self.timing.samples, self._poll):
+                now = float(self.timing.seconds(sample))
+                seen = tuple(event for event in events if event.time <= now)
+                states[row] = poll_spin_sensor(self.params, states[row], int(seeds[row]), now, flight.samples[row, sample - first[row], 6:9], seen)
+        state.get_mutable_abstract_state(self._state_index).set_value(tuple(states))
+
+    def _states(self, context) -> tuple[SpinSensorState, ...]:
+        return context.get_abstract_state(self._state_index).get_value()
