@@ -85,13 +85,16 @@ def test_honours_the_scenario_geometry(scenario):
     np.testing.assert_allclose(state[:, :3], p_ref, rtol=0, atol=1e-12)
 
 
-def chain_plant(kinds, seed=0):
+def chain_plant(kinds, seed=0, free_ball=False):
     """A plant with model instance ROBOT_MODEL_NAME: a serial chain from the world of joints of
     ``kinds`` ("revolute", "prismatic", "weld", "ball") between random joint frames (random
-    offsets, rotations and axes), ending in a racket frame at a random offset."""
+    offsets, rotations and axes), ending in a racket frame at a random offset; and with
+    ``free_ball`` a free body besides."""
     rng = np.random.default_rng(seed)
     plant = MultibodyPlant(0.0)
     robot = plant.AddModelInstance(ROBOT_MODEL_NAME)
+    if free_ball:
+        plant.AddRigidBody("ball", plant.AddModelInstance("ball"), SpatialInertia.SolidSphereWithMass(0.0027, 0.02))
 
     def random_pose():
         return RigidTransform(RollPitchYaw(rng.uniform(-np.pi, np.pi, 3)), rng.uniform(-0.3, 0.3, 3))
@@ -147,9 +150,25 @@ def test_an_unsupported_chain_is_refused(kinds, message):
         RacketKinematics.from_plant(chain_plant(kinds))
 
 
-def test_an_unfinalized_plant_is_refused():
+def test_positions_beyond_the_chain_are_refused():
+    with pytest.raises(ValueError, match="the plant has 15 positions and 14 velocities; expected exactly the 8"):
+        RacketKinematics.from_plant(chain_plant(["prismatic"] * 2 + ["revolute"] * 6, free_ball=True))
+
+
+def test_a_plant_without_a_racket_chain_is_refused():
     with pytest.raises(ValueError, match="finalized"):
         RacketKinematics.from_plant(MultibodyPlant(0.0))
+    empty = MultibodyPlant(0.0)
+    empty.Finalize()
+    with pytest.raises(ValueError, match=f"no frame '{RACKET_FRAME}'"):
+        RacketKinematics.from_plant(empty)
+    # A free racket: Drake joins it to the world by a floating joint, which is not a chain joint.
+    free = MultibodyPlant(0.0)
+    blade = free.AddRigidBody("blade", free.AddModelInstance(ROBOT_MODEL_NAME), SpatialInertia.SolidSphereWithMass(1.0, 0.05))
+    free.AddFrame(FixedOffsetFrame(RACKET_FRAME, blade.body_frame(), RigidTransform()))
+    free.Finalize()
+    with pytest.raises(ValueError, match="joint 'blade' \\(quaternion_floating, 7 positions\\)"):
+        RacketKinematics.from_plant(free)
 
 
 def test_batch_shapes_give_the_per_sample_results(scenario, dut):

@@ -33,6 +33,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import BodyIndex
 
 from ace_drake.robot.bounds import KinematicTree, _compose, sin_cos
 from ace_drake.robot.model import RACKET_FRAME, ROBOT_MODEL_NAME, add_robot_to_plant, check_joint_order, load_scenario
@@ -51,7 +52,16 @@ class RacketKinematics:
     lists it. Non-finite joint values give non-finite results for their samples.
     """
 
-    def __init__(self, terms: np.ndarray, revolute: np.ndarray, axes: np.ndarray, origins: np.ndarray, position_index: np.ndarray, velocity_index: np.ndarray, joint_names: tuple[str, ...]):
+    def __init__(
+        self,
+        terms: np.ndarray,
+        revolute: np.ndarray,
+        axes: np.ndarray,
+        origins: np.ndarray,
+        position_index: np.ndarray,
+        velocity_index: np.ndarray,
+        joint_names: tuple[str, ...],
+    ):
         """Use ``from_plant`` or ``for_scenario``. terms (8, 3, 12): each moving joint's B0, B1,
         B2 (module doc) from the previous joint's child body (the world for the first) to its own
         child body (R for the last), welds folded in; revolute (8,) bool; axes, origins (8, 3):
@@ -72,14 +82,15 @@ class RacketKinematics:
         to it. Raises ValueError naming what is not supported otherwise."""
         if not plant.is_finalized():
             raise ValueError("RacketKinematics: the plant must be finalized")
-        robot = plant.GetModelInstanceByName(ROBOT_MODEL_NAME)
-        racket = plant.GetFrameByName(RACKET_FRAME, robot)
+        if not plant.HasModelInstanceNamed(ROBOT_MODEL_NAME) or not plant.HasFrameNamed(RACKET_FRAME, plant.GetModelInstanceByName(ROBOT_MODEL_NAME)):
+            raise ValueError(f"RacketKinematics: the plant has no frame {RACKET_FRAME!r} in a model instance {ROBOT_MODEL_NAME!r}")
+        racket = plant.GetFrameByName(RACKET_FRAME, plant.GetModelInstanceByName(ROBOT_MODEL_NAME))
         inboard = {int(plant.get_joint(index).child_body().index()): plant.get_joint(index) for index in plant.GetJointIndices()}
         world = int(plant.world_body().index())
         chain, body = [], int(racket.body().index())
         while body != world:
             if body not in inboard:
-                raise ValueError(f"RacketKinematics: body {plant.get_body(racket.body().index()).name()!r} of the racket frame is not joined to the world")
+                raise ValueError(f"RacketKinematics: body {plant.get_body(BodyIndex(body)).name()!r} of the racket's chain has no joint to its parent")
             joint = inboard[body]
             kind = joint.type_name()
             if kind != "weld" and not (kind in ("revolute", "prismatic") and joint.num_positions() == 1 and joint.num_velocities() == 1):
@@ -220,25 +231,25 @@ def _racket_chain(q, v, with_velocity, terms, revolute, axes, origins, position_
         w[:] = 0.0
         u[:] = 0.0
         for j in range(terms.shape[0]):
-            column = position_index[j]
+            angles = q[position_index[j]]
             if revolute[j]:
                 for s in range(count):
-                    sine, cosine = sin_cos(q[column, start + s])
+                    sine, cosine = sin_cos(angles[start + s])
                     c1[s], c2[s] = sine, 1.0 - cosine
             else:
                 for s in range(count):
-                    c1[s], c2[s] = q[column, start + s], 0.0
+                    c1[s], c2[s] = angles[start + s], 0.0
             if with_velocity:
                 ax, ay, az = axes[j, 0], axes[j, 1], axes[j, 2]
                 ox, oy, oz = origins[j, 0], origins[j, 1], origins[j, 2]
-                rate_column = velocity_index[j]
-                for s in range(count):
-                    qdot = v[rate_column, start + s]
-                    # The axis in world (R_W,prev a), and for a revolute joint a point on it.
-                    a0 = X[0, s] * ax + X[1, s] * ay + X[2, s] * az
-                    a1 = X[4, s] * ax + X[5, s] * ay + X[6, s] * az
-                    a2 = X[8, s] * ax + X[9, s] * ay + X[10, s] * az
-                    if revolute[j]:
+                rates = v[velocity_index[j]]
+                if revolute[j]:
+                    for s in range(count):
+                        qdot = rates[start + s]
+                        # The axis in world (R_W,prev a) and a point on it (X_W,prev o).
+                        a0 = X[0, s] * ax + X[1, s] * ay + X[2, s] * az
+                        a1 = X[4, s] * ax + X[5, s] * ay + X[6, s] * az
+                        a2 = X[8, s] * ax + X[9, s] * ay + X[10, s] * az
                         o0 = X[0, s] * ox + X[1, s] * oy + X[2, s] * oz + X[3, s]
                         o1 = X[4, s] * ox + X[5, s] * oy + X[6, s] * oz + X[7, s]
                         o2 = X[8, s] * ox + X[9, s] * oy + X[10, s] * oz + X[11, s]
@@ -248,10 +259,12 @@ def _racket_chain(q, v, with_velocity, terms, revolute, axes, origins, position_
                         u[0, s] -= qdot * (a1 * o2 - a2 * o1)
                         u[1, s] -= qdot * (a2 * o0 - a0 * o2)
                         u[2, s] -= qdot * (a0 * o1 - a1 * o0)
-                    else:
-                        u[0, s] += qdot * a0
-                        u[1, s] += qdot * a1
-                        u[2, s] += qdot * a2
+                else:
+                    for s in range(count):
+                        qdot = rates[start + s]
+                        u[0, s] += qdot * (X[0, s] * ax + X[1, s] * ay + X[2, s] * az)
+                        u[1, s] += qdot * (X[4, s] * ax + X[5, s] * ay + X[6, s] * az)
+                        u[2, s] += qdot * (X[8, s] * ax + X[9, s] * ay + X[10, s] * az)
             for e in range(12):
                 B0, B1, B2 = terms[j, 0, e], terms[j, 1, e], terms[j, 2, e]
                 for s in range(count):
