@@ -51,13 +51,29 @@ from ace_drake.systems.ball_plant import BallPlant
 from ace_drake.systems.ball_visualizer import BallVisualizer, set_court_view
 from ace_drake.systems.delayed_joint_plant import DelayedJointPlant
 from ace_drake.systems.gaze_spin_sensor import GazeSpinSensor
-from ace_drake.systems.observation_builder import ObservationBuilder
+from ace_drake.systems.observation_builder import DEFAULT_SKILL, ObservationBuilder
 from ace_drake.systems.policy_controller import PolicyController
 from ace_drake.systems.random_seed import SEED_HOLD_PERIOD
 from ace_drake.systems.reset_mpc import ResetMpc
 from ace_drake.systems.robot_kinematics import RobotKinematics
 from ace_drake.systems.safety_supervisor import SafetySupervisor
 from ace_drake.systems.spline_qp import SplineQp
+from ace_drake.control.segment_timing import SegmentTiming
+from ace_drake.robot.kinematics import RacketKinematics
+from ace_drake.systems.segment.action_mapper import SegmentActionMapper
+from ace_drake.systems.segment.ball_estimator import SegmentBallEstimator
+from ace_drake.systems.segment.ball_plant import SegmentBallPlant
+from ace_drake.systems.segment.clock import EpisodeClock
+from ace_drake.systems.segment.end_effector import SegmentEndEffector
+from ace_drake.systems.segment.joint_plant import SegmentJointPlant
+from ace_drake.systems.segment.observation_builder import SegmentObservationBuilder
+from ace_drake.systems.segment.policy_controller import SegmentPolicyController
+from ace_drake.systems.segment.position_sensor import SegmentPositionSensor
+from ace_drake.systems.segment.racket_kinematics import SegmentRacketKinematics
+from ace_drake.systems.segment.reset_mpc import SegmentResetMpc
+from ace_drake.systems.segment.safety_supervisor import SegmentSafetySupervisor
+from ace_drake.systems.segment.spin_sensor import SegmentSpinSensor
+from ace_drake.systems.segment.spline_qp import SegmentSplineQp
 from ace_drake.systems.statistical_position_sensor import StatisticalPositionSensor
 from ace_drake.systems.triangulator import Triangulator
 
@@ -506,6 +522,159 @@ def start_rally(diagram: Diagram, context, shot, seed: int = 0, skill=None, q=No
         observation = diagram.GetSubsystemByName("observation_builder")
         observation.SetSkill(observation.GetMyMutableContextFromRoot(context), skill)
     start_controlled_robot(diagram, context, q, light_curtain)
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentRallySystems:
+    """The segment-stepped rally's systems in a builder (``add_segment_rally``)."""
+
+    batch: int
+    timing: SegmentTiming
+    clock: EpisodeClock
+    ball: SegmentBallPlant
+    joint_plant: SegmentJointPlant
+    kinematics: SegmentRacketKinematics
+    position_sensor: SegmentPositionSensor
+    spin_sensor: SegmentSpinSensor
+    estimator: SegmentBallEstimator
+    observation: SegmentObservationBuilder
+    policy_controller: SegmentPolicyController
+    supervisor: SegmentSafetySupervisor
+    stack: ControlStack
+
+
+def add_segment_rally(builder: DiagramBuilder, params: RallyParams, policy, batch: int = 1) -> SegmentRallySystems:
+    """The rally episode of ``add_rally`` for B = ``batch`` environments, segment-stepped
+    (``params.stepping`` "segment"; docs/architecture.md, *Segment stepping*): the same systems
+    under the same names, each carrying B environments and advancing once per 32 ms tick, plus
+    the ``episode_clock`` they share. The statistical position sensor only (cameras: the
+    continuous-time diagram). Inputs: ``light_curtain`` (abstract float (B,)) and, when
+    ``policy`` is None, ``action_request`` (abstract float (B, 17)). Start episodes with
+    ``start_segment_episodes``."""
+    if params.perception.positions != "statistical":
+        raise ValueError(f"add_segment_rally: the segment-stepped diagram has the statistical position sensor only, got positions={params.perception.positions!r}")
+    if batch < 1:
+        raise ValueError(f"add_segment_rally: batch must be >= 1, got {batch}")
+    scenario = load_scenario(MODELS_DIR / params.scenario)
+    stack = make_control_stack(scenario, params.control)
+    timing = SegmentTiming.from_control(params.control.segment_samples, params.control.observation_lead, stack.period)
+    kinematics = RacketKinematics.for_scenario(scenario)
+    layout = ObservationLayout(params.position_history, params.spin_history)
+    predictor = HitPredictor.for_robot(scenario, params.control, params.physics) if params.hit_prediction else None
+    add = builder.AddNamedSystem
+    clock = add("episode_clock", EpisodeClock(batch, timing))
+    ball = add("ball", SegmentBallPlant(params.physics, batch, timing, perturb=params.perturb))
+    joints = add("joint_plant", SegmentJointPlant(scenario.dynamics, batch, timing))
+    racket = add("robot_kinematics", SegmentRacketKinematics(kinematics))
+    positions = add("position_sensor", SegmentPositionSensor(params.perception.position, batch, timing))
+    spins = add("spin_sensor", SegmentSpinSensor(params.perception.spin, batch, timing))
+    estimator = add("ball_estimator", SegmentBallEstimator(params.perception.estimator, params.physics, batch, timing))
+    observation = add("observation_builder", SegmentObservationBuilder(layout, batch, timing, predictor, params.hit_memory))
+    planned = add("planned_kinematics", SegmentEndEffector(kinematics, batch))
+    controller = add("policy_controller", SegmentPolicyController(policy, batch, layout.size, timing))
+    mapper = add("action_mapper", SegmentActionMapper(stack, batch))
+    qp = add("spline_qp", SegmentSplineQp(stack, batch))
+    reset = add("reset_mpc", SegmentResetMpc(stack, batch))
+    supervisor = add("safety_supervisor", SegmentSafetySupervisor(stack, batch, timing))
+    connect = builder.Connect
+    for system in (ball, positions, spins, estimator, observation, controller, supervisor):
+        connect(clock.episode_ticks_port, system.episode_ticks_port)
+    connect(supervisor.command_stream_port, joints.command_stream_port)
+    connect(joints.joint_motion_port, racket.joint_motion_port)
+    connect(racket.racket_motion_port, ball.racket_motion_port)
+    connect(ball.ball_flight_port, positions.ball_flight_port)
+    connect(ball.ball_flight_port, spins.ball_flight_port)
+    connect(ball.contact_events_port, estimator.contact_events_port)
+    connect(positions.position_measurements_port, estimator.position_measurements_port)
+    connect(spins.spin_measurements_port, estimator.spin_measurements_port)
+    connect(positions.position_measurements_port, observation.position_measurements_port)
+    connect(spins.spin_measurements_port, observation.spin_measurements_port)
+    connect(supervisor.segment_start_state_port, observation.robot_state_port)
+    connect(supervisor.segment_start_state_port, planned.joint_state_port)
+    connect(planned.end_effector_state_port, observation.end_effector_state_port)
+    connect(estimator.ball_state_estimate_port, observation.ball_state_estimate_port)
+    connect(estimator.estimate_status_port, observation.estimate_status_port)
+    connect(observation.observation_port, controller.observation_port)
+    connect(controller.action_port, mapper.action_port)
+    connect(supervisor.segment_start_state_port, mapper.segment_start_state_port)
+    connect(supervisor.segment_start_state_port, qp.segment_start_state_port)
+    connect(mapper.target_port, qp.target_port)
+    connect(qp.segment_port, reset.segment_port)
+    connect(qp.segment_port, supervisor.segment_port)
+    connect(reset.reset_port, supervisor.reset_port)
+    builder.ExportInput(supervisor.light_curtain_port, "light_curtain")
+    if policy is None:
+        builder.ExportInput(controller.action_request_port, "action_request")
+    return SegmentRallySystems(batch, timing, clock, ball, joints, racket, positions, spins, estimator, observation, controller, supervisor, stack)
+
+
+def build_segment_rally_diagram(params: RallyParams | None = None, policy=None, batch: int = 1) -> Diagram:
+    """The segment-stepped rally of ``add_segment_rally`` for ``batch`` environments: the
+    training, evaluation and benchmark diagram. ``params`` default: RallyParams with the
+    statistical position sensor and ``stepping="segment"``; ``policy`` None reads the actions from
+    the ``action_request`` input. Start episodes with ``start_segment_episodes``; simulate with
+    a plain ``Simulator`` (``make_segment_simulator``)."""
+    params = params or RallyParams(perception=PerceptionParams(positions="statistical"), stepping="segment")
+    builder = DiagramBuilder()
+    add_segment_rally(builder, params, policy, batch)
+    diagram = builder.Build()
+    diagram.set_name("segment_rally_diagram")
+    return diagram
+
+
+def make_segment_simulator(diagram: Diagram, context=None) -> Simulator:
+    """A Simulator for a segment-stepped diagram: no continuous state, so no integrator settings;
+    it jumps from tick to tick."""
+    return Simulator(diagram, context or diagram.CreateDefaultContext())
+
+
+SEED_STREAMS = {"ball": 1, "position_sensor": 2, "spin_sensor": 3}  # per-system streams of an episode's seed
+
+
+def system_seeds(seeds, stream: int) -> np.ndarray:
+    """Each episode seed's (k,) stream ``stream`` for one stochastic system: distinct, reproducible
+    int64 seeds (``numpy.random.SeedSequence([seed, stream])``)."""
+    return np.array([np.random.SeedSequence([int(seed), stream]).generate_state(1, np.uint32)[0] for seed in np.asarray(seeds).reshape(-1)], dtype=np.int64)
+
+
+def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills=None, q=None, v=None, a=None) -> None:
+    """Starts episodes in environments ``rows`` (k,) of a segment-stepped diagram: balls in states
+    ``shots`` (k, 9) [p (m), v (m/s), w (rad/s)] (just after the opponent's hit), each episode's
+    stochastic systems seeded from ``seeds`` (k,) (one stream per system, ``system_seeds``), the
+    skills (k, 3) (default: the builder's), the robots at q (k, 8) (default: the reset pose) with
+    v, a (k, 8) (default rest; a moving start follows the reset from there), the episode clocks
+    at tick 0 and the policies told (``SegmentPolicyController.ResetPolicies``). The next tick is
+    each episode's first (``control.segment_timing``); the other environments go on."""
+    rows = np.asarray(rows, dtype=int).reshape(-1)
+    seeds = np.asarray(seeds).reshape(-1)
+    if seeds.size != rows.size:
+        raise ValueError(f"start_segment_episodes: {rows.size} rows but {seeds.size} seeds")
+
+    def sub(name):
+        system = diagram.GetSubsystemByName(name)
+        return system, system.GetMyMutableContextFromRoot(context)
+
+    supervisor, supervisor_context = sub("safety_supervisor")
+    if q is None:
+        q = np.tile(supervisor.stack.reset_pose, (rows.size, 1))
+    q = np.asarray(q, dtype=float).reshape(rows.size, -1)
+    clock, clock_context = sub("episode_clock")
+    clock.StartEpisodes(clock_context, rows)
+    ball, ball_context = sub("ball")
+    ball.StartEpisodes(ball_context, rows, shots, system_seeds(seeds, SEED_STREAMS["ball"]))
+    for name in ("position_sensor", "spin_sensor"):
+        system, system_context = sub(name)
+        system.StartEpisodes(system_context, rows, system_seeds(seeds, SEED_STREAMS[name]))
+    estimator, estimator_context = sub("ball_estimator")
+    estimator.StartEpisodes(estimator_context, rows)
+    observation, observation_context = sub("observation_builder")
+    observation.SetSkills(observation_context, rows, np.tile(DEFAULT_SKILL, (rows.size, 1)) if skills is None else skills)
+    supervisor.StartEpisodes(supervisor_context, rows, q, v, a)
+    joints, joints_context = sub("joint_plant")
+    joints.StartEpisodes(joints_context, rows, q, v)
+    controller, controller_context = sub("policy_controller")
+    controller.StartEpisodes(controller_context, rows)
+    controller.ResetPolicies(rows)
 
 
 def _documented_ball_diagram() -> Diagram:

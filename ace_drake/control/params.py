@@ -154,6 +154,9 @@ class ReturnerParams:
             raise ConfigError(f"joint_lag must be >= 0 s or null, got {self.joint_lag}")
 
 
+STEPPINGS = ("continuous", "segment")
+
+
 @dataclasses.dataclass(frozen=True)
 class RallyParams:
     """One rally episode's diagram (``diagrams.add_rally``): the ball (``physics``, with the
@@ -167,7 +170,9 @@ class RallyParams:
     returner's memory of its hit time; ``ObservationBuilder``), instead of judging from the
     estimate alone (needs ``hit_prediction``). ``time_limit``: s after
     the opponent's hit at which an unresolved episode ends. ``seed``: the default of every seed
-    parameter."""
+    parameter. ``stepping``: "continuous", the reference diagram (B = 1; Drake's integrator with
+    witness-located contacts, 1 kHz joint and supervisor updates), or "segment", the batched
+    diagram that advances once per 32 ms segment (docs/architecture.md, *Segment stepping*)."""
 
     physics: BallPhysicsParams = dataclasses.field(default_factory=BallPhysicsParams)
     perturb: bool = True
@@ -180,9 +185,12 @@ class RallyParams:
     hit_memory: bool = False
     time_limit: float = 2.0
     seed: int = 0
+    stepping: str = "continuous"
 
     def __post_init__(self) -> None:
         require_positive(self, "position_history", "spin_history", "time_limit")
+        if self.stepping not in STEPPINGS:
+            raise ConfigError(f"stepping must be one of {STEPPINGS}, got {self.stepping!r}")
         if self.hit_memory and not self.hit_prediction:
             raise ConfigError("hit_memory keeps the observation's predicted hit: it needs hit_prediction true")
 
