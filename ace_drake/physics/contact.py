@@ -216,3 +216,134 @@ def perturb_velocity_and_spin(v_W, w_W, velocity_std: float, spin_std: float, rn
         v_W + velocity_std * rng.standard_normal(v_W.shape),
         w_W + spin_std * rng.standard_normal(w_W.shape),
     )
+
+
+# ------------------------------------------------------------------------------ racket geometry
+# The blade is a disc of radius R_b and thickness t whose frame R has its origin at the blade's
+# centre and its z axis along the blade's normal (DESIGN.md). These functions are the one
+# definition of the ball-blade geometry, shared by the BallPlant and ``physics.segment``; all are
+# batched over leading dimensions. The gap and the contact frame are written component by
+# component (no einsum or matmul, whose summation may depend on the batch's shape), so a row's
+# gap is the same bit for bit in any batch; ``racket_impact`` is not (the segment propagator
+# applies it one contact at a time, with the BallPlant's shapes).
+
+
+def blade_half_diagonal(racket: RacketParams) -> float:
+    """The radius (m) of the smallest sphere about the blade's centre holding the whole blade,
+    hypot(R_b, t / 2): every blade point lies within it."""
+    return float(np.hypot(racket.blade_radius, 0.5 * racket.blade_thickness))
+
+
+def _rotate(R, p, transpose: bool):
+    """R p (or R^T p) for R (..., 3, 3) and p (..., 3), component by component (no einsum, whose
+    summation strategy may depend on the batch's shape)."""
+    if transpose:
+        columns = [R[..., 0, i] * p[..., 0] + R[..., 1, i] * p[..., 1] + R[..., 2, i] * p[..., 2] for i in range(3)]
+    else:
+        columns = [R[..., i, 0] * p[..., 0] + R[..., i, 1] * p[..., 1] + R[..., i, 2] * p[..., 2] for i in range(3)]
+    out = np.empty(np.broadcast_shapes(R.shape[:-1], p.shape))
+    out[..., 0], out[..., 1], out[..., 2] = columns
+    return out
+
+
+def _cross(a, b):
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
+def _norm(a):
+    return np.sqrt(a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2])
+
+
+def ball_in_racket_frame(p_WB, p_WR, R_WR) -> np.ndarray:
+    """p_RB = R_WR^T (p_WB - p_WR): the ball centre in the racket frame R, m. Args: p_WB (..., 3)
+    ball centre, p_WR (..., 3) blade centre, R_WR (..., 3, 3) racket orientation, all in world."""
+    p_WB, p_WR, R_WR = (np.asarray(a, dtype=float) for a in (p_WB, p_WR, R_WR))
+    return _rotate(R_WR, p_WB - p_WR, transpose=True)
+
+
+def closest_blade_point(p_RB, racket: RacketParams) -> np.ndarray:
+    """The blade's point closest to p_RB (..., 3), both in R, m: the point's radial part clipped
+    to the disc's radius and its z to the half-thickness."""
+    p_RB = np.asarray(p_RB, dtype=float)
+    radial = np.hypot(p_RB[..., 0], p_RB[..., 1])
+    outside = radial > 0
+    scale = np.where(outside, np.minimum(1.0, racket.blade_radius / np.where(outside, radial, 1.0)), 1.0)
+    half_thickness = 0.5 * racket.blade_thickness
+    closest = np.empty(p_RB.shape)
+    closest[..., 0] = p_RB[..., 0] * scale
+    closest[..., 1] = p_RB[..., 1] * scale
+    closest[..., 2] = np.clip(p_RB[..., 2], -half_thickness, half_thickness)
+    return closest
+
+
+def racket_gap(p_WB, p_WR, R_WR, racket: RacketParams, radius: float) -> np.ndarray:
+    """Distance from the ball's surface to the blade, m (..., ): <= 0 exactly in contact.
+    Args as ``ball_in_racket_frame``; radius r of the ball, m."""
+    p_RB = ball_in_racket_frame(p_WB, p_WR, R_WR)
+    return _norm(p_RB - closest_blade_point(p_RB, racket)) - radius
+
+
+def racket_contact_frame(p_RB, racket: RacketParams):
+    """The contact point p_RC (..., 3) and the contact frame's orientation R_RC (..., 3, 3), in R,
+    for a ball at p_RB (..., 3) touching the blade.
+
+    C's z axis is the normal from the closest blade point towards the ball centre (the face's
+    normal, flipped on the back face, tilted on the rim); its x axis is R's x made orthogonal to
+    the normal (R's y when the normal is along R's x)."""
+    p_RB = np.asarray(p_RB, dtype=float)
+    p_RC = closest_blade_point(p_RB, racket)
+    offset = p_RB - p_RC
+    normal = offset / np.maximum(_norm(offset), 1e-12)[..., None]
+    x_axis = -normal[..., 0:1] * normal
+    x_axis[..., 0] += 1.0
+    along_x = _norm(x_axis) < 1e-6
+    if np.any(along_x):
+        y_axis = -normal[..., 1:2] * normal
+        y_axis[..., 1] += 1.0
+        x_axis = np.where(along_x[..., None], y_axis, x_axis)
+    x_axis = x_axis / _norm(x_axis)[..., None]
+    R_RC = np.stack([x_axis, _cross(normal, x_axis), normal], axis=-1)
+    return p_RC, R_RC
+
+
+def racket_contact(state, p_WR, R_WR, w_WR, v_WR, racket: RacketParams, radius: float, residual: ResidualModel | None = None):
+    """The ball's state after touching the blade, and whether the touch is an impact.
+
+    At the contact point C (``racket_contact_frame``) the racket's material point moves at
+    v_WRc = v_WR + w_WR x (p_WC - p_WR). A ball whose velocity relative to it has no component
+    into the blade (v - v_WRc) . z_C >= 0 is separating: a graze, the state is unchanged and the
+    flag False. Otherwise the post-contact velocity and spin are ``racket_impact``'s (paper eqs
+    (7)-(8), with the contact offset in C's x-y as the residual's input).
+
+    Args: state (..., 9) [p, v, w] just before contact; p_WR (..., 3), R_WR (..., 3, 3) the
+    racket's pose; w_WR (..., 3) rad/s and v_WR (..., 3) m/s its spatial velocity (of R's origin),
+    all in world; residual, an optional correction model. Returns (state_post (..., 9), impact
+    (...,) bool).
+    """
+    state = np.asarray(state, dtype=float)
+    batch = state.shape[:-1]
+    state = state.reshape(-1, 9)
+    p_WR, w_WR, v_WR = (np.broadcast_to(np.asarray(a, dtype=float), batch + (3,)).reshape(-1, 3) for a in (p_WR, w_WR, v_WR))
+    R_WR = np.broadcast_to(np.asarray(R_WR, dtype=float), batch + (3, 3)).reshape(-1, 3, 3)
+    p_WB, v_WB, w_WB = state[:, 0:3], state[:, 3:6], state[:, 6:9]
+    p_RC, R_RC = racket_contact_frame(ball_in_racket_frame(p_WB, p_WR, R_WR), racket)
+    R_WC = np.stack([_rotate(R_WR, R_RC[..., j], transpose=False) for j in range(3)], axis=-1)
+    p_RoC_W = _rotate(R_WR, p_RC, transpose=False)  # from the blade's centre to C, in world
+    v_WRc = v_WR + _cross(w_WR, p_RoC_W)
+    v_relative = v_WB - v_WRc
+    approach = v_relative[:, 0] * R_WC[:, 0, 2] + v_relative[:, 1] * R_WC[:, 1, 2] + v_relative[:, 2] * R_WC[:, 2, 2]
+    impact = approach < 0.0
+    post = state.copy()
+    if np.any(impact):
+        contact_offset = _rotate(R_RC[impact], p_RC[impact], transpose=True)[:, :2]
+        v_post, w_post = racket_impact(
+            v_WB[impact], w_WB[impact], v_WRc[impact], R_WC[impact], racket, radius,
+            contact_offset=contact_offset, residual=residual,
+        )  # paper eqs (7)-(8)
+        post[impact, 3:6] = v_post
+        post[impact, 6:9] = w_post
+    return post.reshape(batch + (9,)), impact.reshape(batch)

@@ -177,9 +177,9 @@ def simulate(
     times = [0.0]
     states = [x.copy()] if record else []
     t = 0.0
-    # The guards' signs at every ball's current state (``_gaps``), carried from step to step (a
+    # The guards' signs at every ball's current state (``guard_gaps``), carried from step to step (a
     # free step's end is the next step's start), recomputed only where a contact changed the state.
-    gaps = _gaps(x, kinds, params) if kinds else None
+    gaps = guard_gaps(x, kinds, params) if kinds else None
     for _ in range(n_steps):
         h = min(dt, duration - t)
         remaining = np.where(active, h, 0.0)
@@ -194,7 +194,7 @@ def simulate(
                 x[rows], remaining[rows] = x1, 0.0
                 break
             gaps0 = gaps[rows]
-            gaps1 = _gaps(x1, kinds, params)
+            gaps1 = guard_gaps(x1, kinds, params)
             crossing = (gaps0 > 0.0) & (gaps1 <= 0.0)
             free = ~crossing.any(axis=-1)
             x[rows[free]] = x1[free]
@@ -203,7 +203,7 @@ def simulate(
             if free.all():
                 break
             hit = ~free
-            tau, kind_index = _first_contact_time(x0[hit], h0[hit], crossing[hit], kinds, params)
+            tau, kind_index = first_contact_time(x0[hit], h0[hit], crossing[hit], kinds, params)
             x_pre = rk4_step(x0[hit], tau, params.aero)
             for j, row in enumerate(rows[hit]):
                 kind = kinds[kind_index[j]]
@@ -223,7 +223,7 @@ def simulate(
                 x[row] = x_post
                 remaining[row] -= tau[j]
                 elapsed[row] += tau[j]
-            gaps[rows[hit]] = _gaps(x[rows[hit]], kinds, params)
+            gaps[rows[hit]] = guard_gaps(x[rows[hit]], kinds, params)
         t += h
         times.append(t)
         if record:
@@ -237,8 +237,8 @@ def simulate(
     )
 
 
-def _gaps(states: np.ndarray, kinds: Sequence[ContactKind], params: BallPhysicsParams) -> np.ndarray:
-    """The guards of every kind for (N, 9) states, (N, len(kinds)), m, where ``simulate`` reads
+def guard_gaps(states: np.ndarray, kinds: Sequence[ContactKind], params: BallPhysicsParams) -> np.ndarray:
+    """The guards of every kind for (N, 9) states, (N, len(kinds)), m, where callers read
     only their signs: each is ``contact_gap``, or, for a kind every ball is clearly clear of, its
     lower bound (``contact_gap_lower_bound`` above GAP_SCREEN_MARGIN), which has the same sign at a
     fraction of the cost (most steps of a flight)."""
@@ -249,32 +249,42 @@ def _gaps(states: np.ndarray, kinds: Sequence[ContactKind], params: BallPhysicsP
     return gaps
 
 
-def _first_contact_time(x0, h, crossing, kinds, params):
-    """Earliest contact time within each ball's step, and the index of its kind."""
+def first_contact_time(x0, h, crossing, kinds, params):
+    """Earliest contact time tau (M,) s within each ball's step, and the index (M,) of its kind in
+    ``kinds``, for balls x0 (M, 9) with steps h (M,) s whose guards ``crossing`` (M, len(kinds))
+    bool go from positive to non-positive over the step (``locate_root`` on each)."""
     tau = np.full(x0.shape[0], np.inf)
     kind_index = np.zeros(x0.shape[0], dtype=int)
     for k, kind in enumerate(kinds):
         rows = np.flatnonzero(crossing[:, k])
         if rows.size == 0:
             continue
-        tau_k = _locate_root(x0[rows], h[rows], lambda s: contact_gap(kind, s, params), params)
+        tau_k = locate_root(x0[rows], h[rows], lambda s, _tau: contact_gap(kind, s, params), params)
         better = tau_k < tau[rows]
         tau[rows[better]] = tau_k[better]
         kind_index[rows[better]] = k
     return tau, kind_index
 
 
-def _locate_root(x0, h, gap, params, max_iterations: int = 100):
-    """Smallest tau in (0, h] with gap(rk4(x0, tau)) <= 0, given gap > 0 at 0 and <= 0 at h.
+def locate_root(x0, h, gap, params, max_iterations: int = 100, lower=None):
+    """A tau in (lower, h] with gap(rk4(x0, tau), tau) <= 0 at the end of the first crossing,
+    given gap > 0 at ``lower`` (default 0) and <= 0 at h; for each of the M rows of x0 (M, 9),
+    h (M,), lower (M,) (s). ``gap(states (M, 9), tau (M,))`` is the guard, m; tau lets a guard
+    depend on time (a moving racket, ``physics.segment``).
 
     Illinois (modified regula falsi) on the RK4 dense solution: superlinear on smooth guards, and
     it keeps a bracket, so the piecewise guards (table edge, net cord) are safe. Returns the
-    bracket's right end (the contact side) once the bracket is narrower than 1e-10 s.
+    bracket's right end (the contact side) once the bracket is narrower than 1e-10 s. Rows are
+    independent: a row's result does not depend on the others (a closed bracket stays put).
     """
-    a = np.zeros_like(h)
+    if lower is None:
+        a = np.zeros_like(h)
+        g_a = gap(x0, a)
+    else:
+        a = np.array(lower, dtype=float)
+        g_a = gap(rk4_step(x0, a, params.aero), a)
     b = h.copy()
-    g_a = gap(x0)
-    g_b = gap(rk4_step(x0, b, params.aero))
+    g_b = gap(rk4_step(x0, b, params.aero), b)
     last_side = np.zeros_like(h, dtype=int)
     for _ in range(max_iterations):
         open_rows = (b - a) > EVENT_TIME_TOLERANCE
@@ -284,7 +294,7 @@ def _locate_root(x0, h, gap, params, max_iterations: int = 100):
         c = np.where(denominator > 0, b + g_b * (b - a) / np.where(denominator > 0, denominator, 1.0), 0.5 * (a + b))
         # Keep the trial strictly inside the bracket; fall back to bisection at the ends.
         c = np.where((c <= a) | (c >= b), 0.5 * (a + b), c)
-        g_c = gap(rk4_step(x0, c, params.aero))
+        g_c = gap(rk4_step(x0, c, params.aero), c)
         move_a = open_rows & (g_c > 0.0)
         move_b = open_rows & ~(g_c > 0.0)
         g_b = np.where(move_a & (last_side == 1), 0.5 * g_b, g_b)  # Illinois: halve the stale end

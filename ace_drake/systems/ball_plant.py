@@ -89,9 +89,8 @@ class BallPlant(LeafSystem):
             if lower.shape != (3,) or upper.shape != (3,) or not np.all(np.isfinite(lower) & np.isfinite(upper) & (lower <= upper)):
                 raise ValueError(f"BallPlant: racket_reach must be two finite corners (3,) with lower <= upper, got {racket_reach}")
             self._reach = (lower.tolist(), upper.tolist())
-        racket = self.params.racket
         # Every point of the blade lies within this distance of its centre, m.
-        self._blade_half_diagonal = math.hypot(racket.blade_radius, 0.5 * racket.blade_thickness)
+        self._blade_half_diagonal = contact.blade_half_diagonal(self.params.racket)
         self._state_index = self.DeclareContinuousState(9)
         self._events_index = self.DeclareAbstractState(AbstractValue.Make(()))
         self._seed_index = self.DeclareNumericParameter(BasicVector([float(seed)]))
@@ -172,9 +171,7 @@ class BallPlant(LeafSystem):
         bound = math.sqrt((x - x_R) ** 2 + (y - y_R) ** 2 + (z - z_R) ** 2) - self._blade_half_diagonal - self.params.aero.ball_radius
         if bound > WITNESS_BOUND_MARGIN:
             return bound
-        p_RB = X_WR.inverse().multiply(p_WB)
-        closest = self._closest_blade_point(p_RB)
-        return float(np.linalg.norm(p_RB - closest) - self.params.aero.ball_radius)
+        return float(contact.racket_gap(p_WB, X_WR.translation(), X_WR.rotation().matrix(), self.params.racket, self.params.aero.ball_radius))
 
     def CalcStaticGap(self, context, kind: ContactKind) -> float:
         """The witness of a table, net or floor contact, m: the gap (``contact_gap``), or a lower
@@ -201,36 +198,12 @@ class BallPlant(LeafSystem):
         pre = self._state(context)
         X_WR = self.racket_pose_port.Eval(context)
         V_WR = self.racket_velocity_port.Eval(context)
-        R_WR = X_WR.rotation().matrix()
-        p_RB = X_WR.inverse().multiply(pre[:3])
-        p_RC = self._closest_blade_point(p_RB)
-        normal_R = p_RB - p_RC
-        normal_R /= max(np.linalg.norm(normal_R), 1e-12)
-        # Contact frame C: z along the normal towards the ball; x as close to the blade's x as possible.
-        x_R = np.array([1.0, 0.0, 0.0]) - normal_R[0] * normal_R
-        if np.linalg.norm(x_R) < 1e-6:
-            x_R = np.array([0.0, 1.0, 0.0]) - normal_R[1] * normal_R
-        x_R /= np.linalg.norm(x_R)
-        R_RC = np.column_stack([x_R, np.cross(normal_R, x_R), normal_R])
-        R_WC = R_WR @ R_RC
-        p_WC = X_WR.multiply(p_RC)
-        v_WRc = V_WR.translational() + np.cross(V_WR.rotational(), p_WC - X_WR.translation())
-        if np.dot(pre[3:6] - v_WRc, R_WC[:, 2]) >= 0.0:
-            return  # separating: a graze, not an impact
-        contact_offset = (R_RC.T @ p_RC)[:2]
-        v_post, w_post = contact.racket_impact(
-            pre[3:6], pre[6:9], v_WRc, R_WC, self.params.racket, self.params.aero.ball_radius,
-            contact_offset=contact_offset, residual=self._residual,
-        )  # paper eqs (7)-(8)
-        post = np.concatenate([pre[:3], v_post, w_post])
-        self._record(context, state, ContactKind.RACKET, pre, post)
-
-    def _closest_blade_point(self, p_RB: np.ndarray) -> np.ndarray:
-        racket = self.params.racket
-        radial = np.hypot(p_RB[0], p_RB[1])
-        scale = min(1.0, racket.blade_radius / radial) if radial > 0 else 1.0
-        half_thickness = 0.5 * racket.blade_thickness
-        return np.array([p_RB[0] * scale, p_RB[1] * scale, np.clip(p_RB[2], -half_thickness, half_thickness)])
+        post, impact = contact.racket_contact(
+            pre, X_WR.translation(), X_WR.rotation().matrix(), V_WR.rotational(), V_WR.translational(),
+            self.params.racket, self.params.aero.ball_radius, residual=self._residual,
+        )  # paper eqs (7)-(8); a separating touch (a graze) is no impact
+        if impact:
+            self._record(context, state, ContactKind.RACKET, pre, post)
 
     def _record(self, context, state, kind, pre, post) -> None:
         state.get_mutable_continuous_state().SetFromVector(post)

@@ -1,0 +1,402 @@
+"""B balls through one control segment, every contact located exactly, the racket moving.
+
+The segment-stepped rally (issue 29; DESIGN.md) advances time once per 32 ms control segment; this
+is the ball's part of it. ``propagate_segment`` flies B balls over the segment's 1 kHz steps with
+the RK4 of ``physics.propagate`` and locates, to 1e-10 s, every table, net and floor contact (as
+``propagate.simulate``, with its helpers) and every contact with a racket whose pose changes within
+the segment (a ``RacketMotion``: the racket's state at the step times, and exactly at any time in
+between). It applies the impact maps of ``physics.contact`` at the contact times, so its contacts
+are those of the continuous-time ``systems.ball_plant.BallPlant`` (Drake's error-controlled
+integrator, witness-located contacts), which is its reference (tests/test_segment.py).
+
+How the racket is found without evaluating it at every step:
+
+1. Fly every ball over the whole segment (the fast pass), then flag the steps that may hold a
+   contact: a static guard that goes from positive to non-positive between two steps, or a step
+   the racket screen cannot clear. The screen: the ball's centre and the blade's centre move
+   apart or together at most at V = (a bound on the ball's speed over the step) + (a bound on the
+   racket's, from its velocity samples and RACKET_ACCELERATION_BOUND), so over a step of h their
+   distance stays above (d_0 + d_1 - V h) / 2; while that exceeds the blade's half-diagonal plus
+   the ball's radius (``contact.blade_half_diagonal``), the ball cannot touch the blade.
+2. Each row's flagged steps are redone one at a time, exactly: static crossings by Illinois on the
+   RK4 solution (``propagate.first_contact_time``); the racket by the exact gap
+   (``contact.racket_gap``; ball on the RK4 dense solution within the step, racket by
+   ``RacketMotion.state_at``) sampled so finely that the ball's centre moves at most
+   SUBSAMPLE_TRAVEL (2 mm) relative to the blade between samples, and Illinois on the first bracket
+   where the gap goes from positive to non-positive (``propagate.locate_root``). A 1.4 cm blade is
+   5.4 cm thick for the ball's centre, so nothing tunnels through it at any relative speed (the
+   BallPlant's 1 ms step cap stops tunnelling up to 50 m/s); a touch shallower than about 1 mm
+   that starts and ends between two samples can be missed, as between the reference's steps.
+3. The earliest contact is applied (a separating racket touch, a graze, and a crossing of the
+   table's guard from below are no contact: the state is unchanged), the step continues from it,
+   and where a contact changed a row's state, the row's fast pass is redone from that step on.
+
+Post-table perturbations follow the BallPlant's rule: a table contact draws from
+``np.random.default_rng([seed, number of this episode's events before it])``. Each row's result
+is the same bit for bit whatever the other rows are (row independence), as long as the
+``RacketMotion`` evaluates each row independently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import numpy as np
+
+from ace_drake.physics import contact
+from ace_drake.physics.contact import ResidualModel
+from ace_drake.physics.flight import POSITION, VELOCITY, rk4_step
+from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.physics.propagate import (
+    DEFAULT_KINDS,
+    GAP_SCREEN_MARGIN,
+    MAX_EVENTS_PER_STEP,
+    ContactEvent,
+    ContactKind,
+    apply_impact,
+    first_contact_time,
+    guard_gaps,
+    is_contact,
+    locate_root,
+)
+
+# m/s^2 and rad/s^2: bounds on the racket's accelerations between two samples, for the screen
+# (a fast robot swing peaks near 100 m/s^2; a bound too low could let a contact be missed).
+RACKET_ACCELERATION_BOUND = 2000.0
+RACKET_ANGULAR_ACCELERATION_BOUND = 20000.0
+SPEED_MARGIN = 0.5  # m/s added to the speed bounds (the RK4 dense solution's rate, round-off)
+SUBSAMPLE_TRAVEL = 2e-3  # m, the relative travel between the exact racket-gap samples of a step
+MAX_SUBSAMPLES = 512  # per step: 1 km/s of relative speed at 1 ms steps
+RACKET = len(DEFAULT_KINDS)  # the racket's index after the static kinds'
+
+
+class RacketMotion(Protocol):
+    """The racket over one segment, for B environments (R: origin at the blade centre, z along the
+    blade normal; DESIGN.md).
+
+    times (n+1,): s after the segment's start, the step times (0, dt, ..., duration).
+    p_WR (B, n+1, 3): the blade centre at the step times, m, world.
+    R_WR (B, n+1, 3, 3): the racket's orientation at the step times.
+    w_WR, v_WR (B, n+1, 3): its spatial velocity at the step times, rad/s and m/s of R's origin.
+    state_at(env (k,) int, tau (k,) s in [0, duration]) -> (p (k, 3), R (k, 3, 3), w (k, 3),
+        v (k, 3)): the exact state of environment env[i] at tau[i], equal to the samples at the
+        step times; each row computed independently of the others.
+    """
+
+    times: np.ndarray
+    p_WR: np.ndarray
+    R_WR: np.ndarray
+    w_WR: np.ndarray
+    v_WR: np.ndarray
+
+    def state_at(self, env: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+@dataclasses.dataclass
+class SegmentFlight:
+    """Result of ``propagate_segment`` for B balls.
+
+    times (n+1,): s after the segment's start; samples (B, n+1, 9): the ball states at those times
+    (contacts applied at their exact times before); final (B, 9) = samples[:, -1]; events[i]: ball
+    i's contacts in this segment, in order, with absolute times (start_times[i] + tau, s).
+    """
+
+    times: np.ndarray
+    samples: np.ndarray
+    final: np.ndarray
+    events: list[list[ContactEvent]]
+
+
+def segment_times(duration: float, dt: float = 1e-3) -> np.ndarray:
+    """The step times (n+1,) of a segment of ``duration`` s in steps of ``dt`` s: 0, dt, ...,
+    duration (a last, shorter step when duration is not a multiple of dt)."""
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"segment_times: dt must be a positive number of seconds, got {dt}")
+    if not (np.isfinite(duration) and duration > 0):
+        raise ValueError(f"segment_times: duration must be a positive number of seconds, got {duration}")
+    n_steps = int(np.ceil(duration / dt - 1e-9))
+    times = np.minimum(np.arange(n_steps + 1) * dt, duration)
+    times[-1] = duration
+    return times
+
+
+def propagate_segment(
+    states: np.ndarray,
+    start_times: np.ndarray,
+    duration: float,
+    params: BallPhysicsParams,
+    racket: RacketMotion | None = None,
+    active: np.ndarray | None = None,
+    dt: float = 1e-3,
+    perturb_seeds: np.ndarray | None = None,
+    event_counts: np.ndarray | None = None,
+    residual: ResidualModel | None = None,
+) -> SegmentFlight:
+    """Flies B balls over one segment with every table, net, floor and racket contact located
+    exactly and applied (module docstring).
+
+    Args:
+        states: (B, 9) [p (m), v (m/s), w (rad/s)] at the segment's start, world.
+        start_times: (B,) s, each environment's time at the segment's start (event times).
+        duration: the segment's length, s (32 ms in the rally); dt: the step, s.
+        racket: the racket's motion over the segment (``RacketMotion``, times = the step times), or
+            None: no racket.
+        active: (B,) bool, default all; an inactive row passes through unchanged, with no events
+            (its state may be anything, NaN included).
+        perturb_seeds: (B,) int, the episodes' seeds of the post-table perturbations, or None: no
+            perturbations. event_counts: (B,) int, each episode's number of events before this
+            segment (the perturbations' stream), default 0.
+        residual: an optional racket contact correction (``contact.racket_impact``).
+    """
+    states = np.array(states, dtype=float)
+    if states.ndim != 2 or states.shape[1] != 9:
+        raise ValueError(f"propagate_segment: states must be (B, 9), got {states.shape}")
+    n_balls = states.shape[0]
+    active = np.ones(n_balls, dtype=bool) if active is None else np.asarray(active)
+    if active.shape != (n_balls,) or active.dtype != bool:
+        raise ValueError(f"propagate_segment: active must be a bool array ({n_balls},), got {active.dtype} {active.shape}")
+    if not np.all(np.isfinite(states[active])):
+        raise ValueError("propagate_segment: states of active rows contain NaN or inf")
+    start_times = np.asarray(start_times, dtype=float)
+    if start_times.shape != (n_balls,) or not np.all(np.isfinite(start_times)):
+        raise ValueError(f"propagate_segment: start_times must be ({n_balls},) finite seconds, got shape {start_times.shape}")
+    times = segment_times(duration, dt)
+    perturb_seeds = None if perturb_seeds is None else _integers("perturb_seeds", perturb_seeds, n_balls)
+    event_counts = np.zeros(n_balls, dtype=int) if event_counts is None else _integers("event_counts", event_counts, n_balls)
+    if np.any(event_counts < 0):
+        raise ValueError(f"propagate_segment: event_counts must be >= 0, got {event_counts}")
+    if racket is not None:
+        _check_racket(racket, times, n_balls)
+    run = _Segment(states, start_times, times, params, racket, perturb_seeds, event_counts, residual)
+    run.propagate(np.flatnonzero(active))
+    return SegmentFlight(times=times, samples=run.samples, final=run.samples[:, -1].copy(), events=run.events)
+
+
+def _integers(name: str, values, n_balls: int) -> np.ndarray:
+    values = np.asarray(values)
+    if values.shape != (n_balls,) or not np.issubdtype(values.dtype, np.integer):
+        raise ValueError(f"propagate_segment: {name} must be an integer array ({n_balls},), got {values.dtype} {values.shape}")
+    return values.astype(np.int64)
+
+
+def _check_racket(racket: RacketMotion, times: np.ndarray, n_balls: int) -> None:
+    racket_times = np.asarray(racket.times, dtype=float)
+    if racket_times.shape != times.shape or not np.allclose(racket_times, times, rtol=0.0, atol=1e-12):
+        raise ValueError(f"propagate_segment: racket.times must be the step times {times.shape} (0, dt, ..., duration), got {racket_times.shape}")
+    expected = {"p_WR": (3,), "R_WR": (3, 3), "w_WR": (3,), "v_WR": (3,)}
+    for name, tail in expected.items():
+        value = np.asarray(getattr(racket, name))
+        if value.shape != (n_balls, times.size) + tail or not np.all(np.isfinite(value)):
+            raise ValueError(f"propagate_segment: racket.{name} must be finite {(n_balls, times.size) + tail}, got {value.shape}")
+
+
+class _Segment:
+    """One call's working state: samples (B, n+1, 9) filled by the fast pass and corrected by the
+    exact steps, the events, the racket's per-step speed bounds."""
+
+    def __init__(self, states, start_times, times, params, racket, perturb_seeds, event_counts, residual):
+        self.params, self.racket, self.residual = params, racket, residual
+        self.times, self.steps = times, _steps(times)
+        self.start_times, self.perturb_seeds, self.event_counts = start_times, perturb_seeds, event_counts
+        self.kinds = DEFAULT_KINDS
+        self.radius = params.aero.ball_radius
+        self.reach = contact.blade_half_diagonal(params.racket) + self.radius  # the screen's sphere, m
+        n_balls, n_steps = states.shape[0], self.steps.size
+        self.samples = np.repeat(states[:, None, :], n_steps + 1, axis=1)
+        self.events: list[list[ContactEvent]] = [[] for _ in range(n_balls)]
+        if racket is not None:
+            p, R, w, v = (np.asarray(a, dtype=float) for a in (racket.p_WR, racket.R_WR, racket.w_WR, racket.v_WR))
+            self.p_WR, self.R_WR, self.w_WR, self.v_WR = p, R, w, v
+            self.racket_speed = _speed_bound(v, RACKET_ACCELERATION_BOUND * self.steps)  # (B, n) m/s
+            self.racket_turn = _speed_bound(w, RACKET_ANGULAR_ACCELERATION_BOUND * self.steps)  # (B, n) rad/s
+
+    # ------------------------------------------------------------------ the passes
+    def propagate(self, rows: np.ndarray) -> None:
+        """Fast pass for ``rows``, then their flagged steps exactly, in order (module docstring)."""
+        n_steps = self.steps.size
+        self._fly(rows, np.zeros(rows.size, dtype=int))
+        flags = np.zeros((self.samples.shape[0], n_steps), dtype=bool)
+        flags[rows] = self._flags(rows)
+        cursor = np.full(self.samples.shape[0], n_steps)
+        cursor[rows] = 0
+        step_index = np.arange(n_steps)
+        while True:
+            pending = flags & (step_index[None, :] >= cursor[:, None])
+            todo = np.flatnonzero(pending.any(axis=1))
+            if todo.size == 0:
+                return
+            k = pending[todo].argmax(axis=1)
+            x_end, changed = self._exact_step(todo, k)
+            cursor[todo] = k + 1
+            redo, k_redo = todo[changed], k[changed] + 1
+            if redo.size:
+                self.samples[redo, k_redo] = x_end[changed]
+                self._fly(redo, k_redo)
+                flags[redo] = self._flags(redo)
+
+    def _fly(self, rows: np.ndarray, first: np.ndarray) -> None:
+        """RK4 from sample first[i] to the segment's end for each of ``rows``, no contacts."""
+        for k in range(int(first.min(initial=self.steps.size)), self.steps.size):
+            live = rows[first <= k]
+            self.samples[live, k + 1] = rk4_step(self.samples[live, k], np.full(live.size, self.steps[k]), self.params.aero)
+
+    def _flags(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), n) bool: the steps that may hold a contact (a static guard crossing, or a
+        step the racket screen cannot clear)."""
+        x = self.samples[rows]
+        m, n_points = x.shape[:2]
+        positive = guard_gaps(x.reshape(-1, 9), self.kinds, self.params).reshape(m, n_points, -1) > 0.0
+        flags = (positive[:, :-1] & ~positive[:, 1:]).any(axis=-1)
+        if self.racket is not None:
+            ball_speed = _speed_bound(x[..., VELOCITY], 0.0)
+            distance = _norm(x[..., POSITION] - self.p_WR[rows])
+            speed = ball_speed + self.racket_speed[rows]
+            flags |= 0.5 * (distance[:, :-1] + distance[:, 1:] - speed * self.steps) - self.reach <= GAP_SCREEN_MARGIN
+        return flags
+
+    # ------------------------------------------------------------------ one exact step
+    def _exact_step(self, rows: np.ndarray, k: np.ndarray):
+        """Step k[i] of each of ``rows`` with its contacts located and applied. Returns the states
+        at the step's end (len(rows), 9) and whether a contact was located (the state differs from
+        the fast pass's)."""
+        params = self.params
+        t0, h = self.times[k], self.steps[k]
+        x = self.samples[rows, k].copy()
+        gaps = guard_gaps(x, self.kinds, params)
+        clear = np.ones(rows.size, dtype=bool)  # the racket gap > 0 now
+        if self.racket is not None:
+            clear = contact.racket_gap(x[:, POSITION], self.p_WR[rows, k], self.R_WR[rows, k], params.racket, self.radius) > 0.0
+        remaining, elapsed = h.copy(), np.zeros(rows.size)
+        changed = np.zeros(rows.size, dtype=bool)
+        for _ in range(MAX_EVENTS_PER_STEP):
+            live = np.flatnonzero(remaining > 0.0)
+            if live.size == 0:
+                break
+            x0, h0 = x[live], remaining[live]
+            x1 = rk4_step(x0, h0, params.aero)
+            gaps1 = guard_gaps(x1, self.kinds, params)
+            crossing = (gaps[live] > 0.0) & (gaps1 <= 0.0)
+            tau = np.full(live.size, np.inf)
+            kind_index = np.zeros(live.size, dtype=int)
+            static = np.flatnonzero(crossing.any(axis=-1))
+            if static.size:
+                tau[static], kind_index[static] = first_contact_time(x0[static], h0[static], crossing[static], self.kinds, params)
+            clear1 = np.ones(live.size, dtype=bool)
+            if self.racket is not None:
+                tau_racket, clear1 = self._racket_crossing(rows[live], k[live], x0, x1, h0, t0[live] + elapsed[live], elapsed[live] == 0.0, clear[live])
+                earlier = tau_racket < tau
+                tau[earlier], kind_index[earlier] = tau_racket[earlier], RACKET
+            free = np.isinf(tau)
+            x[live[free]], gaps[live[free]], clear[live[free]] = x1[free], gaps1[free], clear1[free]
+            remaining[live[free]] = 0.0
+            hit = np.flatnonzero(~free)
+            if hit.size == 0:
+                break
+            x_pre = rk4_step(x0[hit], tau[hit], params.aero)
+            for j, i in enumerate(live[hit]):
+                elapsed[i] += tau[hit[j]]
+                remaining[i] -= tau[hit[j]]
+                x[i] = self._apply_contact(rows[i], kind_index[hit[j]], t0[i] + elapsed[i], x_pre[j])
+                changed[i] = True
+            touched = live[hit]
+            gaps[touched] = guard_gaps(x[touched], self.kinds, params)
+            if self.racket is not None:
+                p, R, _, _ = self.racket.state_at(rows[touched], t0[touched] + elapsed[touched])
+                clear[touched] = contact.racket_gap(x[touched, POSITION], p, R, params.racket, self.radius) > 0.0
+        unfinished = np.flatnonzero(remaining > 0.0)  # more than MAX_EVENTS_PER_STEP contacts: fly on
+        if unfinished.size:
+            x[unfinished] = rk4_step(x[unfinished], remaining[unfinished], params.aero)
+        return x, changed
+
+    def _racket_crossing(self, envs, k, x0, x1, h0, t_start, at_sample, clear0):
+        """The first time (s after t_start; inf if none) within (0, h0] at which each ball's racket
+        gap goes from positive to non-positive, and whether the gap is positive at h0 (the step's
+        end). x0, x1 (m, 9): the ball at t_start and t_start + h0; at_sample: t_start is the
+        sample time times[k]; clear0: the gap is positive at t_start."""
+        params = self.params
+        p_R0 = self.p_WR[envs, k].copy()
+        moved = np.flatnonzero(~at_sample)
+        if moved.size:
+            p_R0[moved] = self.racket.state_at(envs[moved], t_start[moved])[0]
+        ball_speed = _speed_bound(np.stack([x0[:, VELOCITY], x1[:, VELOCITY]], axis=1), 0.0)[:, 0]
+        speed = ball_speed + self.racket_speed[envs, k]
+        d0, d1 = _norm(x0[:, POSITION] - p_R0), _norm(x1[:, POSITION] - self.p_WR[envs, k + 1])
+        candidates = np.flatnonzero(0.5 * (d0 + d1 - speed * h0) - self.reach <= GAP_SCREEN_MARGIN)
+        tau = np.full(envs.size, np.inf)
+        clear1 = np.ones(envs.size, dtype=bool)
+        if candidates.size == 0:
+            return tau, clear1
+        c = candidates
+        gap_rate = speed[c] + self.racket_turn[envs[c], k[c]] * contact.blade_half_diagonal(params.racket)
+        count = np.clip(np.ceil(gap_rate * h0[c] / SUBSAMPLE_TRAVEL), 1, MAX_SUBSAMPLES).astype(int)
+        owner = np.repeat(np.arange(c.size), count)
+        first = np.cumsum(count) - count
+        j = np.arange(owner.size) - first[owner] + 1  # 1 .. count
+        last = j == count[owner]
+        s = np.where(last, h0[c][owner], h0[c][owner] * j / count[owner])
+        balls = rk4_step(x0[c][owner], s, params.aero)
+        p_R, R_R = self.p_WR[envs[c], k[c] + 1][owner], self.R_WR[envs[c], k[c] + 1][owner]
+        inner = np.flatnonzero(~last)
+        if inner.size:
+            p_R[inner], R_R[inner] = self.racket.state_at(envs[c][owner[inner]], t_start[c][owner[inner]] + s[inner])[:2]
+        positive = contact.racket_gap(balls[:, POSITION], p_R, R_R, params.racket, self.radius) > 0.0
+        before = np.where(j == 1, clear0[c][owner], np.roll(positive, 1))
+        clear1[c] = positive[last]
+        crossing = np.flatnonzero(before & ~positive)
+        if crossing.size == 0:
+            return tau, clear1
+        found, index = np.unique(owner[crossing], return_index=True)  # each owner's first crossing
+        index = crossing[index]
+        lower = np.where(j[index] == 1, 0.0, s[index - 1])
+        rows = c[found]
+        envs_found, start_found = envs[rows], t_start[rows]
+
+        def gap(states, time):
+            p, R, _, _ = self.racket.state_at(envs_found, start_found + time)
+            return contact.racket_gap(states[:, POSITION], p, R, params.racket, self.radius)
+
+        tau[rows] = locate_root(x0[rows], s[index], gap, params, lower=lower)
+        return tau, clear1
+
+    def _apply_contact(self, env: int, kind_index: int, tau: float, pre: np.ndarray) -> np.ndarray:
+        """The state after environment env's contact of kind kinds[kind_index] (or the racket) at
+        tau s after the segment's start, recording the event; unchanged for a non-contact."""
+        params = self.params
+        if kind_index == RACKET:
+            p, R, w, v = self.racket.state_at(np.array([env]), np.array([tau]))
+            post, impact = contact.racket_contact(pre, p[0], R[0], w[0], v[0], params.racket, self.radius, residual=self.residual)
+            if not impact:
+                return pre  # a graze
+            kind = ContactKind.RACKET
+        else:
+            kind = self.kinds[kind_index]
+            if not is_contact(kind, pre, params):
+                return pre
+            rng = None
+            if self.perturb_seeds is not None and kind == ContactKind.TABLE:  # the BallPlant's rule
+                rng = np.random.default_rng([int(self.perturb_seeds[env]), int(self.event_counts[env]) + len(self.events[env])])
+            post = apply_impact(kind, pre, params, rng)
+        self.events[env].append(ContactEvent(kind, float(self.start_times[env] + tau), pre.copy(), post.copy()))
+        return post
+
+
+def _steps(times: np.ndarray) -> np.ndarray:
+    """The step lengths (n,) s of ``segment_times``: dt itself (as ``propagate.simulate`` steps),
+    except a shorter last step."""
+    steps = np.full(times.size - 1, times[1] - times[0])
+    if times.size > 2 and not np.isclose(times[-1] - times[-2], steps[0], rtol=1e-9, atol=0.0):
+        steps[-1] = times[-1] - times[-2]
+    return steps
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    return np.sqrt(a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2])
+
+
+def _speed_bound(velocity: np.ndarray, change: np.ndarray | float) -> np.ndarray:
+    """A bound (..., n) on the speed between consecutive samples of ``velocity`` (..., n+1, 3):
+    the larger end speed plus the change between the ends, plus ``change`` (an acceleration bound
+    times the step) and SPEED_MARGIN."""
+    speed = _norm(velocity)
+    return np.maximum(speed[..., :-1], speed[..., 1:]) + _norm(velocity[..., 1:, :] - velocity[..., :-1, :]) + change + SPEED_MARGIN
