@@ -190,6 +190,70 @@ class RallyEnvParams:
             raise ConfigError(f"pass_margin must be >= 0, got {self.pass_margin}")
 
 
+def draw_robot_start(stack, params: RallyEnvParams, rng: np.random.Generator, start: str):
+    """(q, v, a, kind) of a drawn initial robot state (module docstring); v and a are None for a
+    static start; ``start`` "static" or "dynamic" (a dynamic start that finds no collision-free
+    moving state within ``dynamic_attempts`` stands still instead, kind "static")."""
+    if start == "dynamic":
+        drawn = _draw_dynamic_state(stack, params, rng)
+        if drawn is not None:
+            return (*drawn, "dynamic")
+        start = "static"  # no collision-free moving start found: stand still instead
+    if start != "static":
+        raise ValueError(f"RallyEnv.reset: start must be 'static' or 'dynamic', got {start!r}")
+    return _draw_static_state(stack, params, rng), None, None, "static"
+
+
+def _draw_static_state(stack, params: RallyEnvParams, rng: np.random.Generator) -> np.ndarray:
+    """The reset pose with the prismatic joints uniform within their command limits, clear of
+    the court and itself (the reset pose if ``static_attempts`` draws all collide)."""
+    limits = stack.limits
+    for _ in range(params.static_attempts):
+        q = stack.reset_pose.copy()
+        q[PRISMATIC_JOINTS] = rng.uniform(limits.lower[PRISMATIC_JOINTS], limits.upper[PRISMATIC_JOINTS])
+        if stack.initial_plan(q)[1]:
+            return q
+    return stack.reset_pose.copy()
+
+
+def _draw_dynamic_state(stack, params: RallyEnvParams, rng: np.random.Generator):
+    """(q, v, a) part-way along a collision-free reset plan from a random invariant state, or
+    None after ``dynamic_attempts`` draws."""
+    for _ in range(params.dynamic_attempts):
+        q, v, a = random_invariant_state(stack, rng)
+        plan, free = stack.initial_plan(q, v, a)
+        if not free:
+            continue
+        state = tuple(np.array(x) for x in plan.state(int(rng.integers(plan.samples))))
+        if stack.initial_plan(*state)[1]:  # the supervisor re-plans the reset from there
+            return state
+    return None
+
+
+def pass_distance(params: RallyEnvParams) -> float:
+    """End condition (3)'s distance (m): the ball is behind every point of the blade by this much."""
+    physics = params.rally.physics
+    return physics.racket.blade_radius + 0.5 * physics.racket.blade_thickness + physics.aero.ball_radius + params.pass_margin
+
+
+def end_condition(result: EpisodeResult, refused: bool, last_reason: str, ball: np.ndarray, racket_x: float, distance: float,
+                  time: float, time_limit: float) -> str:
+    """Which of END_CONDITIONS ended the episode in the last step ("" for none), from its result
+    so far, whether the supervisor refused the last segment and why, the true ball state (9,),
+    the blade centre's x (m), the pass distance (m), the episode time and the time limit (s)."""
+    if result.hit is not None:
+        return "hit"
+    if refused and last_reason.startswith(COLLISION_REASON):
+        return "collision"
+    if result.done:
+        return "out_of_play"
+    if result.bounce is not None and ball[0] < racket_x - distance and ball[3] < 0.0:
+        return "passed"
+    if time >= time_limit - 1e-9:
+        return "time_limit"
+    return ""
+
+
 @dataclasses.dataclass
 class _Episode:
     """The running episode's bookkeeping (the simulation itself lives in the Context)."""
@@ -246,11 +310,7 @@ class RallyEnv(gymnasium.Env):
         self.layout = self._observation_builder.layout
         self.period = self.stack.segment_duration
         self._first_observation = self.period - self.stack.control.observation_lead
-        physics = self.params.rally.physics
-        # End condition (3): the ball is behind every point of the blade by this much, m.
-        self._pass_distance = (
-            physics.racket.blade_radius + 0.5 * physics.racket.blade_thickness + physics.aero.ball_radius + self.params.pass_margin
-        )
+        self._pass_distance = pass_distance(self.params)
         self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (self.layout.size,), np.float32)
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
         self._distribution = distribution
@@ -388,25 +448,11 @@ class RallyEnv(gymnasium.Env):
 
     def _end_condition(self, episode: _Episode, refused_before: int) -> str:
         """Which of END_CONDITIONS ended the episode in the last step ("" for none)."""
-        result = episode.result
         status = self._supervisor_state()
-        if result.hit is not None:
-            return "hit"
-        if status.rejected > refused_before and status.last_reason.startswith(COLLISION_REASON):
-            return "collision"
-        if result.done:
-            return "out_of_play"
-        if result.bounce is not None and self._ball_passed_racket():
-            return "passed"
-        if self.context.get_time() >= self.params.rally.time_limit - 1e-9:
-            return "time_limit"
-        return ""
-
-    def _ball_passed_racket(self) -> bool:
-        """End condition (3) (module docstring), from the true ball and racket."""
         ball = self._ball.ball_state_port.Eval(self._ball.GetMyContextFromRoot(self.context))
         X_WR = self._kinematics.racket_pose_port.Eval(self._kinematics.GetMyContextFromRoot(self.context))
-        return bool(ball[0] < X_WR.translation()[0] - self._pass_distance and ball[3] < 0.0)
+        return end_condition(episode.result, status.rejected > refused_before, status.last_reason, ball, X_WR.translation()[0],
+                             self._pass_distance, self.context.get_time(), self.params.rally.time_limit)
 
     def _finish_return(self, episode: _Episode) -> None:
         """After the hit: no more segments; simulate until the return is decided or
@@ -428,38 +474,5 @@ class RallyEnv(gymnasium.Env):
         return self._shots.pop(0)
 
     def _draw_robot_state(self, start: str):
-        """(q, v, a, kind) of a drawn initial robot state (module docstring); v and a are None
-        for a static start."""
-        if start == "dynamic":
-            drawn = self._draw_dynamic_state()
-            if drawn is not None:
-                return (*drawn, "dynamic")
-            start = "static"  # no collision-free moving start found: stand still instead
-        if start != "static":
-            raise ValueError(f"RallyEnv.reset: start must be 'static' or 'dynamic', got {start!r}")
-        return self._draw_static_state(), None, None, "static"
-
-    def _draw_static_state(self) -> np.ndarray:
-        """The reset pose with the prismatic joints uniform within their command limits, clear of
-        the court and itself (the reset pose if ``static_attempts`` draws all collide)."""
-        limits = self.stack.limits
-        for _ in range(self.params.static_attempts):
-            q = self.stack.reset_pose.copy()
-            q[PRISMATIC_JOINTS] = self.np_random.uniform(limits.lower[PRISMATIC_JOINTS], limits.upper[PRISMATIC_JOINTS])
-            if self.stack.initial_plan(q)[1]:
-                return q
-        return self.stack.reset_pose.copy()
-
-    def _draw_dynamic_state(self):
-        """(q, v, a) part-way along a collision-free reset plan from a random invariant state, or
-        None after ``dynamic_attempts`` draws."""
-        for _ in range(self.params.dynamic_attempts):
-            q, v, a = random_invariant_state(self.stack, self.np_random)
-            plan, free = self.stack.initial_plan(q, v, a)
-            if not free:
-                continue
-            state = tuple(np.array(x) for x in plan.state(int(self.np_random.integers(plan.samples))))
-            if self.stack.initial_plan(*state)[1]:  # the supervisor re-plans the reset from there
-                return state
-        return None
-
+        """(q, v, a, kind) of a drawn initial robot state (``draw_robot_start``)."""
+        return draw_robot_start(self.stack, self.params, self.np_random, start)

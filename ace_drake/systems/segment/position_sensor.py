@@ -9,7 +9,8 @@ from pydrake.systems.framework import LeafSystem
 from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import PositionSensorParams
-from ace_drake.systems.statistical_position_sensor import SensorQueue, trigger_position_sensor
+from ace_drake.perception.sensor_models import sample_position_measurements
+from ace_drake.systems.statistical_position_sensor import POSITION_STREAM, SensorQueue
 
 
 def trigger_samples(period: float, timing: SegmentTiming, name: str) -> int:
@@ -23,8 +24,10 @@ def trigger_samples(period: float, timing: SegmentTiming, name: str) -> int:
 class SegmentPositionSensor(LeafSystem):
     """The continuous-time ``StatisticalPositionSensor`` for B environments: at each 200 Hz
     trigger inside a tick, the true ball centre with Gaussian noise, dropout and latency
-    (``statistical_position_sensor.trigger_position_sensor``, the same draws: a seed gives the
-    reference's measurements bit for bit).
+    (``perception.sensor_models.sample_position_measurements``, the reference's model). The draws
+    of a tick's triggers come at once from the stream [seed, POSITION_STREAM, tick] (the
+    reference draws per trigger), so the statistics are the reference's and a seed gives the
+    same measurements whatever the batch.
 
     Input ports:
         ball_flight (abstract BallSegment): the SegmentBallPlant's samples over the tick.
@@ -35,7 +38,8 @@ class SegmentPositionSensor(LeafSystem):
     State:
         abstract tuple of B SensorQueue; abstract int64 (B,): each episode's seed.
     Events:
-        periodic unrestricted update every T (offset 0): the tick's triggers.
+        periodic unrestricted update every T (offset 0): the tick's triggers, their measurements
+        queued until their release.
     """
 
     def __init__(self, params: PositionSensorParams, batch: int, timing: SegmentTiming):
@@ -71,14 +75,16 @@ class SegmentPositionSensor(LeafSystem):
 
     def Trigger(self, context, state):
         flight = self.ball_flight_port.Eval(context)
-        first = self.timing.first_sample(self.episode_ticks_port.Eval(context))
+        ticks = self.episode_ticks_port.Eval(context)
+        first = self.timing.first_sample(ticks)
         seeds = self._seeds(context)
         queues = list(self._queues(context))
         for row in range(self.batch):
             start = max(int(first[row]), 0)
-            for sample in range(-(-start // self._trigger) * self._trigger, int(first[row]) + self.timing.samples, self._trigger):
-                now = float(self.timing.seconds(sample))
-                queues[row] = trigger_position_sensor(self.params, queues[row], int(seeds[row]), now, flight.samples[row, sample - first[row], :3])
+            triggers = np.arange(-(-start // self._trigger) * self._trigger, int(first[row]) + self.timing.samples, self._trigger)
+            rng = np.random.default_rng([int(seeds[row]), POSITION_STREAM, int(ticks[row])])
+            sampled = sample_position_measurements(flight.samples[row, triggers - first[row], :3], self.timing.seconds(triggers), self.params, rng)
+            queues[row] = queues[row].sampled(sampled, float(self.timing.seconds(first[row] + self.timing.samples)))
         state.get_mutable_abstract_state(self._queue_index).set_value(tuple(queues))
 
     def _queues(self, context) -> tuple[SensorQueue, ...]:

@@ -10,15 +10,17 @@ from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import SpinSensorParams
 from ace_drake.systems.gaze_spin_sensor import SpinSensorState, poll_spin_sensor, start_spin_sensor
-from ace_drake.systems.segment.position_sensor import trigger_samples
 from ace_drake.systems.statistical_position_sensor import SensorQueue
 
 
 class SegmentSpinSensor(LeafSystem):
-    """The continuous-time ``GazeSpinSensor`` for B environments: the same 200 Hz polls inside
-    each tick (``gaze_spin_sensor.poll_spin_sensor``: variable rate, latency, dropout, racket
-    tracking loss, precision noise and per-contact bias; the reference's draws, so a seed gives
-    its measurements bit for bit).
+    """The continuous-time ``GazeSpinSensor`` for B environments: one poll per tick, at its end,
+    samples every capture time of the tick (``gaze_spin_sensor.poll_spin_sensor``: variable rate,
+    latency, dropout, racket tracking loss, precision noise and per-contact bias). Spin is
+    constant in flight, so sampling a capture after its time gives the reference's value; what a
+    tick releases is queued until its release time, so the output is the reference's model. The
+    draws come per tick (the reference draws per 5 ms poll), so a seed gives the same
+    measurements whatever the batch, not the reference's numbers.
 
     Input ports:
         ball_flight (abstract BallSegment): the SegmentBallPlant's samples and contact events.
@@ -29,7 +31,7 @@ class SegmentSpinSensor(LeafSystem):
     State:
         abstract tuple of B SpinSensorState; abstract int64 (B,): each episode's seed.
     Events:
-        periodic unrestricted update every T (offset 0): the tick's polls.
+        periodic unrestricted update every T (offset 0): the tick's poll.
     """
 
     def __init__(self, params: SpinSensorParams, batch: int, timing: SegmentTiming):
@@ -38,7 +40,6 @@ class SegmentSpinSensor(LeafSystem):
         self.params = params
         self.batch = int(batch)
         self.timing = timing
-        self._poll = trigger_samples(params.poll_period, timing, "SegmentSpinSensor")
         self._empty = SpinSensorState(SensorQueue(MeasurementHistory(capacity=params.history_capacity)))
         self._state_index = self.DeclareAbstractState(AbstractValue.Make((self._empty,) * self.batch))
         self._seed_index = self.DeclareAbstractState(AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
@@ -66,16 +67,11 @@ class SegmentSpinSensor(LeafSystem):
 
     def Poll(self, context, state):
         flight = self.ball_flight_port.Eval(context)
-        first = self.timing.first_sample(self.episode_ticks_port.Eval(context))
+        end = self.timing.seconds(self.timing.first_sample(self.episode_ticks_port.Eval(context)) + self.timing.samples)
         seeds = context.get_abstract_state(self._seed_index).get_value()
         states = list(self._states(context))
         for row in range(self.batch):
-            start = max(int(first[row]), 0)
-            events = flight.events[row]
-            for sample in range(-(-start // self._poll) * self._poll, int(first[row]) + self.timing.samples, self._poll):
-                now = float(self.timing.seconds(sample))
-                seen = tuple(event for event in events if event.time <= now)
-                states[row] = poll_spin_sensor(self.params, states[row], int(seeds[row]), now, flight.samples[row, sample - first[row], 6:9], seen)
+            states[row] = poll_spin_sensor(self.params, states[row], int(seeds[row]), float(end[row]), flight.samples[row, -1, 6:9], flight.events[row])
         state.get_mutable_abstract_state(self._state_index).set_value(tuple(states))
 
     def _states(self, context) -> tuple[SpinSensorState, ...]:
