@@ -15,6 +15,7 @@ from ace_drake.physics.flight import (
     one_ball_flight_acceleration,
     rk4_step,
     rk4_step_numpy,
+    rk4_trajectory,
 )
 from ace_drake.physics.params import AeroParams, BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, simulate
@@ -111,6 +112,21 @@ def test_compiled_rk4_step_keeps_shapes_and_per_ball_steps():
     assert rk4_step(states[0, 0], 1e-3, AERO).shape == (9,)
     with pytest.raises(ValueError, match=r"\(\.\.\., 9\)"):
         rk4_step(np.zeros(8), 1e-3, AERO)
+
+
+def test_rk4_trajectory_is_repeated_rk4_steps_bit_for_bit():
+    rng = np.random.default_rng(4)
+    states = np.concatenate([rng.normal(0, 1, (6, 3)), rng.normal(0, 8, (6, 3)), rng.normal(0, 300, (6, 3))], axis=-1)
+    steps = np.r_[np.full(5, 1e-3), 3e-4]
+    trajectory = rk4_trajectory(states, steps, AERO)
+    assert trajectory.shape == (6, 7, 9)
+    x = states
+    np.testing.assert_array_equal(trajectory[:, 0], states)
+    for k, h in enumerate(steps):
+        x = rk4_step(x, h, AERO)
+        np.testing.assert_array_equal(trajectory[:, k + 1], x)
+    with pytest.raises(ValueError, match="rk4_trajectory"):
+        rk4_trajectory(states[0], steps, AERO)
 
 
 @settings(max_examples=300, deadline=None)

@@ -46,7 +46,7 @@ import numpy as np
 
 from ace_drake.physics import contact
 from ace_drake.physics.contact import ResidualModel
-from ace_drake.physics.flight import POSITION, VELOCITY, rk4_step
+from ace_drake.physics.flight import POSITION, VELOCITY, rk4_step, rk4_trajectory
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import (
     DEFAULT_KINDS,
@@ -182,7 +182,7 @@ def _integers(name: str, values, n_balls: int) -> np.ndarray:
 
 def _check_racket(racket: RacketMotion, times: np.ndarray, n_balls: int) -> None:
     racket_times = np.asarray(racket.times, dtype=float)
-    if racket_times.shape != times.shape or not np.allclose(racket_times, times, rtol=0.0, atol=1e-12):
+    if racket_times.shape != times.shape or not np.max(np.abs(racket_times - times)) <= 1e-12:
         raise ValueError(f"propagate_segment: racket.times must be the step times {times.shape} (0, dt, ..., duration), got {racket_times.shape}")
     expected = {"p_WR": (3,), "R_WR": (3, 3), "w_WR": (3,), "v_WR": (3,)}
     for name, tail in expected.items():
@@ -237,9 +237,9 @@ class _Segment:
 
     def _fly(self, rows: np.ndarray, first: np.ndarray) -> None:
         """RK4 from sample first[i] to the segment's end for each of ``rows``, no contacts."""
-        for k in range(int(first.min(initial=self.steps.size)), self.steps.size):
-            live = rows[first <= k]
-            self.samples[live, k + 1] = rk4_step(self.samples[live, k], np.full(live.size, self.steps[k]), self.params.aero)
+        for start in np.unique(first):
+            group = rows[first == start]
+            self.samples[group, start:] = rk4_trajectory(self.samples[group, start], self.steps[start:], self.params.aero)
 
     def _flags(self, rows: np.ndarray) -> np.ndarray:
         """(len(rows), n) bool: the steps that may hold a contact (a static guard crossing, or a
@@ -249,11 +249,23 @@ class _Segment:
         positive = guard_gaps(x.reshape(-1, 9), self.kinds, self.params).reshape(m, n_points, -1) > 0.0
         flags = (positive[:, :-1] & ~positive[:, 1:]).any(axis=-1)
         if self.racket is not None:
-            ball_speed = _speed_bound(x[..., VELOCITY], 0.0)
+            speed = _speed_bound(x[..., VELOCITY], 0.0) + self.racket_speed[rows]
             distance = _norm(x[..., POSITION] - self.p_WR[rows])
-            speed = ball_speed + self.racket_speed[rows]
-            flags |= 0.5 * (distance[:, :-1] + distance[:, 1:] - speed * self.steps) - self.reach <= GAP_SCREEN_MARGIN
+            near = 0.5 * (distance[:, :-1] + distance[:, 1:] - speed * self.steps) - self.reach <= GAP_SCREEN_MARGIN
+            i, k = np.nonzero(near)
+            if i.size:  # the same bound on the exact gaps at the ends, with the gap's rate
+                env = rows[i]
+                g0 = contact.racket_gap(x[i, k, POSITION], self.p_WR[env, k], self.R_WR[env, k], self.params.racket, self.radius)
+                g1 = contact.racket_gap(x[i, k + 1, POSITION], self.p_WR[env, k + 1], self.R_WR[env, k + 1], self.params.racket, self.radius)
+                near[i, k] = 0.5 * (g0 + g1 - self._gap_rate(speed[i, k], env, k) * self.steps[k]) <= GAP_SCREEN_MARGIN
+            flags |= near
         return flags
+
+    def _gap_rate(self, speed, env, k):
+        """A bound (m/s) on the racket gap's rate over step k of environments env, given the bound
+        ``speed`` on the ball's speed plus the blade centre's: the blade's points move at most
+        |w| times the half-diagonal faster than its centre."""
+        return speed + self.racket_turn[env, k] * (self.reach - self.radius)
 
     # ------------------------------------------------------------------ one exact step
     def _exact_step(self, rows: np.ndarray, k: np.ndarray):
@@ -294,12 +306,17 @@ class _Segment:
             if hit.size == 0:
                 break
             x_pre = rk4_step(x0[hit], tau[hit], params.aero)
-            for j, i in enumerate(live[hit]):
-                elapsed[i] += tau[hit[j]]
-                remaining[i] -= tau[hit[j]]
-                x[i] = self._apply_contact(rows[i], kind_index[hit[j]], t0[i] + elapsed[i], x_pre[j])
-                changed[i] = True
             touched = live[hit]
+            elapsed[touched] += tau[hit]
+            remaining[touched] -= tau[hit]
+            changed[touched] = True
+            on_racket = kind_index[hit] == RACKET
+            if on_racket.any():
+                at = touched[on_racket]
+                x[at] = self._apply_racket_contacts(rows[at], t0[at] + elapsed[at], x_pre[on_racket])
+            for j in np.flatnonzero(~on_racket):
+                i = touched[j]
+                x[i] = self._apply_static_contact(rows[i], kind_index[hit[j]], t0[i] + elapsed[i], x_pre[j])
             gaps[touched] = guard_gaps(x[touched], self.kinds, params)
             if self.racket is not None:
                 p, R, _, _ = self.racket.state_at(rows[touched], t0[touched] + elapsed[touched])
@@ -315,20 +332,27 @@ class _Segment:
         end). x0, x1 (m, 9): the ball at t_start and t_start + h0; at_sample: t_start is the
         sample time times[k]; clear0: the gap is positive at t_start."""
         params = self.params
-        p_R0 = self.p_WR[envs, k].copy()
+        p_R0, R_R0 = self.p_WR[envs, k].copy(), self.R_WR[envs, k].copy()
         moved = np.flatnonzero(~at_sample)
         if moved.size:
-            p_R0[moved] = self.racket.state_at(envs[moved], t_start[moved])[0]
+            p_R0[moved], R_R0[moved] = self.racket.state_at(envs[moved], t_start[moved])[:2]
         ball_speed = _speed_bound(np.stack([x0[:, VELOCITY], x1[:, VELOCITY]], axis=1), 0.0)[:, 0]
         speed = ball_speed + self.racket_speed[envs, k]
         d0, d1 = _norm(x0[:, POSITION] - p_R0), _norm(x1[:, POSITION] - self.p_WR[envs, k + 1])
-        candidates = np.flatnonzero(0.5 * (d0 + d1 - speed * h0) - self.reach <= GAP_SCREEN_MARGIN)
         tau = np.full(envs.size, np.inf)
         clear1 = np.ones(envs.size, dtype=bool)
-        if candidates.size == 0:
+        c = np.flatnonzero(0.5 * (d0 + d1 - speed * h0) - self.reach <= GAP_SCREEN_MARGIN)
+        if c.size == 0:
             return tau, clear1
-        c = candidates
-        gap_rate = speed[c] + self.racket_turn[envs[c], k[c]] * contact.blade_half_diagonal(params.racket)
+        # The exact gaps at the ends and the gap's rate: most steps near the blade end here.
+        g0 = contact.racket_gap(x0[c, POSITION], p_R0[c], R_R0[c], params.racket, self.radius)
+        g1 = contact.racket_gap(x1[c, POSITION], self.p_WR[envs[c], k[c] + 1], self.R_WR[envs[c], k[c] + 1], params.racket, self.radius)
+        gap_rate = self._gap_rate(speed[c], envs[c], k[c])
+        clear1[c] = g1 > 0.0
+        close = 0.5 * (g0 + g1 - gap_rate * h0[c]) <= GAP_SCREEN_MARGIN
+        c, gap_rate = c[close], gap_rate[close]
+        if c.size == 0:
+            return tau, clear1
         count = np.clip(np.ceil(gap_rate * h0[c] / SUBSAMPLE_TRAVEL), 1, MAX_SUBSAMPLES).astype(int)
         owner = np.repeat(np.arange(c.size), count)
         first = np.cumsum(count) - count
@@ -359,24 +383,35 @@ class _Segment:
         tau[rows] = locate_root(x0[rows], s[index], gap, params, lower=lower)
         return tau, clear1
 
-    def _apply_contact(self, env: int, kind_index: int, tau: float, pre: np.ndarray) -> np.ndarray:
-        """The state after environment env's contact of kind kinds[kind_index] (or the racket) at
-        tau s after the segment's start, recording the event; unchanged for a non-contact."""
+    def _apply_racket_contacts(self, envs: np.ndarray, tau: np.ndarray, pre: np.ndarray) -> np.ndarray:
+        """The states (m, 9) after racket contacts of environments envs (m,) at tau (m,) s after
+        the segment's start, from pre (m, 9), recording the impacts; a graze leaves the state.
+
+        ``contact.racket_contact`` on all rows at once gives each row's result bit for bit
+        (tests/test_segment.py); a residual model need not (a batched network's sums may depend on
+        the batch), so with one the rows go one by one."""
         params = self.params
-        if kind_index == RACKET:
-            p, R, w, v = self.racket.state_at(np.array([env]), np.array([tau]))
-            post, impact = contact.racket_contact(pre, p[0], R[0], w[0], v[0], params.racket, self.radius, residual=self.residual)
-            if not impact:
-                return pre  # a graze
-            kind = ContactKind.RACKET
+        p, R, w, v = self.racket.state_at(envs, tau)
+        if self.residual is None:
+            post, impact = contact.racket_contact(pre, p, R, w, v, params.racket, self.radius)
         else:
-            kind = self.kinds[kind_index]
-            if not is_contact(kind, pre, params):
-                return pre
-            rng = None
-            if self.perturb_seeds is not None and kind == ContactKind.TABLE:  # the BallPlant's rule
-                rng = np.random.default_rng([int(self.perturb_seeds[env]), int(self.event_counts[env]) + len(self.events[env])])
-            post = apply_impact(kind, pre, params, rng)
+            rows = [contact.racket_contact(pre[i], p[i], R[i], w[i], v[i], params.racket, self.radius, residual=self.residual) for i in range(envs.size)]
+            post, impact = np.array([row[0] for row in rows]).reshape(-1, 9), np.array([bool(row[1]) for row in rows])
+        for i in np.flatnonzero(impact):
+            self.events[envs[i]].append(ContactEvent(ContactKind.RACKET, float(self.start_times[envs[i]] + tau[i]), pre[i].copy(), post[i].copy()))
+        return post
+
+    def _apply_static_contact(self, env: int, kind_index: int, tau: float, pre: np.ndarray) -> np.ndarray:
+        """The state (9,) after environment env's contact of kind kinds[kind_index] at tau s after
+        the segment's start, recording the event; unchanged for a crossing that is no contact."""
+        params = self.params
+        kind = self.kinds[kind_index]
+        if not is_contact(kind, pre, params):
+            return pre
+        rng = None
+        if self.perturb_seeds is not None and kind == ContactKind.TABLE:  # the BallPlant's rule
+            rng = np.random.default_rng([int(self.perturb_seeds[env]), int(self.event_counts[env]) + len(self.events[env])])
+        post = apply_impact(kind, pre, params, rng)
         self.events[env].append(ContactEvent(kind, float(self.start_times[env] + tau), pre.copy(), post.copy()))
         return post
 
@@ -385,7 +420,7 @@ def _steps(times: np.ndarray) -> np.ndarray:
     """The step lengths (n,) s of ``segment_times``: dt itself (as ``propagate.simulate`` steps),
     except a shorter last step."""
     steps = np.full(times.size - 1, times[1] - times[0])
-    if times.size > 2 and not np.isclose(times[-1] - times[-2], steps[0], rtol=1e-9, atol=0.0):
+    if times.size > 2 and abs((times[-1] - times[-2]) - steps[0]) > 1e-9 * steps[0]:
         steps[-1] = times[-1] - times[-2]
     return steps
 
