@@ -243,8 +243,15 @@ def _open_range(bounds, v_low: np.ndarray, v_high: np.ndarray, knot_interval: fl
     knot_interval dv) and every fine point beyond the first closed one on either side is closed
     (the slope there keeps the sign it has across the transition); only the fine points next to
     the two transitions need evaluating, by the same arithmetic as on the whole grid. Joints of a
-    start where that does not hold (a narrow or empty set) get the whole grid."""
+    start where that does not hold (a narrow or empty set) get the whole grid, and so do batches
+    of fewer than ``_COARSE_ROWS`` starts (one evaluation of the grid costs less there than two of
+    fewer points: NumPy's per-call overhead dominates)."""
     stride, rows = _COARSE, v_low.shape[0]
+    if rows < _COARSE_ROWS:
+        grid = v_low + _GRID * (v_high - v_low)
+        lo, hi = bounds(grid)
+        open_ = hi >= lo
+        return np.argmax(open_, axis=0), open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0), np.any(open_, axis=0)
     coarse = np.arange(0, VELOCITY_GRID, stride)
     lo, hi = bounds(v_low + _GRID[coarse] * (v_high - v_low))
     width = hi - lo  # (C, B, 8); open where >= 0, as hi >= lo
@@ -289,6 +296,7 @@ def _polygon_fractions(samples: int) -> np.ndarray:
 
 VELOCITY_GRID = 129
 _COARSE = 8  # _open_range's coarse grid: every 8th velocity (VELOCITY_GRID - 1 a multiple)
+_COARSE_ROWS = 4  # and the smallest batch it is used for
 _GRID = np.linspace(0.0, 1.0, VELOCITY_GRID)[:, None, None]
 
 
