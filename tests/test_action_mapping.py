@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ace_drake.control.action_mapping import ACTION_SIZE, inverse_map_action, map_action
-from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
+from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, feasible_sets_batch, in_invariant_set
 from ace_drake.control.params import ControlParams
 from ace_drake.control.trajectory import CommandLimits
 from ace_drake.robot.params import RobotLimits, RobotScenario
@@ -128,3 +128,37 @@ def test_mapped_states_are_safe_starts_for_a_reset_or_stop(seed, edge, action, f
     low, high = LIMITS.acceleration_bounds(v)
     a = np.where(fraction >= 0, fraction * high, -fraction * low)
     assert np.all(is_reset_safe(q, v, a, LIMITS, CONTROL, tolerance=1e-9))
+
+
+def batch_of_starts(count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random, edge and at-rest invariant starts (count, 8) each; every fourth made infeasible
+    (a joint at its upper limit moving towards it at full speed)."""
+    q, v, a = (np.array(x) for x in zip(*(invariant_state(seed, edge=seed % 3 == 1) for seed in range(count))))
+    v[2::7], a[2::7] = 0.0, 0.0
+    for row in range(0, count, 4):
+        joint = row % 8
+        q[row, joint], v[row, joint] = LIMITS.upper[joint], LIMITS.velocity[joint]
+    return q, v, a
+
+
+def test_a_batch_of_starts_gives_each_start_its_sets_exactly():
+    q, v, a = batch_of_starts(60)
+    sets, feasible, reasons = feasible_sets_batch(q, v, a, LIMITS, CONTROL, PERIOD)
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, (60, ACTION_SIZE))
+    q_batch, v_batch = map_action(actions, sets)
+    assert sets.batch_shape == (60,) and feasible.shape == (60,) and len(reasons) == 60
+    for row in range(60):
+        try:
+            expected = feasible_sets(q[row], v[row], a[row], LIMITS, CONTROL, PERIOD)
+        except InfeasibleStartError as error:
+            assert not feasible[row] and reasons[row] == str(error)
+            continue
+        assert feasible[row] and reasons[row] == ""
+        for field in ("centre", "scale", "vertices", "normals", "offsets"):
+            np.testing.assert_array_equal(getattr(sets, field)[row], getattr(expected, field))
+        q_row, v_row = map_action(actions[row], expected)
+        np.testing.assert_array_equal(q_batch[row], q_row)
+        np.testing.assert_array_equal(v_batch[row], v_row)
+    assert 10 <= np.sum(~feasible) < 60
+    with pytest.raises(InfeasibleStartError, match="gantry_x"):  # the first infeasible start's
+        feasible_sets(q, v, a, LIMITS, CONTROL, PERIOD)

@@ -375,3 +375,32 @@ def test_ruckig_errors_become_runtime_errors_naming_the_result():
     planner._reset_input.max_jerk = np.r_[-1.0, J[1:]]
     with pytest.raises(RuntimeError, match=r"plan_reset \(from rest, after a stop\): Ruckig rejected the input \(\[ruckig\] maximum jerk"):
         planner.plan_reset(zeros, zeros, zeros, np.full(8, 0.1))
+
+
+def test_a_batch_of_resets_is_each_row_planned_alone():
+    """plan_reset_batch equals plan_reset row by row, exactly: moving starts, a nearly degenerate
+    one (Ruckig's failure, the stop-then-reset fallback) and, with a short max_duration, plans
+    refused with plan_reset's message."""
+    rng = np.random.default_rng(4)
+    target = np.asarray(RobotScenario().ready_pose, dtype=float)
+    q = rng.uniform(LIMITS.lower + 0.3 * (LIMITS.upper - LIMITS.lower), LIMITS.upper - 0.3 * (LIMITS.upper - LIMITS.lower), (12, 8))
+    v = rng.uniform(-0.3, 0.3, (12, 8)) * V
+    a = rng.uniform(-0.3, 0.3, (12, 8)) * A
+    q[3], v[3], a[3] = target + 1e-9, 1e-8, 0.0  # at the target: Ruckig may fail, the fallback plans
+    q[5], v[5], a[5] = target, 0.0, 0.0  # already there
+    planner = ResetPlanner(LIMITS, PERIOD)
+    for max_duration in (ResetPlanner.max_duration, 0.3):
+        planner.max_duration = max_duration
+        plans, errors = planner.plan_reset_batch(q, v, a, target)
+        for row in range(12):
+            try:
+                expected = planner.plan_reset(q[row], v[row], a[row], target)
+            except RuntimeError as error:
+                assert plans[row] is None and errors[row] == str(error)
+                continue
+            assert errors[row] == ""
+            for field in ("q", "v", "a"):
+                np.testing.assert_array_equal(getattr(plans[row], field), getattr(expected, field))
+    assert any(errors) and not all(errors)
+    with pytest.raises(ValueError, match="q_target outside"):
+        planner.plan_reset_batch(q, v, a, LIMITS.upper + 1.0)

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ace_drake.control.action_mapping import ACTION_SIZE, map_action
-from ace_drake.control.feasible_set import feasible_sets, in_invariant_set
+from ace_drake.control.feasible_set import feasible_sets, feasible_sets_batch, in_invariant_set
 from ace_drake.control.spline_qp import SegmentQp
 from tests.test_action_mapping import CONTROL, LIMITS, PERIOD, READY, invariant_state
 
@@ -119,3 +119,27 @@ def test_every_corner_of_the_feasible_set_is_reachable(seed, kind):
         target = sets.vertices[:, vertex]
         solution = QP.solve(q, v, a, target[:, 0], target[:, 1])
         assert solution.success, f"vertex {vertex}: {solution.status}"
+
+
+def test_a_batch_solves_each_row_as_solve_does():
+    """Rows whose bounds bind (DAQP), rows where none does, and unreachable targets (failures):
+    solve_batch equals solve row by row, exactly (the solver keeps no state between solves)."""
+    from tests.test_action_mapping import batch_of_starts
+
+    q, v, a = batch_of_starts(48)
+    sets, feasible, _ = feasible_sets_batch(q, v, a, LIMITS, CONTROL, PERIOD)
+    q, v, a = q[feasible], v[feasible], a[feasible]
+    actions = np.random.default_rng(1).uniform(-1.0, 1.0, (len(q), ACTION_SIZE))
+    actions[::2] = np.sign(actions[::2])
+    q_terminal, v_terminal = map_action(actions, sets[feasible])
+    q_terminal[::5, 0] += 0.05  # out of reach
+    batch = QP.solve_batch(q, v, a, q_terminal, v_terminal)
+    assert len(batch) == len(q) and 0 < np.sum(~batch.success) < len(q)
+    for row in range(len(q)):
+        expected, got = QP.solve(q[row], v[row], a[row], q_terminal[row], v_terminal[row]), batch.solution(row)
+        assert (got.success, got.status, got.worst_violation) == (expected.success, expected.status, expected.worst_violation)
+        if expected.success:
+            for field in ("q", "v", "a"):
+                np.testing.assert_array_equal(getattr(got.trajectory, field), getattr(expected.trajectory, field))
+    with pytest.raises(ValueError, match="solve_batch"):
+        QP.solve_batch(q[0], v[0], a[0], q_terminal[0], v_terminal[0])

@@ -57,12 +57,14 @@ class InfeasibleStartError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class FeasibleSets:
-    """The eight joints' feasible sets of terminal (q, v) (``feasible_sets``).
+    """The eight joints' feasible sets of terminal (q, v) (``feasible_sets``), for one start or a
+    batch of starts (leading dimensions ``...``).
 
-    centre (8, 2): (q, v) centres; scale (8, 2): half-widths of each polygon's bounding box (the
-    shape function f of eq. (12) scales by them); vertices (8, 2K, 2): polygon vertices, counter-
-    clockwise in the (q, v) plane; normals (8, 2K, 2) and offsets (8, 2K): the polygon as
-    half-planes normal . y <= offset (degenerate edges have a zero normal and are ignored).
+    centre (..., 8, 2): (q, v) centres; scale (..., 8, 2): half-widths of each polygon's bounding
+    box (the shape function f of eq. (12) scales by them); vertices (..., 8, 2K, 2): polygon
+    vertices, counter-clockwise in the (q, v) plane; normals (..., 8, 2K, 2) and offsets
+    (..., 8, 2K): the polygon as half-planes normal . y <= offset (degenerate edges have a zero
+    normal and are ignored).
     """
 
     centre: np.ndarray
@@ -71,12 +73,24 @@ class FeasibleSets:
     normals: np.ndarray
     offsets: np.ndarray
 
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """The leading dimensions (() for one start)."""
+        return self.centre.shape[:-2]
+
+    def __getitem__(self, index) -> "FeasibleSets":
+        """The sets of the starts ``index`` selects along the leading dimensions."""
+        if not self.batch_shape:
+            raise IndexError("FeasibleSets: the sets of one start have no batch dimension to index")
+        return FeasibleSets(*(getattr(self, field.name)[index] for field in dataclasses.fields(self)))
+
     def boundary_distance(self, direction: np.ndarray) -> np.ndarray:
         """t (..., 8) such that centre + t * direction lies on the polygon's boundary, for
-        directions (..., 8, 2) in (q, v) units; inf for a zero direction."""
+        directions (..., 8, 2) in (q, v) units (broadcast against the sets' batch); inf for a
+        zero direction."""
         direction = np.asarray(direction, dtype=float)
-        along = np.einsum("jek,...jk->...je", self.normals, direction)  # n_e . d
-        room = self.offsets - np.einsum("jek,jk->je", self.normals, self.centre)  # b_e - n_e . c >= 0
+        along = np.einsum("...jek,...jk->...je", self.normals, direction)  # n_e . d
+        room = self.offsets - np.einsum("...jek,...jk->...je", self.normals, self.centre)  # b_e - n_e . c >= 0
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             candidates = np.where(along > 1e-300, room / along, np.inf)
         return np.min(candidates, axis=-1)
@@ -84,7 +98,7 @@ class FeasibleSets:
     def contains(self, y: np.ndarray, tolerance: float = 1e-9) -> np.ndarray:
         """Whether terminal states y (..., 8, 2) lie in each joint's polygon, (..., 8) booleans."""
         y = np.asarray(y, dtype=float)
-        excess = np.einsum("jek,...jk->...je", self.normals, y) - self.offsets
+        excess = np.einsum("...jek,...jk->...je", self.normals, y) - self.offsets
         scale = np.abs(self.offsets) + 1.0
         return np.all(excess <= tolerance * scale, axis=-1)
 
@@ -123,18 +137,47 @@ def _reach_upper(q1, v1, v, A_r, V, duration, ramp):
     return bang_bang - 0.5 * ramp * np.abs(peak - v)
 
 
-_SIDES = np.array([1.0, -1.0])[:, None, None]  # s: the upper bound (+1) and the lower (-1)
+_SIDES = np.array([1.0, -1.0])[:, None, None, None]  # s: the upper bound (+1) and the lower (-1)
 
 
 def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> FeasibleSets:
-    """The feasible sets of the eight joints for a segment starting at (q0, v0, a0) (8,) each
-    (rad or m, per s, per s^2), sampled every ``period`` s (the command period), with the QP's
-    knots every ``control.knot_samples`` samples.
+    """The feasible sets of the eight joints for a segment starting at (q0, v0, a0) (..., 8) each
+    (rad or m, per s, per s^2; leading dimensions are a batch of starts), sampled every
+    ``period`` s (the command period), with the QP's knots every ``control.knot_samples``
+    samples.
 
     The velocity range [v_a, v_b] is found on a grid of ``VELOCITY_GRID`` velocities across the
-    reachable range (to 1/(VELOCITY_GRID - 1) of it, from the inside). Raises InfeasibleStartError naming the joints whose set is empty (a
-    start outside the control-invariant set, e.g. moving fast at a position limit)."""
-    q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q0, v0, a0))
+    reachable range (to 1/(VELOCITY_GRID - 1) of it, from the inside). Raises InfeasibleStartError
+    naming the joints whose set is empty (a start outside the control-invariant set, e.g. moving
+    fast at a position limit); for a batch, that of its first such start (``feasible_sets_batch``
+    reports each start instead)."""
+    sets, feasible, reasons = feasible_sets_batch(q0, v0, a0, limits, control, period)
+    if not np.all(feasible):
+        raise InfeasibleStartError(reasons[int(np.argmin(feasible.ravel()))])
+    return sets
+
+
+def feasible_sets_batch(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> tuple[FeasibleSets, np.ndarray, list[str]]:
+    """``feasible_sets`` for starts (..., 8) that reports an empty set per start instead of
+    raising: (sets, feasible (...) booleans, reasons), reasons a flat list (one per start, in C
+    order) of "" or the message InfeasibleStartError would carry. Where a start is infeasible its
+    sets are finite but meaningless."""
+    q0, v0, a0 = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (q0, v0, a0)))
+    if q0.shape[-1:] != (len(JOINT_NAMES),):
+        raise ValueError(f"feasible_sets: q0, v0, a0 must have {len(JOINT_NAMES)} joints in the last dimension, got shape {q0.shape}")
+    batch = q0.shape[:-1]
+    flat = [x.reshape(-1, len(JOINT_NAMES)) for x in (q0, v0, a0)]
+    sets, feasible = _feasible_sets(*flat, limits, control, period)
+    reasons = [""] * feasible.shape[0]
+    for row in np.flatnonzero(~np.all(feasible, axis=-1)):
+        empty = [name for name, ok in zip(JOINT_NAMES, feasible[row]) if not ok]
+        reasons[row] = f"no feasible terminal state for joint(s) {empty} from q={flat[0][row]}, v={flat[1][row]}, a={flat[2][row]}"
+    shaped = FeasibleSets(*(getattr(sets, field.name).reshape(batch + getattr(sets, field.name).shape[1:]) for field in dataclasses.fields(sets)))
+    return shaped, np.all(feasible, axis=-1).reshape(batch), reasons
+
+
+def _feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> tuple[FeasibleSets, np.ndarray]:
+    """The sets (batch B) for starts (B, 8) each, and which joints' sets are non-empty (B, 8)."""
     A, V = limits.acceleration, limits.velocity
     A_r = control.reach_fraction * A
     h = control.knot_samples * period
@@ -146,17 +189,18 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     # turn its acceleration round within the interval to meet the bound at the sample, and
     # recover after it: it reaches about e * h less far on that side (measured: 1.7e-6 m for
     # e = 1.7e-3 m/s); the bound on that side is padded by 2 e h.
-    excess = np.maximum(_SIDES * (v0 + 0.5 * a0 * h) - V, 0.0)
+    excess = np.maximum(_SIDES * (v0 + 0.5 * a0 * h) - V, 0.0)  # (2, 1, B, 8)
     signed_q1, signed_v1 = _SIDES * q1 - 2.0 * h * excess, _SIDES * v1
-    signed_limit = np.empty((2, 1, q0.size))  # upper, -lower
-    signed_limit[0, 0], signed_limit[1, 0] = limits.upper, -limits.lower
+    signed_limit = np.empty((2, 1, 1, q0.shape[-1]))  # upper, -lower
+    signed_limit[0, 0, 0], signed_limit[1, 0, 0] = limits.upper, -limits.lower
     ramp = ramp_time(control, period)
 
-    def bounds(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) (K, 8) at velocities v (K, 8): both sides at once, the lower one mirrored
-        (s = -1: q -> -q, v -> -v), each the tighter of reachability and invariance."""
-        x = _SIDES * v  # (2, K, 8)
-        reach = _reach_upper(signed_q1, signed_v1, x, A_r, V, rest, h)
+    def bounds(v: np.ndarray, rows=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) (K, b, 8) at velocities v (K, b, 8) of the starts ``rows``: both sides at
+        once, the lower one mirrored (s = -1: q -> -q, v -> -v), each the tighter of
+        reachability and invariance."""
+        x = _SIDES * v  # (2, K, b, 8)
+        reach = _reach_upper(signed_q1[:, :, rows], signed_v1[:, :, rows], x, A_r, V, rest, h)
         side = _SIDES * np.minimum(reach, signed_limit - invariance_pad(x, limits, control, ramp))
         return side[1], side[0]
 
@@ -164,42 +208,96 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     # reachable range, found on a grid (the ramp pad closes the reachable range's two ends, and a
     # position limit may cut it further).
     v_low, v_high = np.maximum(-V, v1 - A_r * rest), np.minimum(V, v1 + A_r * rest)
-    grid = v_low + _GRID * (v_high - v_low)  # (VELOCITY_GRID, 8)
-    lo, hi = bounds(grid)
-    open_ = hi >= lo
-    feasible = np.any(open_, axis=0)
-    if not np.all(feasible):
-        empty = [name for name, ok in zip(JOINT_NAMES, feasible) if not ok]
-        raise InfeasibleStartError(f"no feasible terminal state for joint(s) {empty} from q={q0}, v={v0}, a={a0}")
-    joints = np.arange(q0.size)
-    v_low = grid[np.argmax(open_, axis=0), joints]
-    v_high = grid[open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0), joints]
+    first, last, feasible = _open_range(bounds, v_low, v_high, h)
+    v_low, v_high = _grid_velocity(first, v_low, v_high), _grid_velocity(last, v_low, v_high)
     # Polygon vertices at K velocities from v_a to v_b, and the centre's velocity as one more row.
-    v = v_low + _polygon_fractions(control.boundary_samples) * (v_high - v_low)
+    v = v_low + _polygon_fractions(control.boundary_samples) * (v_high - v_low)  # (K + 1, B, 8)
     lo, hi = bounds(v)
     hi = np.maximum(hi, lo)  # round-off at the ends
-    centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)
-    lo, hi, v = lo[:-1], hi[:-1], v[:-1]
+    centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)  # (B, 8, 2)
+    lo, hi, v = (np.moveaxis(x[:-1], 0, -1) for x in (lo, hi, v))  # (B, 8, K)
     # Counter-clockwise in (q, v): up the right side (hi) with increasing v, down the left (lo).
-    vertices = np.concatenate([np.stack([hi.T, v.T], axis=-1), np.stack([lo.T, v.T], axis=-1)[:, ::-1]], axis=1)  # (8, 2K, 2)
-    edges = np.roll(vertices, -1, axis=1) - vertices
+    vertices = np.concatenate([np.stack([hi, v], axis=-1), np.stack([lo, v], axis=-1)[..., ::-1, :]], axis=-2)  # (B, 8, 2K, 2)
+    edges = np.roll(vertices, -1, axis=-2) - vertices
     normals = np.stack([edges[..., 1], -edges[..., 0]], axis=-1)  # outward for counter-clockwise
-    offsets = np.einsum("jek,jek->je", normals, vertices)
-    scale = np.stack([0.5 * (hi.max(axis=0) - lo.min(axis=0)), 0.5 * (v_high - v_low)], axis=-1)
-    return FeasibleSets(centre=centre, scale=np.maximum(scale, 1e-12), vertices=vertices, normals=normals, offsets=offsets)
+    offsets = np.einsum("...ek,...ek->...e", normals, vertices)
+    scale = np.stack([0.5 * (hi.max(axis=-1) - lo.min(axis=-1)), 0.5 * (v_high - v_low)], axis=-1)
+    return FeasibleSets(centre=centre, scale=np.maximum(scale, 1e-12), vertices=vertices, normals=normals, offsets=offsets), feasible
+
+
+def _grid_velocity(index: np.ndarray, v_low: np.ndarray, v_high: np.ndarray) -> np.ndarray:
+    """The velocities (B, 8) of grid points ``index`` (B, 8), as the grid computes them."""
+    return v_low + _GRID[index, 0, 0] * (v_high - v_low)
+
+
+def _open_range(bounds, v_low: np.ndarray, v_high: np.ndarray, knot_interval: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first and last grid indices (B, 8) where hi >= lo (``bounds``) on the grid of
+    ``VELOCITY_GRID`` velocities from v_low to v_high (B, 8), and whether there is one (B, 8):
+    exactly what evaluating the whole grid gives, from about a quarter of its points.
+
+    The width w = hi - lo is concave up to two convex kinks, where the ramp pads
+    (knot_interval / 2) |w* - v| of hi and lo meet the velocity limit, each raising w's slope by
+    knot_interval / 4 (``_reach_upper``). So on the coarse grid of every ``_COARSE``-th point,
+    if every |w| exceeds tol = 2 knot_interval dv (dv: the grid step) and the open points are
+    contiguous, every fine point between two open ones is open (w stays above tol -
+    knot_interval dv) and every fine point beyond the first closed one on either side is closed
+    (the slope there keeps the sign it has across the transition); only the fine points next to
+    the two transitions need evaluating, by the same arithmetic as on the whole grid. Joints of a
+    start where that does not hold (a narrow or empty set) get the whole grid, and so do batches
+    of fewer than ``_COARSE_ROWS`` starts (one evaluation of the grid costs less there than two of
+    fewer points: NumPy's per-call overhead dominates)."""
+    stride, rows = _COARSE, v_low.shape[0]
+    if rows < _COARSE_ROWS:
+        grid = v_low + _GRID * (v_high - v_low)
+        lo, hi = bounds(grid)
+        open_ = hi >= lo
+        return np.argmax(open_, axis=0), open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0), np.any(open_, axis=0)
+    coarse = np.arange(0, VELOCITY_GRID, stride)
+    lo, hi = bounds(v_low + _GRID[coarse] * (v_high - v_low))
+    width = hi - lo  # (C, B, 8); open where >= 0, as hi >= lo
+    open_ = width >= 0.0
+    tolerance = 2.0 * knot_interval * (v_high - v_low) / (VELOCITY_GRID - 1) * (1.0 + 1e-6) + 1e-9
+    first_coarse = np.argmax(open_, axis=0)
+    last_coarse = open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0)
+    span = np.arange(open_.shape[0])[:, None, None]
+    contiguous = np.all(open_ == ((span >= first_coarse) & (span <= last_coarse)), axis=0)
+    decided = np.any(open_, axis=0) & contiguous & np.all(np.abs(width) > tolerance, axis=0)
+    # The fine points before the first open coarse point and after the last (clipped to the grid:
+    # an end of the grid that is open is its own transition).
+    offsets = np.arange(1, stride)
+    before = coarse[first_coarse] - stride + offsets[:, None, None]  # (stride - 1, B, 8)
+    after = coarse[last_coarse] + offsets[:, None, None]
+    fine = np.clip(np.concatenate([before, after]), 0, VELOCITY_GRID - 1)
+    lo, hi = bounds(_grid_velocity(fine, v_low, v_high))
+    fine_open = (hi >= lo) & (np.concatenate([before, after]) == fine)
+    before_open, after_open = fine_open[: stride - 1], fine_open[stride - 1 :]
+    first = np.where(np.any(before_open, axis=0), before[0] + np.argmax(before_open, axis=0), coarse[first_coarse])
+    last = np.where(np.any(after_open, axis=0), after[-1] - np.argmax(after_open[::-1], axis=0), coarse[last_coarse])
+    feasible = np.ones(first.shape, dtype=bool)
+    undecided = np.flatnonzero(~np.all(decided, axis=-1))
+    if undecided.size:  # the whole grid, for the starts with a joint not decided above
+        grid = v_low[undecided] + _GRID * (v_high[undecided] - v_low[undecided])
+        lo, hi = bounds(grid, undecided)
+        open_ = hi >= lo
+        feasible[undecided] = np.any(open_, axis=0)
+        first[undecided] = np.argmax(open_, axis=0)
+        last[undecided] = open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0)
+    return first, last, feasible
 
 
 @functools.lru_cache(maxsize=8)
 def _polygon_fractions(samples: int) -> np.ndarray:
-    """(samples + 1, 1): 0 .. 1 in ``samples`` steps, then 0.5 (the centre's row)."""
+    """(samples + 1, 1, 1): 0 .. 1 in ``samples`` steps, then 0.5 (the centre's row)."""
     fractions = np.linspace(0.0, 1.0, samples + 1)
     fractions[:-1] = np.linspace(0.0, 1.0, samples)
     fractions[-1] = 0.5
-    return fractions[:, None]
+    return fractions[:, None, None]
 
 
 VELOCITY_GRID = 129
-_GRID = np.linspace(0.0, 1.0, VELOCITY_GRID)[:, None]
+_COARSE = 8  # _open_range's coarse grid: every 8th velocity (VELOCITY_GRID - 1 a multiple)
+_COARSE_ROWS = 4  # and the smallest batch it is used for
+_GRID = np.linspace(0.0, 1.0, VELOCITY_GRID)[:, None, None]
 
 
 def in_invariant_set(q, v, limits: CommandLimits, control: ControlParams, period: float, tolerance: float = 0.0) -> np.ndarray:

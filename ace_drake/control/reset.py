@@ -56,6 +56,7 @@ from ace_drake.robot.params import JOINT_NAMES
 from ace_drake.robot.trajectory import JointTrajectory
 
 _DOFS = len(JOINT_NAMES)
+_SAMPLING_BLOCK = 8  # rows that ResetPlanner.plan_reset_batch samples together
 _SUCCESS = (ruckig.Result.Working, ruckig.Result.Finished)
 
 
@@ -111,12 +112,22 @@ def sample_profiles(profiles, times: np.ndarray, at_rest: bool = False, final: n
     short after a 1.2 s slow cruise, which would otherwise put the samples just before the end
     past a target on a position limit. The arrays returned are transposed views of (n, k) arrays.
     """
-    n = len(profiles)
-    numbers: list[float] = []
-    brakes = []
     if final is not None and not at_rest:
         raise ValueError("sample_profiles: final is only used with at_rest=True")
-    ends = None if final is None else np.asarray(final, dtype=float).tolist()
+    n = len(profiles)
+    numbers: list[float] = []
+    brakes: list[tuple[int, object]] = []
+    _profile_numbers(profiles, None if final is None else np.asarray(final, dtype=float).tolist(), numbers, brakes, 0)
+    times = np.asarray(times, dtype=float)
+    q, v, a = _sample_numbers(numbers, brakes, n, times, np.full(n, times.size), at_rest, final is not None)
+    return q.reshape(n, -1).T, v.reshape(n, -1).T, a.reshape(n, -1).T
+
+
+def _profile_numbers(profiles, ends: list[float] | None, numbers: list[float], brakes: list, first_dof: int) -> None:
+    """Appends the numbers of ``profiles`` (one trajectory's joints) to ``numbers`` in
+    ``sample_profiles``'s layout (``_ROW`` per joint; ``ends``: the final positions, or None for
+    where the profiles end) and (joint index + first_dof, brake) to ``brakes`` for each joint with
+    a brake pre-trajectory."""
     for dof, profile in enumerate(profiles):
         numbers += profile.t
         numbers += profile.j
@@ -127,7 +138,13 @@ def sample_profiles(profiles, times: np.ndarray, at_rest: bool = False, final: n
         numbers += (0.0, positions[7] if ends is None else ends[dof], math.inf)
         brake = profile.brake
         if brake.duration > 0.0:
-            brakes.append((dof, brake))
+            brakes.append((first_dof + dof, brake))
+
+
+def _sample_numbers(numbers: list[float], brakes: list, n: int, times: np.ndarray, lengths: np.ndarray, at_rest: bool, shift: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The samples of n joints' profiles (``_profile_numbers``) at times[:lengths[i]] for joint i
+    (times sorted, s): q, v, a flat, joint after joint (sum(lengths),). ``shift``: move each
+    joint's positions onto its final position (``sample_profiles``)."""
     flat = np.frombuffer(array.array("d", numbers))
     piece_indices, duration_indices = _gather_indices(n, at_rest)
     pieces = flat.take(piece_indices)  # (5 fields, n * 10 pieces)
@@ -141,22 +158,29 @@ def sample_profiles(profiles, times: np.ndarray, at_rest: bool = False, final: n
 
     # Piece k of a joint covers the samples from the first at or after its start to the first at or
     # after the next piece's start (times is sorted): repeat each piece's fields that many times.
-    first = np.searchsorted(times, starts)
+    first = np.minimum(np.searchsorted(times, starts), lengths[:, None])
     counts = (first[:, 1:] - first[:, :-1]).ravel()
-    start, p0, v0, a0, j = np.repeat(pieces, counts, axis=1).reshape(len(_PIECE_MAP), n, -1)
-    dt = times - start
+    start, p0, v0, a0, j = np.repeat(pieces, counts, axis=1)
+    uniform = bool(np.all(lengths == times.size))
+    # Each sample's time: joint after joint, times[:lengths[i]].
+    t = np.tile(times, n) if uniform else times[np.arange(start.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)]
+    dt = t - start
     jerk_dt = dt * j
     a = a0 + jerk_dt
     v = v0 + dt * (a0 + 0.5 * jerk_dt)
     q = p0 + dt * (v0 + dt * (0.5 * a0 + jerk_dt * (1.0 / 6.0)))
-    if final is not None:
+    if shift:
         shortfall = flat[_END::_ROW] - flat[_PROFILE_END::_ROW]  # final - p[7]
         drifting = np.flatnonzero(np.abs(shortfall) > 1e-12)  # round-off below that is left alone
         if drifting.size:
-            end = starts[drifting, 9:10]
-            progress = np.minimum(times / np.where(end > 0.0, end, 1.0), 1.0)
-            q[drifting] += shortfall[drifting, None] * np.where(times < end, progress, 0.0)
-    return q.T, v.T, a.T
+            offsets = np.cumsum(lengths) - lengths
+            for dof in drifting:  # few: the joints whose profile ends short of the target
+                end = starts[dof, 9]
+                rows = slice(offsets[dof], offsets[dof] + lengths[dof])
+                joint_times = t[rows]
+                progress = np.minimum(joint_times / (end if end > 0.0 else 1.0), 1.0)
+                q[rows] += shortfall[dof] * np.where(joint_times < end, progress, 0.0)
+    return q, v, a
 
 
 def stop_pad(v, a, limits: CommandLimits, control: ControlParams) -> np.ndarray:
@@ -296,6 +320,66 @@ class ResetPlanner:
         self.fell_back = False
         return self._sample(state, state[3])
 
+    def plan_reset_batch(self, q, v, a, q_target) -> tuple[list[JointTrajectory | None], list[str]]:
+        """``plan_reset`` for B starts (q, v, a) (B, 8) each, to q_target (8,) or (B, 8): one
+        Ruckig plan per row, all sampled at once. Returns the trajectories (B,) (each equal to
+        ``plan_reset`` of its row; None where it failed) and the failures' messages (B,) ("" for
+        a plan; else the RuntimeError ``plan_reset`` would raise, e.g. a plan over
+        ``max_duration``). Bad input (shapes, non-finite values, a target outside the position
+        limits) raises ValueError as ``plan_reset`` does, for the batch."""
+        q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
+        if q.ndim != 2:
+            raise ValueError(f"plan_reset_batch: q, v, a must be (B, {_DOFS}), got shape {q.shape}")
+        target = np.broadcast_to(np.asarray(q_target, dtype=float), q.shape) if np.shape(q_target) in ((_DOFS,), q.shape) else q_target
+        try:
+            states = np.stack([q, v, a, target], axis=1)  # (B, 4, 8)
+        except ValueError:
+            states = None
+        if states is None or states.shape != (q.shape[0], 4, _DOFS) or not np.isfinite(states).all():
+            for row in range(q.shape[0]):
+                self._validated("plan_reset", ("q", "v", "a", "q_target"), (q[row], v[row], a[row], np.asarray(target)[row] if np.ndim(target) == 2 else target))
+            raise ValueError(f"plan_reset_batch: q, v, a, q_target must be (B, {_DOFS}) finite values (q_target may be ({_DOFS},)), got shapes {q.shape}, {v.shape}, {a.shape}, {np.shape(q_target)}")
+        outside = np.flatnonzero(~np.all((self._lower <= states[:, 3]) & (states[:, 3] <= self._upper), axis=-1))
+        if outside.size:
+            self._check_target("plan_reset", states[outside[0], 3])
+        rows = states.shape[0]
+        plans: list[JointTrajectory | None] = [None] * rows
+        errors = [""] * rows
+        sampled, lengths, numbers, brakes = [], [], [], []
+        inp = self._reset_input
+        for row, (state, values) in enumerate(zip(states, states.tolist())):
+            inp.current_position, inp.current_velocity, inp.current_acceleration, inp.target_position = values
+            try:
+                try:
+                    self._calculate("plan_reset", inp)
+                except RuckigFailure:
+                    plans[row] = self._stop_then_reset(state)
+                    continue
+            except RuntimeError as error:
+                errors[row] = str(error)
+                continue
+            self.fell_back = False
+            samples = self._sample_count(state, state[3])
+            _profile_numbers(self._trajectory.profiles[0], values[3], numbers, brakes, _DOFS * len(sampled))
+            sampled.append(row)
+            lengths.append(samples + 1)
+        # Sampled in blocks of rows small enough for the samples to stay in cache.
+        for block in range(0, len(sampled), _SAMPLING_BLOCK):
+            block_rows, block_lengths = sampled[block : block + _SAMPLING_BLOCK], lengths[block : block + _SAMPLING_BLOCK]
+            block_numbers = numbers[block * _DOFS * _ROW : (block + len(block_rows)) * _DOFS * _ROW]
+            block_brakes = [(dof - block * _DOFS, brake) for dof, brake in brakes if block * _DOFS <= dof < (block + len(block_rows)) * _DOFS]
+            longest = max(block_lengths)
+            if longest > self._times.size:
+                self._times = np.arange(2 * longest) * self.period
+            per_joint = np.repeat(np.array(block_lengths), _DOFS)
+            flat = _sample_numbers(block_numbers, block_brakes, per_joint.size, self._times[:longest], per_joint, True, True)
+            start = 0
+            for row, length in zip(block_rows, block_lengths):
+                q_row, v_row, a_row = (x[start : start + _DOFS * length].reshape(_DOFS, length).T for x in flat)
+                start += _DOFS * length
+                plans[row] = self._finished(states[row], states[row, 3], q_row, v_row, a_row)
+        return plans, errors
+
     def plan_stop(self, q, v, a) -> JointTrajectory:
         """The protective stop from (q, v, a) (8,) each (rad or m, per s, per s^2): every joint
         independently (no synchronisation) brings its velocity and acceleration to zero as fast as
@@ -366,13 +450,24 @@ class ResetPlanner:
     def _sample(self, state: np.ndarray, q_final: np.ndarray | None) -> JointTrajectory:
         """The last calculated trajectory from state[:3] = (q, v, a), sampled every period; joints
         past their own end are at rest at q_final (the target; None: where their profile ends)."""
-        period = self.period
-        samples = math.ceil(self.duration / period - 1e-9)
+        samples = self._sample_count(state, q_final)
+        if samples >= self._times.size:
+            self._times = np.arange(2 * samples + 2) * self.period
+        q, v, a = sample_profiles(self._trajectory.profiles[0], self._times[: samples + 1], True, q_final)
+        return self._finished(state, q_final, q, v, a)
+
+    def _sample_count(self, state: np.ndarray, q_final: np.ndarray | None) -> int:
+        """The samples after the start of the last calculated trajectory: its duration rounded up
+        to whole periods, and at least one to move to a q_final that differs from the start."""
+        samples = math.ceil(self.duration / self.period - 1e-9)
         if samples == 0 and q_final is not None and not np.array_equal(state[0], q_final):
             samples = 1
-        if samples >= self._times.size:
-            self._times = np.arange(2 * samples + 2) * period
-        q, v, a = sample_profiles(self._trajectory.profiles[0], self._times[: samples + 1], True, q_final)
+        return samples
+
+    def _finished(self, state: np.ndarray, q_final: np.ndarray | None, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> JointTrajectory:
+        """Samples (k + 1, 8) as a JointTrajectory that starts exactly at state[:3] and, after at
+        least one sample, ends exactly at rest (at q_final unless that is None)."""
+        period, samples = self.period, q.shape[0] - 1
         q[0], v[0], a[0] = state[0], state[1], state[2]
         if samples > 0:
             if q_final is not None:

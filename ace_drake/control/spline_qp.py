@@ -113,59 +113,87 @@ class SegmentQp:
     def solve(self, q0, v0, a0, q_terminal, v_terminal) -> SegmentSolution:
         """The segment from (q0, v0, a0) to (q_terminal, v_terminal), each (8,), in rad or m,
         per s and per s^2."""
-        q0, v0, a0, q_terminal, v_terminal = (np.asarray(x, dtype=float) for x in (q0, v0, a0, q_terminal, v_terminal))
-        if not all(x.shape == (8,) and np.all(np.isfinite(x)) for x in (q0, v0, a0, q_terminal, v_terminal)):
+        values = [np.asarray(x, dtype=float) for x in (q0, v0, a0, q_terminal, v_terminal)]
+        if not all(x.shape == (8,) and np.all(np.isfinite(x)) for x in values):
             raise ValueError("SegmentQp.solve: q0, v0, a0, q_terminal, v_terminal must each be 8 finite values")
-        lower, upper = self._row_bounds(q0, v0, a0, q_terminal, v_terminal)  # (8, M + rows)
-        linear = a0[:, None] * self._hessian_cross  # (8, M)
+        return self.solve_batch(*(x[None] for x in values)).solution(0)
+
+    def solve_batch(self, q0, v0, a0, q_terminal, v_terminal) -> "SegmentBatch":
+        """The segments of B environments at once, from (q0, v0, a0) to (q_terminal,
+        v_terminal), each (B, 8) in rad or m, per s and per s^2; row b equals ``solve`` of row b.
+        The equality-constrained optimum (one precomputed KKT inverse) is computed for every
+        joint of every row at once and checked against every bound; DAQP solves only the joints
+        where one binds, in row then joint order (as a loop of ``solve`` would)."""
+        q0, v0, a0, q_terminal, v_terminal = (np.asarray(x, dtype=float) for x in (q0, v0, a0, q_terminal, v_terminal))
+        shape = q0.shape
+        if len(shape) != 2 or shape[1] != 8 or not all(x.shape == shape and np.all(np.isfinite(x)) for x in (q0, v0, a0, q_terminal, v_terminal)):
+            raise ValueError(f"SegmentQp.solve_batch: q0, v0, a0, q_terminal, v_terminal must each be (B, 8) finite values, got shapes {[np.shape(x) for x in (q0, v0, a0, q_terminal, v_terminal)]}")
+        lower, upper = self._row_bounds(q0, v0, a0, q_terminal, v_terminal)  # (B, 8, M + rows)
+        linear = a0[..., None] * self._hessian_cross  # (B, 8, M)
+        rows = shape[0]
         if self.solver == "daqp":
-            accelerations, status = self._solve_daqp(linear, lower, upper)
+            accelerations, status, failed = self._solve_daqp(linear, lower, upper)
         else:
-            accelerations, status = self._solve_program(linear, lower, upper)
-        if accelerations is None:
-            return SegmentSolution(False, None, status, np.inf)
-        return self._checked(q0, v0, a0, accelerations, q_terminal, v_terminal, status)
+            solved = [self._solve_program(linear[row], lower[row], upper[row]) for row in range(rows)]
+            failed = np.array([x is None for x, _ in solved], dtype=bool)
+            accelerations = np.stack([np.zeros((8, self.knots)) if x is None else x for x, _ in solved])
+            status = [text for _, text in solved]
+        return self._checked(q0, v0, a0, accelerations, q_terminal, v_terminal, status, failed)
 
     def _row_bounds(self, q0, v0, a0, q_terminal, v_terminal):
-        """Bounds (8, N + rows) of [x; rows x], the start's contribution moved to the right."""
+        """Bounds (B, 8, N + rows) of [x; rows x], the start's contribution moved to the right,
+        for starts and targets (B, 8)."""
         N, M, limits = self.samples, self.knots, self.limits
         inner = self._times[1:N]
-        start_v = v0[:, None] + a0[:, None] * self._rows_start[None, : N - 1]
-        start_q = q0[:, None] + v0[:, None] * inner + a0[:, None] * self._rows_start[None, N - 1 : 2 * N - 2]
+        start_v = v0[..., None] + a0[..., None] * self._rows_start[: N - 1]
+        start_q = q0[..., None] + v0[..., None] * inner + a0[..., None] * self._rows_start[N - 1 : 2 * N - 2]
         end_v = v0 + a0 * self._rows_start[-2]
         end_q = q0 + v0 * self._times[N] + a0 * self._rows_start[-1]
-        box = np.repeat(limits.acceleration[:, None], M, axis=1)
-        low_box = -box.copy()
+        box = np.repeat(np.broadcast_to(limits.acceleration, q0.shape)[..., None], M, axis=-1)
+        low_box = -box
         # The terminal acceleration starts the reset: no more than its jerk-limited ramp to zero
         # can take without passing the velocity limit.
-        low_box[:, -1], box[:, -1] = limits.acceleration_bounds(v_terminal)
-        speed = limits.velocity[:, None]
-        upper = np.concatenate([box, speed - start_v, limits.upper[:, None] - start_q, (v_terminal - end_v)[:, None], (q_terminal - end_q)[:, None]], axis=1)
-        lower = np.concatenate([low_box, -speed - start_v, limits.lower[:, None] - start_q, (v_terminal - end_v)[:, None], (q_terminal - end_q)[:, None]], axis=1)
+        low_box[..., -1], box[..., -1] = limits.acceleration_bounds(v_terminal)
+        speed = np.broadcast_to(limits.velocity[:, None], start_v.shape)
+        upper_q, lower_q = (np.broadcast_to(x[:, None], start_q.shape) for x in (limits.upper, limits.lower))
+        v_gap, q_gap = (v_terminal - end_v)[..., None], (q_terminal - end_q)[..., None]
+        upper = np.concatenate([box, speed - start_v, upper_q - start_q, v_gap, q_gap], axis=-1)
+        lower = np.concatenate([low_box, -speed - start_v, lower_q - start_q, v_gap, q_gap], axis=-1)
         return lower, upper
 
     def _solve_daqp(self, linear, lower, upper):
-        """The QP per joint: the equality-constrained optimum where it meets every bound (then it
-        is the QP's optimum), else DAQP on a scaled problem: unknowns x = a / A and each row
-        divided by its norm, so row . a <= b becomes (row / |row|) . x <= b / (A |row|), and the
-        cost 0.5 a' H a + f' a becomes (up to the factor A^2) 0.5 x' H x + (f / A)' x. H and the
-        rows are then the same for every joint: one DAQP workspace, set up once, takes new cost
-        vectors and bounds."""
+        """The QP per joint (of rows (B, 8, ...)): the equality-constrained optimum where it
+        meets every bound (then it is the QP's optimum), else DAQP on a scaled problem: unknowns
+        x = a / A and each row divided by its norm, so row . a <= b becomes (row / |row|) . x <=
+        b / (A |row|), and the cost 0.5 a' H a + f' a becomes (up to the factor A^2) 0.5 x' H x +
+        (f / A)' x. H and the rows are then the same for every joint: one DAQP workspace, set up
+        once, takes new cost vectors and bounds. Returns the accelerations (B, 8, M), each
+        row's status and whether it failed (B,) (a row stops at its first joint DAQP fails on)."""
         M = self.knots
-        right = np.concatenate([-linear, upper[:, -2:]], axis=1)  # (8, M + 2): [-f; b]
-        solution = (right @ self._kkt_inverse.T)[:, :M]
-        values = np.concatenate([solution, solution @ self._all_rows[:-2].T], axis=1)
+        rows = linear.shape[0]
+        right = np.concatenate([-linear, upper[..., -2:]], axis=-1).reshape(rows * 8, M + 2)  # [-f; b]
+        solution = _product(right, self._kkt_inverse.T)[:, :M]
+        values = np.concatenate([solution, _product(solution, self._all_rows[:-2].T)], axis=1)
         slack = self.tolerance * 1e-3
-        inside = np.all((values >= lower[:, :-2] - slack) & (values <= upper[:, :-2] + slack), axis=1)
-        for joint in np.flatnonzero(~inside):
+        flat_lower, flat_upper, flat_linear = (x.reshape(rows * 8, -1) for x in (lower, upper, linear))
+        inside = np.all((values >= flat_lower[:, :-2] - slack) & (values <= flat_upper[:, :-2] + slack), axis=1)
+        status = ["daqp: solved"] * rows
+        failed = np.zeros(rows, dtype=bool)
+        for index in np.flatnonzero(~inside):
+            row, joint = divmod(int(index), 8)
+            if failed[row]:
+                continue
             A = self.limits.acceleration[joint]
             scale = self._bound_scale / A
-            self._daqp.update(f=linear[joint] / A, bupper=upper[joint] * scale, blower=lower[joint] * scale)
+            # The sense flags reset the working set: a cold start, so that a joint's solution
+            # does not depend on the problems solved before it.
+            self._daqp.update(f=flat_linear[index] / A, bupper=flat_upper[index] * scale, blower=flat_lower[index] * scale, sense=self._sense)
             x, _, exitflag, _ = self._daqp.solve()
             if exitflag < 1:
-                return None, f"daqp exit flag {exitflag} on joint {joint}"
-            solution[joint] = A * x
-        return solution, "daqp: solved"
+                status[row], failed[row] = f"daqp exit flag {exitflag} on joint {joint}", True
+                continue
+            solution[index] = A * x
+        return solution.reshape(rows, 8, M), status, failed
 
     def _solve_program(self, linear, lower, upper):
         # Lazy: Drake's solvers serve only the solver='clarabel' reference; control is NumPy + DAQP.
@@ -198,23 +226,66 @@ class SegmentQp:
         self._program = (program, variables, cost, box, rows)
 
     # ------------------------------------------------------------------------------ checking
-    def _checked(self, q0, v0, a0, accelerations, q_terminal, v_terminal, status) -> SegmentSolution:
-        """Samples of the solved spline, accepted only if they meet every constraint to within
-        the tolerance (never execute a solver's garbage)."""
-        knots = np.concatenate([a0[:, None], accelerations], axis=1)  # (8, M + 1)
-        v = v0[:, None] + knots @ self._velocity_map.T
-        q = q0[:, None] + v0[:, None] * self._times + knots @ self._position_map.T
-        a = knots @ self._interpolation.T
+    def _checked(self, q0, v0, a0, accelerations, q_terminal, v_terminal, status, failed) -> "SegmentBatch":
+        """Samples of the solved splines (B rows), each row accepted only if it meets every
+        constraint to within the tolerance (never execute a solver's garbage); rows that
+        ``failed`` in the solver keep their status and no samples."""
+        rows, M, N = q0.shape[0], self.knots, self.samples
+        knots = np.concatenate([a0[..., None], accelerations], axis=-1).reshape(rows * 8, M + 1)
+        v = (v0.reshape(-1, 1) + _product(knots, self._velocity_map.T)).reshape(rows, 8, N + 1)
+        q = (q0.reshape(-1, 1) + v0.reshape(-1, 1) * self._times + _product(knots, self._position_map.T)).reshape(rows, 8, N + 1)
+        a = _product(knots, self._interpolation.T).reshape(rows, 8, N + 1)
+        knots = knots.reshape(rows, 8, M + 1)
         limits, tolerance = self.limits, self.tolerance
-        worst = max(
-            float(np.max(np.abs(knots[:, 1:]) - limits.acceleration[:, None])),
-            float(np.max(np.abs(v) - limits.velocity[:, None])),
-            float(np.max(np.maximum(q - limits.upper[:, None], limits.lower[:, None] - q))),
-            float(np.max(np.abs(v[:, -1] - v_terminal))),
-            float(np.max(np.abs(q[:, -1] - q_terminal))),
+        worst = np.max(
+            np.stack(
+                [
+                    np.max(np.abs(knots[..., 1:]) - limits.acceleration[:, None], axis=(1, 2)),
+                    np.max(np.abs(v) - limits.velocity[:, None], axis=(1, 2)),
+                    np.max(np.maximum(q - limits.upper[:, None], limits.lower[:, None] - q), axis=(1, 2)),
+                    np.max(np.abs(v[..., -1] - v_terminal), axis=1),
+                    np.max(np.abs(q[..., -1] - q_terminal), axis=1),
+                ]
+            ),
+            axis=0,
         )
-        worst = max(worst, 0.0)
-        if not np.isfinite(worst) or worst > tolerance:
-            return SegmentSolution(False, None, f"{status}, but a constraint is violated by {worst:.3g}", worst)
-        trajectory = JointTrajectory(self.period, q.T.copy(), v.T.copy(), a.T.copy())
-        return SegmentSolution(True, trajectory, status, worst)
+        worst = np.maximum(worst, 0.0)
+        status = list(status)
+        success = ~failed & np.isfinite(worst) & (worst <= tolerance)
+        worst = np.where(failed, np.inf, worst)
+        for row in np.flatnonzero(~failed & ~success):
+            status[row] = f"{status[row]}, but a constraint is violated by {worst[row]:.3g}"
+        # Samples as (B, N + 1, 8), contiguous per row.
+        q, v, a = (np.ascontiguousarray(np.swapaxes(x, 1, 2)) for x in (q, v, a))
+        return SegmentBatch(self.period, success, status, worst, q, v, a)
+
+
+def _product(x: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """x @ matrix for x (8 B, k): one (8, k) product per environment (a 3-D matmul), so that a
+    row's result does not depend on the batch it is in (one (8 B, k) product rounds differently
+    with B, and OpenBLAS runs it on threads that here cost far more than they save)."""
+    return np.matmul(x.reshape(-1, 8, x.shape[-1]), matrix).reshape(x.shape[0], matrix.shape[1])
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentBatch:
+    """The outcomes of ``SegmentQp.solve_batch`` for B rows: ``success`` (B,) booleans,
+    ``status`` (B strings), ``worst_violation`` (B,) (inf where the solver failed), and the
+    samples q, v, a (B, N + 1, 8) (rad or m, per s, per s^2; meaningful only where
+    ``success``). ``solution(b)`` is row b as ``SegmentQp.solve`` returns it."""
+
+    period: float
+    success: np.ndarray
+    status: list[str]
+    worst_violation: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+
+    def __len__(self) -> int:
+        return self.success.shape[0]
+
+    def solution(self, row: int) -> SegmentSolution:
+        """Row ``row`` as a SegmentSolution (its trajectory views this batch's samples)."""
+        trajectory = JointTrajectory(self.period, self.q[row], self.v[row], self.a[row]) if self.success[row] else None
+        return SegmentSolution(bool(self.success[row]), trajectory, self.status[row], float(self.worst_violation[row]))

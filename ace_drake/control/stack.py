@@ -23,7 +23,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ace_drake.control.action_mapping import inverse_map_action, map_action
-from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, in_invariant_set
+from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, feasible_sets_batch, in_invariant_set
 from ace_drake.control.params import ControlParams
 from ace_drake.control.reset import ResetPlanner
 from ace_drake.control.spline_qp import SegmentQp
@@ -95,6 +95,37 @@ class Proposal:
     target: tuple[np.ndarray, np.ndarray] | None
     seconds: dict[str, float]
     decision: SegmentDecision | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchProposal:
+    """``ControlStack.propose_batch``'s proposals for B environments; entry b is what
+    ``propose`` returns for row b (``proposal(b)``).
+
+    safe (B,) booleans and reason (B strings: "" when safe); plan, segment, reset (B each,
+    JointTrajectory or None); mapped (B,) booleans: whether the mapping succeeded, and then
+    target_q, target_v (B, 8) the mapped terminal state (NaN where it did not); seconds: wall
+    time of each stage for the whole batch, s (for benchmarks).
+    """
+
+    safe: np.ndarray
+    reason: list[str]
+    plan: list[JointTrajectory | None]
+    segment: list[JointTrajectory | None]
+    reset: list[JointTrajectory | None]
+    mapped: np.ndarray
+    target_q: np.ndarray
+    target_v: np.ndarray
+    seconds: dict[str, float]
+
+    def __len__(self) -> int:
+        return self.safe.shape[0]
+
+    def proposal(self, row: int) -> Proposal:
+        """Row ``row`` as a Proposal (its ``seconds`` are the batch's)."""
+        target = (self.target_q[row], self.target_v[row]) if self.mapped[row] else None
+        decision = SegmentDecision(self.plan[row], self.reason[row])
+        return Proposal(bool(self.safe[row]), self.reason[row], self.plan[row], self.segment[row], self.reset[row], target, dict(self.seconds), decision)
 
 
 class ControlStack:
@@ -185,6 +216,68 @@ class ControlStack:
             decision = decide_segment(self, segment, reset)
         return Proposal(decision.accepted, decision.reason, decision.plan, segment.value if segment.ok else None,
                         reset.value if reset.ok else None, target, seconds, decision)
+
+    def propose_batch(self, q, v, a, actions) -> BatchProposal:
+        """``propose`` for B environments at once: start states (q, v, a) (B, 8) each, actions
+        (B, 16) in [-1, 1]. The stages run in the same order with the same reasons, each on the
+        rows that reached it: the feasible sets and mapping of every row vectorised, the segment
+        QP (``SegmentQp.solve_batch``), the resets (``ResetPlanner.plan_reset_batch``), then the
+        collision check of each row's plan in turn."""
+        q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
+        actions = np.asarray(actions, dtype=float)
+        if q.ndim != 2 or q.shape[1:] != (8,) or v.shape != q.shape or a.shape != q.shape or actions.shape != (q.shape[0], 16):
+            raise ValueError(f"propose_batch: q, v, a must be (B, 8) and actions (B, 16), got shapes {q.shape}, {v.shape}, {a.shape}, {actions.shape}")
+        rows = q.shape[0]
+        seconds: dict[str, float] = {}
+        reason = [""] * rows
+        segments: list[JointTrajectory | None] = [None] * rows
+        resets: list[JointTrajectory | None] = [None] * rows
+        plans: list[JointTrajectory | None] = [None] * rows
+        target_q, target_v = np.full((rows, 8), np.nan), np.full((rows, 8), np.nan)
+
+        start = time.perf_counter()
+        sets, mapped, infeasible = feasible_sets_batch(q, v, a, self.limits, self.control, self.period)
+        for row in np.flatnonzero(~mapped):
+            reason[row] = f"infeasible start: {infeasible[row]}"
+        rows_mapped = np.flatnonzero(mapped)
+        if rows_mapped.size:
+            target_q[rows_mapped], target_v[rows_mapped] = map_action(actions[rows_mapped], sets[rows_mapped])
+        seconds["map"] = time.perf_counter() - start
+
+        rows_segment = np.zeros(0, dtype=int)
+        if rows_mapped.size:
+            start = time.perf_counter()
+            solved = self.qp.solve_batch(q[rows_mapped], v[rows_mapped], a[rows_mapped], target_q[rows_mapped], target_v[rows_mapped])
+            for index, row in enumerate(rows_mapped):
+                if solved.success[index]:
+                    segments[row] = JointTrajectory(self.period, solved.q[index], solved.v[index], solved.a[index])
+                else:
+                    reason[row] = f"segment QP failed: {solved.status[index]}"
+            rows_segment = rows_mapped[solved.success]
+            seconds["segment"] = time.perf_counter() - start
+
+        rows_reset = np.zeros(0, dtype=int)
+        if rows_segment.size:
+            start = time.perf_counter()
+            ends = solved.success.nonzero()[0]
+            last = (solved.q[ends, -1], solved.v[ends, -1], solved.a[ends, -1])
+            planned, errors = self.resets.plan_reset_batch(*last, self.reset_pose)
+            for row, reset, error in zip(rows_segment, planned, errors):
+                if reset is None:
+                    reason[row] = f"reset planning failed: {error}"
+                else:
+                    resets[row] = reset
+            rows_reset = np.array([row for row in rows_segment if resets[row] is not None], dtype=int)
+            seconds["reset"] = time.perf_counter() - start
+
+        if rows_reset.size:
+            start = time.perf_counter()
+            for row in rows_reset:
+                decision = decide_segment(self, Stage(True, segments[row]), Stage(True, resets[row]))
+                plans[row], reason[row] = decision.plan, decision.reason
+            seconds["check"] = time.perf_counter() - start
+        safe = np.array([plan is not None for plan in plans], dtype=bool)
+        return BatchProposal(safe, reason, plans, segments, resets, mapped.copy(), target_q, target_v, seconds)
 
     def action_towards(self, q, v, a, q_goal) -> np.ndarray:
         """An action (16,) that moves the joints from the start (q, v, a) towards q_goal (8,)
