@@ -33,12 +33,12 @@ def _replay(diagram, simulator, context, default, shot, actions, extra_ticks=3):
     request.FixValue(context, np.zeros((1, 17)))
     simulator.Initialize()
     simulator.AdvanceTo(0.032)  # tick 0: to the first observation
-    for action in list(actions) + [None] * extra_ticks:
+    for tick, action in enumerate(list(actions) + [None] * extra_ticks, start=2):
         value = np.zeros((1, 17))
         if action is not None:
             value[0, :16], value[0, 16] = action, 1.0
         request.FixValue(context, value)
-        simulator.AdvanceTo(context.get_time() + 0.032)
+        simulator.AdvanceTo(tick * 0.032)  # whole ticks: a time summed tick by tick can stop one ulp short of a tick
     ball = diagram.GetSubsystemByName("ball")
     return ball.plant_state(ball.GetMyContextFromRoot(context)).events[0]
 
@@ -96,7 +96,7 @@ def test_a_batch_gives_the_episodes_of_single_runs(shots):
         observations = []
         for tick in range(actions.shape[0]):
             request.FixValue(context, np.concatenate([actions[tick, rows], np.ones((len(rows), 1))], axis=1))
-            simulator.AdvanceTo(context.get_time() + 0.032)
+            simulator.AdvanceTo((tick + 2) * 0.032)
             builder = diagram.GetSubsystemByName("observation_builder")
             observations.append(builder.observation_port.Eval(builder.GetMyContextFromRoot(context)).copy())
         ball = diagram.GetSubsystemByName("ball")

@@ -316,6 +316,7 @@ class RallyEnv(gymnasium.Env):
         self._distribution = distribution
         self._shots: list[tuple[np.ndarray, bool]] = []
         self._episode: _Episode | None = None
+        self._steps = 0
 
     # ------------------------------------------------------------------------------ gymnasium
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -353,6 +354,7 @@ class RallyEnv(gymnasium.Env):
             self._joints.SetJointState(self._joints.GetMyMutableContextFromRoot(self.context), q, v)
         self._request(np.zeros(ACTION_SIZE), valid=False)
         self.simulator.Initialize()
+        self._steps = 0
         self.simulator.AdvanceTo(self._first_observation)
         self._episode = _Episode(shot, serve, skill, start, self._classify(serve))
         return self._observation(), self._info()
@@ -366,7 +368,7 @@ class RallyEnv(gymnasium.Env):
             raise ValueError(f"RallyEnv.step: the action must have shape ({ACTION_SIZE},), got {action.shape}")
         refused_before = self._supervisor_state().rejected
         self._request(action, valid=True)
-        self.simulator.AdvanceTo(self.context.get_time() + self.period)
+        self._advance()
         episode.result = self._classify(episode.serve)
         episode.end = self._end_condition(episode, refused_before)
         if episode.end == "hit":
@@ -454,13 +456,19 @@ class RallyEnv(gymnasium.Env):
         return end_condition(episode.result, status.rejected > refused_before, status.last_reason, ball, X_WR.translation()[0],
                              self._pass_distance, self.context.get_time(), self.params.rally.time_limit)
 
+    def _advance(self) -> None:
+        """One period on: to the next observation instant, counted in whole periods (a time summed
+        period by period can land an ulp past the controller's event and hand it the old action)."""
+        self._steps += 1
+        self.simulator.AdvanceTo(self._first_observation + self._steps * self.period)
+
     def _finish_return(self, episode: _Episode) -> None:
         """After the hit: no more segments; simulate until the return is decided or
         ``post_hit_time_limit`` has passed since the hit."""
         self._request(np.zeros(ACTION_SIZE), valid=False)
         deadline = episode.result.hit.time + self.params.post_hit_time_limit
         while not episode.result.done and self.context.get_time() < deadline:
-            self.simulator.AdvanceTo(self.context.get_time() + self.period)
+            self._advance()
             episode.result = self._classify(episode.serve)
         episode.result = timed_out(episode.result)
 

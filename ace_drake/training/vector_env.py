@@ -106,6 +106,7 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
         self._episode_index = np.zeros(self.num_envs, dtype=np.int64)
         self._episodes: list[_Episode | None] = [None] * self.num_envs
         self._restart = np.zeros(self.num_envs, dtype=bool)
+        self._tick = 0
 
     # ------------------------------------------------------------------------------ gymnasium
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -122,7 +123,8 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
         self.diagram.GetInputPort("light_curtain").FixValue(self.context, np.zeros(self.num_envs))
         self._request(np.zeros((self.num_envs, ACTION_SIZE)), np.zeros(self.num_envs, dtype=bool))
         self.simulator.Initialize()
-        self.simulator.AdvanceTo(self.timing.duration)  # every episode's tick 0: to its first observation
+        self._tick = 1
+        self.simulator.AdvanceTo(self._tick * self.timing.duration)  # every episode's tick 0: to its first observation
         self._restart[:] = False
         return self._observations(), self._infos()
 
@@ -141,7 +143,9 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
         running = ~self._restart
         self._request(actions, running)
         refused_before = np.array([s.rejected for s in self._supervisor_states()])
-        self.simulator.AdvanceTo(self.context.get_time() + self.timing.duration)
+        # Whole ticks: a time summed step by step can stop an ulp before a tick and shift every action.
+        self._tick += 1
+        self.simulator.AdvanceTo(self._tick * self.timing.duration)
         rewards = np.zeros(self.num_envs)
         terminated = np.zeros(self.num_envs, dtype=bool)
         states = self._supervisor_states()
