@@ -217,67 +217,94 @@ class ControlStack:
         return Proposal(decision.accepted, decision.reason, decision.plan, segment.value if segment.ok else None,
                         reset.value if reset.ok else None, target, seconds, decision)
 
+    def map_batch(self, q, v, a, actions) -> list[Stage]:
+        """``map`` for B starts (q, v, a) (B, 8) each and actions (B, 16): the Stages (B,), the
+        feasible sets of every row at once (``feasible_sets_batch``)."""
+        q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
+        actions = np.asarray(actions, dtype=float)
+        stages = [Stage(False)] * q.shape[0]
+        if not q.shape[0]:
+            return stages
+        sets, mapped, infeasible = feasible_sets_batch(q, v, a, self.limits, self.control, self.period)
+        for row in np.flatnonzero(~mapped):
+            stages[row] = Stage(False, reason=f"infeasible start: {infeasible[row]}")
+        rows = np.flatnonzero(mapped)
+        if rows.size:
+            target_q, target_v = map_action(actions[rows], sets[rows])
+            for index, row in enumerate(rows):
+                stages[row] = Stage(True, (target_q[index], target_v[index]))
+        return stages
+
+    def segment_batch(self, q, v, a, targets: list[Stage]) -> list[Stage]:
+        """``segment`` for B starts (q, v, a) (B, 8) each and the mapping's Stages (B,): a failed
+        target passes its reason on; the others' QPs at once (``SegmentQp.solve_batch``)."""
+        stages = [Stage(False, reason=target.reason) if not target.ok else None for target in targets]
+        rows = np.array([row for row, stage in enumerate(stages) if stage is None], dtype=int)
+        if rows.size:
+            q, v, a = (np.asarray(x, dtype=float)[rows] for x in (q, v, a))
+            target_q = np.array([targets[row].value[0] for row in rows])
+            target_v = np.array([targets[row].value[1] for row in rows])
+            solved = self.qp.solve_batch(q, v, a, target_q, target_v)
+            for index, row in enumerate(rows):
+                if solved.success[index]:
+                    stages[row] = Stage(True, JointTrajectory(self.period, solved.q[index], solved.v[index], solved.a[index]))
+                else:
+                    stages[row] = Stage(False, reason=f"segment QP failed: {solved.status[index]}")
+        return stages
+
+    def reset_batch(self, segments: list[Stage]) -> list[Stage]:
+        """``reset`` for the QP's Stages (B,): a failed segment passes its reason on; the others'
+        resets planned at once (``ResetPlanner.plan_reset_batch``)."""
+        stages = [Stage(False, reason=segment.reason) if not segment.ok else None for segment in segments]
+        rows = [row for row, stage in enumerate(stages) if stage is None]
+        if rows:
+            ends = [segments[row].value.state(-1) for row in rows]
+            planned, errors = self.resets.plan_reset_batch(*(np.array([end[k] for end in ends]) for k in range(3)), self.reset_pose)
+            for row, reset, error in zip(rows, planned, errors):
+                stages[row] = Stage(True, reset) if reset is not None else Stage(False, reason=f"reset planning failed: {error}")
+        return stages
+
     def propose_batch(self, q, v, a, actions) -> BatchProposal:
         """``propose`` for B environments at once: start states (q, v, a) (B, 8) each, actions
         (B, 16) in [-1, 1]. The stages run in the same order with the same reasons, each on the
-        rows that reached it: the feasible sets and mapping of every row vectorised, the segment
-        QP (``SegmentQp.solve_batch``), the resets (``ResetPlanner.plan_reset_batch``), then the
-        collision check of each row's plan in turn."""
+        rows that reached it (``map_batch``, ``segment_batch``, ``reset_batch``), then the
+        collision check of each row's plan in turn (``decide_segment``)."""
         q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
         actions = np.asarray(actions, dtype=float)
         if q.ndim != 2 or q.shape[1:] != (8,) or v.shape != q.shape or a.shape != q.shape or actions.shape != (q.shape[0], 16):
             raise ValueError(f"propose_batch: q, v, a must be (B, 8) and actions (B, 16), got shapes {q.shape}, {v.shape}, {a.shape}, {actions.shape}")
         rows = q.shape[0]
         seconds: dict[str, float] = {}
-        reason = [""] * rows
-        segments: list[JointTrajectory | None] = [None] * rows
-        resets: list[JointTrajectory | None] = [None] * rows
-        plans: list[JointTrajectory | None] = [None] * rows
-        target_q, target_v = np.full((rows, 8), np.nan), np.full((rows, 8), np.nan)
-
         start = time.perf_counter()
-        sets, mapped, infeasible = feasible_sets_batch(q, v, a, self.limits, self.control, self.period)
-        for row in np.flatnonzero(~mapped):
-            reason[row] = f"infeasible start: {infeasible[row]}"
-        rows_mapped = np.flatnonzero(mapped)
-        if rows_mapped.size:
-            target_q[rows_mapped], target_v[rows_mapped] = map_action(actions[rows_mapped], sets[rows_mapped])
+        targets = self.map_batch(q, v, a, actions)
         seconds["map"] = time.perf_counter() - start
-
-        rows_segment = np.zeros(0, dtype=int)
-        if rows_mapped.size:
+        if any(target.ok for target in targets):
             start = time.perf_counter()
-            solved = self.qp.solve_batch(q[rows_mapped], v[rows_mapped], a[rows_mapped], target_q[rows_mapped], target_v[rows_mapped])
-            for index, row in enumerate(rows_mapped):
-                if solved.success[index]:
-                    segments[row] = JointTrajectory(self.period, solved.q[index], solved.v[index], solved.a[index])
-                else:
-                    reason[row] = f"segment QP failed: {solved.status[index]}"
-            rows_segment = rows_mapped[solved.success]
+            segments = self.segment_batch(q, v, a, targets)
             seconds["segment"] = time.perf_counter() - start
-
-        rows_reset = np.zeros(0, dtype=int)
-        if rows_segment.size:
+        else:
+            segments = [Stage(False, reason=target.reason) for target in targets]
+        if any(segment.ok for segment in segments):
             start = time.perf_counter()
-            ends = solved.success.nonzero()[0]
-            last = (solved.q[ends, -1], solved.v[ends, -1], solved.a[ends, -1])
-            planned, errors = self.resets.plan_reset_batch(*last, self.reset_pose)
-            for row, reset, error in zip(rows_segment, planned, errors):
-                if reset is None:
-                    reason[row] = f"reset planning failed: {error}"
-                else:
-                    resets[row] = reset
-            rows_reset = np.array([row for row in rows_segment if resets[row] is not None], dtype=int)
+            resets = self.reset_batch(segments)
             seconds["reset"] = time.perf_counter() - start
-
-        if rows_reset.size:
+        else:
+            resets = [Stage(False, reason=segment.reason) for segment in segments]
+        plans: list[JointTrajectory | None] = [None] * rows
+        reason = [reset.reason for reset in resets]
+        if any(reset.ok for reset in resets):
             start = time.perf_counter()
-            for row in rows_reset:
-                decision = decide_segment(self, Stage(True, segments[row]), Stage(True, resets[row]))
-                plans[row], reason[row] = decision.plan, decision.reason
+            for row in range(rows):
+                if resets[row].ok:
+                    decision = decide_segment(self, segments[row], resets[row])
+                    plans[row], reason[row] = decision.plan, decision.reason
             seconds["check"] = time.perf_counter() - start
+        mapped = np.array([target.ok for target in targets], dtype=bool)
+        target_q = np.array([target.value[0] if target.ok else np.full(8, np.nan) for target in targets]).reshape(rows, 8)
+        target_v = np.array([target.value[1] if target.ok else np.full(8, np.nan) for target in targets]).reshape(rows, 8)
         safe = np.array([plan is not None for plan in plans], dtype=bool)
-        return BatchProposal(safe, reason, plans, segments, resets, mapped.copy(), target_q, target_v, seconds)
+        return BatchProposal(safe, reason, plans, [s.value if s.ok else None for s in segments], [r.value if r.ok else None for r in resets],
+                             mapped, target_q, target_v, seconds)
 
     def action_towards(self, q, v, a, q_goal) -> np.ndarray:
         """An action (16,) that moves the joints from the start (q, v, a) towards q_goal (8,)

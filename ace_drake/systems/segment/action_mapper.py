@@ -14,7 +14,7 @@ from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
 class SegmentActionMapper(LeafSystem):
     """The continuous-time ``ActionMapper`` for B environments: maps each valid action onto the
     feasible set of terminal (q, v) 32 ms after its segment's start (paper eq. (12);
-    ``ControlStack.map``).
+    ``ControlStack.map_batch``: every row's feasible sets at once).
 
     Input ports:
         action (abstract float (B, 17)): the SegmentPolicyController's [action, valid].
@@ -37,11 +37,11 @@ class SegmentActionMapper(LeafSystem):
 
     def CalcTarget(self, context, output):
         actions = self.action_port.Eval(context)
-        acting = actions[:, ACTION_SIZE] > 0.5
+        acting = np.flatnonzero(actions[:, ACTION_SIZE] > 0.5)
         stages = [Stage(False, reason=NO_ACTION)] * self.batch
-        if acting.any():
-            start = self.segment_start_state_port.Eval(context)
-            for row in np.flatnonzero(acting):
-                q, v, a = np.split(start[row], 3)
-                stages[row] = self.stack.map(q, v, a, actions[row, :ACTION_SIZE])
+        if acting.size:
+            start = self.segment_start_state_port.Eval(context)[acting]
+            q, v, a = np.split(start, 3, axis=1)
+            for row, stage in zip(acting, self.stack.map_batch(q, v, a, actions[acting, :ACTION_SIZE])):
+                stages[row] = stage
         output.set_value(tuple(stages))

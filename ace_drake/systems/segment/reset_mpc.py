@@ -5,12 +5,12 @@ from __future__ import annotations
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
-from ace_drake.control.stack import ControlStack, Stage
+from ace_drake.control.stack import ControlStack
 
 
 class SegmentResetMpc(LeafSystem):
     """The continuous-time ``ResetMpc`` for B environments (paper, *Reset trajectories*;
-    ``ControlStack.reset``: Ruckig's time-optimal jerk-limited reset to the reset pose).
+    ``ControlStack.reset_batch``: Ruckig's time-optimal jerk-limited reset to the reset pose).
 
     Input ports:
         segment (abstract tuple of B Stage): the SegmentSplineQp's.
@@ -29,4 +29,4 @@ class SegmentResetMpc(LeafSystem):
         self.reset_port = self.DeclareAbstractOutputPort("reset", lambda: AbstractValue.Make(()), self.CalcReset)
 
     def CalcReset(self, context, output):
-        output.set_value(tuple(self.stack.reset(s.value) if s.ok else Stage(False, reason=s.reason) for s in self.segment_port.Eval(context)))
+        output.set_value(tuple(self.stack.reset_batch(self.segment_port.Eval(context))))

@@ -6,13 +6,14 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
-from ace_drake.control.stack import ControlStack, Stage
+from ace_drake.control.stack import ControlStack
 from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
 
 
 class SegmentSplineQp(LeafSystem):
     """The continuous-time ``SplineQp`` for B environments (paper, *Optimization problem
-    formulation*; ``ControlStack.segment``).
+    formulation*; ``ControlStack.segment_batch``: the jerk-minimising spline of every row as one
+    linear map of its boundary conditions, DAQP only where a bound binds).
 
     Input ports:
         segment_start_state (abstract float (B, 24)): [q, v, a] where each segment starts.
@@ -35,12 +36,5 @@ class SegmentSplineQp(LeafSystem):
         self.segment_port = self.DeclareAbstractOutputPort("segment", lambda: AbstractValue.Make(()), self.CalcSegment)
 
     def CalcSegment(self, context, output):
-        targets = self.target_port.Eval(context)
-        stages = [Stage(False, reason=target.reason) if not target.ok else None for target in targets]
-        if any(stage is None for stage in stages):
-            start = self.segment_start_state_port.Eval(context)
-            for row, target in enumerate(targets):
-                if target.ok:
-                    q, v, a = np.split(start[row], 3)
-                    stages[row] = self.stack.segment(q, v, a, target.value)
-        output.set_value(tuple(stages))
+        q, v, a = np.split(self.segment_start_state_port.Eval(context), 3, axis=1)
+        output.set_value(tuple(self.stack.segment_batch(q, v, a, self.target_port.Eval(context))))
