@@ -674,7 +674,7 @@ def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills
     joints.StartEpisodes(joints_context, rows, q, v)
     controller, controller_context = sub("policy_controller")
     controller.StartEpisodes(controller_context, rows)
-    controller.ResetPolicies(rows)
+    controller.ResetPolicies(rows, seeds)
 
 
 def _documented_ball_diagram() -> Diagram:

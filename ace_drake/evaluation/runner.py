@@ -9,6 +9,7 @@ just after the opponent's hit (``diagrams.start_rally``) and runs in 32 ms polic
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import numpy as np
 from pydrake.systems.framework import Diagram
@@ -16,7 +17,7 @@ from pydrake.systems.primitives import VectorLogSink
 
 from ace_drake.contracts import EpisodeResult
 from ace_drake.control.params import RallyParams
-from ace_drake.diagrams import make_simulator, start_rally
+from ace_drake.diagrams import make_segment_simulator, make_simulator, start_rally, start_segment_episodes
 from ace_drake.play.episode import classify, timed_out
 
 
@@ -89,3 +90,78 @@ class RallyRunner:
         duration = self.context.get_time() - start_time
         skill = self._observation.GetSkill(self._observation.GetMyContextFromRoot(self.context))
         return Episode(np.asarray(shot, dtype=float), timed_out(result), duration, (status.accepted, status.rejected), skill)
+
+
+class SegmentRallyRunner:
+    """Many episodes on one segment-stepped rally diagram (``diagrams.build_segment_rally_diagram``,
+    B environments): each environment plays shots one after another, a new one starting in the
+    tick after its last ended (decided, or ``params.time_limit``), until every shot is played."""
+
+    def __init__(self, diagram: Diagram, params: RallyParams):
+        """Args: diagram, a segment-stepped rally diagram with its policy inside; params, the
+        RallyParams it was built with."""
+        self.diagram = diagram
+        self.params = params
+        self.simulator = make_segment_simulator(diagram)
+        self.context = self.simulator.get_mutable_context()
+        self._default_context = diagram.CreateDefaultContext()
+        subsystem = diagram.GetSubsystemByName
+        self._ball, self._clock = subsystem("ball"), subsystem("episode_clock")
+        self._supervisor, self._observation = subsystem("safety_supervisor"), subsystem("observation_builder")
+        self.batch = self._clock.batch
+        self.timing = self._clock.timing
+
+    def run_many(self, shots, serve, seeds, skills=None, progress: Callable[[int], None] | None = None) -> list[Episode]:
+        """Plays every shot (n, 9) once, shot i seeded with ``seeds[i]`` and played with
+        ``skills[i]`` ((n, 3); None: the default skill); ``progress(k)`` after each tick that
+        ended k episodes. Returns the Episodes in the shots' order."""
+        shots = np.asarray(shots, dtype=float).reshape(-1, 9)
+        serve = np.asarray(serve, dtype=bool).reshape(-1)
+        seeds = np.asarray(seeds).reshape(-1)
+        if serve.size != len(shots) or seeds.size != len(shots):
+            raise ValueError(f"SegmentRallyRunner.run_many: {len(shots)} shots need as many serve flags and seeds, got {serve.size}, {seeds.size}")
+        if skills is not None:
+            skills = np.asarray(skills, dtype=float)
+            if skills.shape != (len(shots), 3):
+                raise ValueError(f"SegmentRallyRunner.run_many: skills must be ({len(shots)}, 3), got {skills.shape}")
+        episodes: list[Episode | None] = [None] * len(shots)
+        playing = np.full(self.batch, -1)  # the shot each environment plays (-1: none)
+        self.context.SetTimeStateAndParametersFrom(self._default_context)
+        self.diagram.GetInputPort("light_curtain").FixValue(self.context, np.zeros(self.batch))
+        following = iter(range(len(shots)))
+
+        def start(rows):
+            chosen = [(row, next(following, None)) for row in rows]
+            chosen = [(row, shot) for row, shot in chosen if shot is not None]
+            for row, shot in chosen:
+                playing[row] = shot
+            if chosen:
+                rows_, shots_ = np.array([r for r, _ in chosen]), np.array([s for _, s in chosen])
+                start_segment_episodes(self.diagram, self.context, rows_, shots[shots_], seeds[shots_], None if skills is None else skills[shots_])
+            for row in rows:
+                if row not in {r for r, _ in chosen}:
+                    playing[row] = -1
+
+        start(list(range(self.batch)))
+        self.simulator.Initialize()
+        tick = 0
+        limit = self.params.time_limit
+        while np.any(playing >= 0):
+            tick += 1
+            self.simulator.AdvanceTo(tick * self.timing.duration)  # whole ticks (see RallyVectorEnv.step)
+            ball = self._ball.plant_state(self._ball.GetMyContextFromRoot(self.context))
+            times = self.timing.tick_time(self._clock.ticks(self._clock.GetMyContextFromRoot(self.context)))
+            ended = []
+            for row in np.flatnonzero(playing >= 0):
+                index = playing[row]
+                result = classify(ball.events[row], bool(serve[index]))
+                if result.done or times[row] >= limit - 1e-9:
+                    status = self._supervisor.supervisor_states(self._supervisor.GetMyContextFromRoot(self.context))[row]
+                    skill = self._observation.skills(self._observation.GetMyContextFromRoot(self.context))[row].copy()
+                    episodes[index] = Episode(shots[index], timed_out(result), float(times[row]), (status.accepted, status.rejected), skill)
+                    ended.append(row)
+            if ended:
+                start(ended)
+                if progress is not None:
+                    progress(len(ended))
+        return episodes

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from typing import Sequence
 
 import numpy as np
@@ -82,15 +83,21 @@ class SegmentPolicyController(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(timing.duration, 0.0, self.CountCalls)
 
     # ------------------------------------------------------------------------------ episodes
-    def ResetPolicies(self, rows) -> None:
-        """Tells the stateful policies of environments ``rows`` that a new episode starts
-        (``reset()``; with a ``seed`` parameter, ``reset(seed=...)`` is the caller's to make)."""
+    def ResetPolicies(self, rows, seeds=None) -> None:
+        """Tells the stateful policies of environments ``rows`` that a new episode starts: calls
+        their ``reset()``, or ``reset(seed=...)`` with the row's episode seed (``seeds`` (k,)) for a
+        stochastic policy whose ``reset`` takes one."""
+        rows = np.asarray(rows, dtype=int).reshape(-1)
         seen = set()
-        for row in np.asarray(rows, dtype=int):
+        for k, row in enumerate(rows):
             source = self._sources[row]
             reset = getattr(source, "reset", None)
-            if callable(reset) and id(source) not in seen:
-                seen.add(id(source))
+            if not callable(reset) or id(source) in seen:
+                continue
+            seen.add(id(source))
+            if seeds is not None and "seed" in inspect.signature(reset).parameters:
+                reset(seed=int(np.asarray(seeds).reshape(-1)[k]))
+            else:
                 reset()
 
     def counts(self, context) -> np.ndarray:
