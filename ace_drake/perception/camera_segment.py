@@ -1,0 +1,433 @@
+"""The nine frame cameras and the triangulator over one control segment, for B environments at
+once (paper, Methods *Ball triangulation*): the batched, segment-stepped counterpart of the
+reference systems ``ApsCameraArray`` (analytic mode) + ``Triangulator`` (issue 29).
+
+The reference's timing, which this module reproduces and its callers must follow:
+
+- Triggers are on the ``1 / trigger_rate`` grid of the diagram's clock (200 Hz, offset 0): trigger
+  k is captured at t_k = k * period (``trigger_times``). The array numbers its triggers 1, 2, ...
+  from the episode's start (the first trigger of an episode that starts at time 0 is number 1).
+- Trigger number n of an episode with seed s draws its noise from its own generator,
+  ``numpy.random.default_rng([s, n])``: first the pixel noise (C, 2) (standard normal times
+  ``pixel_noise_sigma``), then the dropout uniforms (C,), whatever is visible
+  (``cameras.simulate_detections``). s is the 64 bits of the array's ``random_seed`` port
+  (``systems.random_seed.episode_seed``) at the trigger; nothing else advances a stream, so the
+  draws of an (environment, trigger) pair do not depend on any other pair.
+- A trigger's detections are released at t_k + latency (10.2 ms) and triangulated then: the
+  Triangulator's measurement has capture time t_k, release time t_k + latency, the triangulated
+  position and covariance (``triangulation.triangulate``), and sequence number one above the
+  previous measurement's (release order, 1, 2, ...); a trigger with fewer than ``min_views``
+  consistent views gives no measurement and takes no number.
+
+``triangulate_frames`` is ``triangulate`` over a batch of frames (..., C, 2): the same accepted
+views, outlier rejection and covariance, with the DLT, Gauss-Newton and rejection rounds
+vectorised over all frames still in play. ``CameraSegment`` is built once from the calibration and
+``CameraParams`` and maps the true ball positions at a segment's triggers (B, m, 3) to the
+measurements of those triggers (``SegmentMeasurements``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, project_points, segments_blocked, table_occluder, visibility
+from ace_drake.perception.measurements import Measurement
+from ace_drake.perception.params import CameraParams
+from ace_drake.perception.triangulation import GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, _inverse_or_inf
+
+TIME_TOLERANCE = 1e-9  # s; as ApsCameraArray: trigger times are products of the period in floating point
+
+
+# ----------------------------------------------------------------------------------------------
+# Batched triangulation
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FrameTriangulations:
+    """Triangulations of a batch of frames with leading shape S (``triangulate_frames``).
+
+    valid S: whether the frame gave a position (``triangulate`` returned a Triangulation).
+    position S + (3,): p_WB, m; NaN where not valid.
+    covariance S + (3, 3): m^2; NaN where not valid.
+    views S + (C,): the cameras used after outlier rejection; all False where not valid.
+    rms_residual_px S: px; NaN where not valid.
+    """
+
+    valid: np.ndarray
+    position: np.ndarray
+    covariance: np.ndarray
+    views: np.ndarray
+    rms_residual_px: np.ndarray
+
+
+class _CameraStack:
+    """The C cameras' matrices stacked for vectorised maths: R_CW (C, 3, 3), tvec (C, 3), the
+    projection matrices [R_CW | t] (C, 3, 4)."""
+
+    def __init__(self, cameras: Sequence[Camera]):
+        self.cameras = tuple(cameras)
+        self.R_CW = np.stack([camera.R_CW for camera in self.cameras])
+        self.tvec = np.stack([camera.tvec for camera in self.cameras])
+        self.projection = np.concatenate([self.R_CW, self.tvec[:, :, None]], axis=2)
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def normalised(self, pixels: np.ndarray, usable: np.ndarray) -> np.ndarray:
+        """Undistorted normalised image points (N, C, 2) of pixels (N, C, 2), px
+        (``cv2.undistortPoints`` per camera over all frames); zero where not ``usable`` (N, C)."""
+        out = np.zeros(pixels.shape)
+        for index, camera in enumerate(self.cameras):
+            rows = np.flatnonzero(usable[:, index])
+            if rows.size:
+                points = np.ascontiguousarray(pixels[rows, index].reshape(-1, 1, 2))
+                out[rows, index] = cv2.undistortPoints(points, camera.K, camera.distortion).reshape(-1, 2)
+        return out
+
+    def project_with_jacobian(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (N, C, 2) of positions (N, 3), m, in every camera and their Jacobians
+        d pixel / d p_W (N, C, 2, 3), px/m (``Camera.project_with_jacobian``)."""
+        pixels = np.empty((len(positions), len(self.cameras), 2))
+        jacobians = np.empty((len(positions), len(self.cameras), 2, 3))
+        for index, camera in enumerate(self.cameras):
+            pixels[:, index], jacobians[:, index] = camera.project_with_jacobian(positions)
+        return pixels, jacobians
+
+    def depths(self, positions: np.ndarray) -> np.ndarray:
+        """Depths (N, C), m, of positions (N, 3) along each camera's optical axis."""
+        return np.einsum("ck,nk->nc", self.R_CW[:, 2, :], positions) + self.tvec[:, 2]
+
+
+def _least_squares_steps(jacobians: np.ndarray, residuals: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """Gauss-Newton steps (N, 3), m: the minimum-norm least-squares solutions of J step = -r over
+    the views used (``numpy.linalg.lstsq`` with its default cut-off, per frame), with J (N, C, 2,
+    3), r (N, C, 2) and views (N, C) bool; unused views are zero rows, which change neither the
+    normal matrix nor the solution."""
+    J = np.where(views[:, :, None, None], jacobians, 0.0).reshape(len(views), -1, 3)
+    b = -np.where(views[:, :, None], residuals, 0.0).reshape(len(views), -1)
+    U, S, Vt = np.linalg.svd(J, full_matrices=False)  # (N, 2C, 3), (N, 3), (N, 3, 3)
+    rows = 2 * views.sum(axis=1)
+    cutoff = np.finfo(float).eps * np.maximum(rows, 3)[:, None] * S[:, :1]
+    inverse = np.where(S > cutoff, 1.0 / np.where(S > cutoff, S, 1.0), 0.0)
+    return np.einsum("nji,nj->ni", Vt, inverse * np.einsum("nkj,nk->nj", U, b))
+
+
+def _linear_positions(stack: _CameraStack, normalised: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """The DLT (``triangulation.triangulate_linear``) for N frames: p_W (N, 3), m, from the
+    normalised points (N, C, 2) of the views used (N, C) bool; unused views are zero rows."""
+    P = stack.projection  # (C, 3, 4)
+    rows = np.stack(
+        [normalised[..., 0, None] * P[None, :, 2] - P[None, :, 0], normalised[..., 1, None] * P[None, :, 2] - P[None, :, 1]],
+        axis=2,
+    )  # (N, C, 2, 4)
+    rows = rows * views[:, :, None, None]
+    _, _, vt = np.linalg.svd(rows.reshape(len(views), -1, 4))
+    homogeneous = vt[:, -1]
+    return homogeneous[:, :3] / homogeneous[:, 3:]
+
+
+def _refine_positions(
+    stack: _CameraStack, pixels: np.ndarray, positions: np.ndarray, views: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``triangulation.refine_position`` for N frames: Gauss-Newton on the reprojection error of
+    the views used (N, C), each frame stopping after its first step shorter than the tolerance.
+    Returns positions (N, 3), residuals (N, C, 2), px, and Jacobians (N, C, 2, 3), px/m, at them
+    (every camera's; only the views used are meaningful)."""
+    positions = positions.copy()
+    active = np.arange(len(positions))
+    for _ in range(GAUSS_NEWTON_ITERATIONS):
+        if active.size == 0:
+            break
+        projected, jacobians = stack.project_with_jacobian(positions[active])
+        steps = _least_squares_steps(jacobians, projected - pixels[active], views[active])
+        positions[active] = positions[active] + steps
+        active = active[np.linalg.norm(steps, axis=1) >= GAUSS_NEWTON_STEP_TOLERANCE]
+    projected, jacobians = stack.project_with_jacobian(positions)
+    return positions, projected - pixels, jacobians
+
+
+def triangulate_frames(
+    cameras: Sequence[Camera],
+    pixels: np.ndarray,
+    pixel_noise_sigma: float,
+    outlier_threshold_px: float = 8.0,
+    min_views: int = 2,
+) -> FrameTriangulations:
+    """``triangulation.triangulate`` for a batch of frames: the detections ``pixels`` S + (C, 2),
+    px, of the C ``cameras`` (NaN rows: no detection) for any leading shape S. Each frame gets
+    the views, outlier rejection, position and covariance that ``triangulate`` gives it (to
+    rounding, ~1e-12 m), computed in rounds vectorised over the frames still in play."""
+    if min_views < 2:
+        raise ValueError(f"triangulate_frames: min_views must be >= 2, got {min_views}")
+    pixels = np.asarray(pixels, dtype=float)
+    C = len(cameras)
+    if pixels.ndim < 2 or pixels.shape[-2:] != (C, 2):
+        raise ValueError(f"triangulate_frames: pixels must have shape (..., {C}, 2) for {C} cameras, got {pixels.shape}")
+    shape = pixels.shape[:-2]
+    flat = pixels.reshape(-1, C, 2)
+    N = len(flat)
+    stack = cameras if isinstance(cameras, _CameraStack) else _CameraStack(cameras)
+    usable = np.all(np.isfinite(flat), axis=2)
+    normalised = stack.normalised(flat, usable)
+    views = usable.copy()
+    valid = np.zeros(N, dtype=bool)
+    position = np.full((N, 3), np.nan)
+    covariance = np.full((N, 3, 3), np.nan)
+    rms = np.full(N, np.nan)
+    pending = np.flatnonzero(views.sum(axis=1) >= min_views)
+    while pending.size:
+        used = views[pending]
+        start = _linear_positions(stack, normalised[pending], used)
+        refined, residuals, jacobians = _refine_positions(stack, flat[pending], start, used)
+        norms = np.where(used, np.linalg.norm(residuals, axis=2), -np.inf)
+        worst = np.argmax(norms, axis=1)
+        worst_norm = norms[np.arange(len(pending)), worst]
+        count = used.sum(axis=1)
+        consistent = worst_norm <= outlier_threshold_px
+        if np.any(consistent):
+            rows = pending[consistent]
+            accepted_jacobians = np.where(used[consistent][:, :, None, None], jacobians[consistent], 0.0)
+            information = np.einsum("nvki,nvkj->nij", accepted_jacobians, accepted_jacobians)
+            accepted_covariance = pixel_noise_sigma**2 * _inverse_or_inf(information)
+            depths = np.where(used[consistent], stack.depths(refined[consistent]), np.inf)
+            good = np.all(depths > 0, axis=1) & np.all(np.isfinite(accepted_covariance), axis=(1, 2))
+            rows, good_index = rows[good], np.flatnonzero(good)
+            valid[rows] = True
+            position[rows] = refined[consistent][good_index]
+            covariance[rows] = accepted_covariance[good_index]
+            squared = np.where(used[consistent][good_index], norms[consistent][good_index], 0.0) ** 2
+            rms[rows] = np.sqrt(squared.sum(axis=1) / count[consistent][good_index])
+        # Inconsistent frames drop their worst view while more than two remain (triangulate).
+        again = ~consistent & (count > 2)
+        rows = pending[again]
+        views[rows, worst[again]] = False
+        pending = rows[views[rows].sum(axis=1) >= min_views]
+    views &= valid[:, None]
+    return FrameTriangulations(
+        valid=valid.reshape(shape),
+        position=position.reshape(shape + (3,)),
+        covariance=covariance.reshape(shape + (3, 3)),
+        views=views.reshape(shape + (C,)),
+        rms_residual_px=rms.reshape(shape),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Detection noise, as the reference draws it
+# ----------------------------------------------------------------------------------------------
+
+
+def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The standard-normal pixel noise (N, C, 2) and dropout uniforms (N, C) of N triggers, trigger
+    ``sequences[i]`` (N,) of the episode seeded ``seeds[i]`` (N,), each from its own generator
+    ``numpy.random.default_rng([seed, sequence])`` in the reference's order (noise, then dropout;
+    ``cameras.simulate_detections``)."""
+    seeds = np.asarray(seeds).reshape(-1)
+    sequences = np.asarray(sequences).reshape(-1)
+    noise = np.empty((len(seeds), camera_count, 2))
+    uniforms = np.empty((len(seeds), camera_count))
+    for index, (seed, sequence) in enumerate(zip(seeds.tolist(), sequences.tolist())):
+        rng = np.random.default_rng([seed, sequence])
+        noise[index] = rng.normal(0.0, 1.0, size=(camera_count, 2))
+        uniforms[index] = rng.random(camera_count)
+    return noise, uniforms
+
+
+# ----------------------------------------------------------------------------------------------
+# One control segment for B environments
+# ----------------------------------------------------------------------------------------------
+
+
+def trigger_times(start: float, end: float, trigger_rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """The camera triggers in [start, end), s, on the grid k / trigger_rate (Hz) from time 0:
+    their indices k (m,) and times k / trigger_rate (m,), s, as the reference's periodic event
+    has them (within ``TIME_TOLERANCE`` of a grid time counts as on it). A trigger index k is
+    trigger number k + 1 of an episode that started at time 0."""
+    if not trigger_rate > 0:
+        raise ValueError(f"trigger_times: trigger_rate must be > 0 Hz, got {trigger_rate}")
+    if not (np.isfinite(start) and np.isfinite(end) and end >= start):
+        raise ValueError(f"trigger_times: expected finite start <= end (s), got [{start}, {end})")
+    period = 1.0 / trigger_rate
+    first = int(np.ceil((start - TIME_TOLERANCE) / period))
+    stop = int(np.ceil((end - TIME_TOLERANCE) / period))
+    indices = np.arange(first, max(stop, first))
+    return indices, indices * period
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SegmentMeasurements:
+    """The position measurements of a segment's m triggers in B environments (``CameraSegment``).
+
+    valid (B, m): whether the trigger gave a measurement (enough consistent views).
+    sequence (B, m): the Triangulator's sequence number of each measurement (release order,
+        following ``last_sequence``); 0 where not valid.
+    capture_time, release_time (B, m): s; release = capture + latency.
+    value (B, m, 3): p_WB, m; NaN where not valid.
+    covariance (B, m, 3, 3): m^2; NaN where not valid.
+    pixels (B, m, C, 2): the detections triangulated, px (NaN: none).
+    """
+
+    valid: np.ndarray
+    sequence: np.ndarray
+    capture_time: np.ndarray
+    release_time: np.ndarray
+    value: np.ndarray
+    covariance: np.ndarray
+    pixels: np.ndarray
+
+    @property
+    def last_sequence(self) -> np.ndarray:
+        """(B,) the sequence number of each environment's latest measurement after the segment
+        (the ``last_sequence`` the next segment continues from)."""
+        return self.sequence.max(axis=1, initial=0) if self.sequence.size else np.zeros(len(self.sequence), dtype=int)
+
+    def measurements(self, environment: int) -> tuple[Measurement, ...]:
+        """Environment ``environment``'s measurements in release order, as the Triangulator's
+        ``MeasurementHistory`` holds them."""
+        return tuple(
+            Measurement(
+                int(self.sequence[environment, k]),
+                float(self.capture_time[environment, k]),
+                float(self.release_time[environment, k]),
+                self.value[environment, k],
+                self.covariance[environment, k],
+            )
+            for k in np.flatnonzero(self.valid[environment])
+        )
+
+
+class CameraSegment:
+    """The camera array and the triangulator of the reference diagram (``ApsCameraArray``,
+    analytic mode, + ``Triangulator``) as one batched function of a control segment.
+
+    Built once from the calibrated cameras and ``CameraParams``; ``measure`` takes the true ball
+    centres at a segment's triggers in B environments and returns their measurements (module
+    docstring for the timing). Static occluders (default: the table) are fixed at construction;
+    per-environment occluders (e.g. the robot's links) may be passed per call.
+    """
+
+    def __init__(
+        self,
+        cameras: Sequence[Camera],
+        params: CameraParams | None = None,
+        occluders: Sequence[Occluder] | None = None,
+        ball_radius: float = BALL_RADIUS,
+    ):
+        """Args: cameras, the calibrated array (``cameras.load_cameras``); params, rate, latency,
+        noise, dropout, outlier threshold and minimum views (analytic mode only); occluders, the
+        static shapes hiding the ball (default: the table, ``table_occluder``); ball_radius, m."""
+        if not cameras:
+            raise ValueError("CameraSegment: needs at least one camera")
+        self.params = params or CameraParams()
+        if self.params.mode != "analytic":
+            raise ValueError(f"CameraSegment: only the analytic mode is batched, got mode {self.params.mode!r}")
+        self.cameras = tuple(cameras)
+        self.camera_names = tuple(camera.name for camera in self.cameras)
+        self.occluders = tuple(occluders) if occluders is not None else (table_occluder(),)
+        self.ball_radius = float(ball_radius)
+        self.period = 1.0 / self.params.trigger_rate
+        self._stack = _CameraStack(self.cameras)
+        self._origins = np.array([camera.p_WC for camera in self.cameras])
+
+    def detect(
+        self,
+        p_WB: np.ndarray,
+        seeds: np.ndarray,
+        sequences: np.ndarray,
+        occluders: Sequence[Sequence[Occluder]] | None = None,
+    ) -> np.ndarray:
+        """The detections (B, m, C, 2), px (NaN: none), of m triggers in B environments:
+        ``cameras.simulate_detections`` of each ball centre p_WB (B, m, 3), m, with trigger
+        ``sequences`` (B, m) (or (m,)) of the episode seeded ``seeds`` (B,) (or (B, m), the seed
+        at each trigger); ``occluders``: per environment, shapes added to the static ones."""
+        p_WB, seeds, sequences = self._check(p_WB, seeds, sequences, occluders)
+        B, m = p_WB.shape[:2]
+        C = len(self.cameras)
+        points = p_WB.reshape(-1, 3)
+        noise, uniforms = draw_detection_noise(seeds.reshape(-1), sequences.reshape(-1), C)
+        pixels, _ = project_points(self.cameras, points)  # (C, N, 2)
+        seen = visibility(self.cameras, points, self.occluders, self.ball_radius, pixels=pixels)  # (C, N)
+        if occluders is not None:
+            for environment, extra in enumerate(occluders):
+                if extra:
+                    rows = slice(environment * m, (environment + 1) * m)
+                    seen[:, rows] &= ~segments_blocked(self._origins, points[rows], tuple(extra))
+        detected = seen.T & (uniforms >= self.params.dropout_probability)  # (N, C)
+        noisy = pixels.transpose(1, 0, 2) + noise * self.params.pixel_noise_sigma
+        return np.where(detected[..., None], noisy, np.nan).reshape(B, m, C, 2)
+
+    def triangulate(self, pixels: np.ndarray) -> FrameTriangulations:
+        """``triangulate_frames`` of detections (..., C, 2) with this array's parameters."""
+        p = self.params
+        return triangulate_frames(self._stack, pixels, p.pixel_noise_sigma, p.outlier_threshold_px, p.min_views)
+
+    def measure(
+        self,
+        p_WB: np.ndarray,
+        capture_times: np.ndarray,
+        seeds: np.ndarray,
+        sequences: np.ndarray,
+        last_sequence: np.ndarray | None = None,
+        occluders: Sequence[Sequence[Occluder]] | None = None,
+    ) -> SegmentMeasurements:
+        """The measurements of a segment's m triggers in B environments.
+
+        p_WB (B, m, 3): the true ball centre at each trigger, m.
+        capture_times (m,) or (B, m): the trigger times, s (``trigger_times``).
+        seeds (B,) or (B, m): each environment's episode seed (the 64 bits of the random_seed port
+            at the trigger, ``systems.random_seed.episode_seed``).
+        sequences (m,) or (B, m): the triggers' numbers in their episodes, 1, 2, ...
+        last_sequence (B,): each environment's last measurement number before the segment (0).
+        occluders: per environment, occluders added to the static ones for the whole segment.
+        """
+        p_WB, seeds, sequences = self._check(p_WB, seeds, sequences, occluders)
+        B, m = p_WB.shape[:2]
+        capture_times = np.broadcast_to(np.asarray(capture_times, dtype=float), (B, m)) if np.ndim(capture_times) else None
+        if capture_times is None or np.shape(capture_times) != (B, m):
+            raise ValueError(f"CameraSegment.measure: capture_times must have shape ({m},) or ({B}, {m}), got {np.shape(capture_times)}")
+        last_sequence = np.zeros(B, dtype=int) if last_sequence is None else np.asarray(last_sequence)
+        if last_sequence.shape != (B,):
+            raise ValueError(f"CameraSegment.measure: last_sequence must have shape ({B},), got {last_sequence.shape}")
+        pixels = self.detect(p_WB, seeds, sequences, occluders)
+        result = self.triangulate(pixels)
+        sequence = np.where(result.valid, last_sequence[:, None] + np.cumsum(result.valid, axis=1), 0)
+        return SegmentMeasurements(
+            valid=result.valid,
+            sequence=sequence,
+            capture_time=capture_times.copy(),
+            release_time=capture_times + self.params.latency,
+            value=result.position,
+            covariance=result.covariance,
+            pixels=pixels,
+        )
+
+    def _check(self, p_WB, seeds, sequences, occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Validated (B, m, 3) positions and (B, m) seeds and trigger numbers."""
+        p_WB = np.asarray(p_WB, dtype=float)
+        if p_WB.ndim != 3 or p_WB.shape[2] != 3:
+            raise ValueError(f"CameraSegment: p_WB must have shape (B, m, 3) (m), got {p_WB.shape}")
+        if not np.all(np.isfinite(p_WB)):
+            raise ValueError("CameraSegment: p_WB must be finite")
+        B, m = p_WB.shape[:2]
+        seeds = np.asarray(seeds)
+        if seeds.shape == (B,):
+            seeds = np.repeat(seeds[:, None], m, axis=1)
+        if seeds.shape != (B, m) or seeds.dtype.kind not in "iu":
+            raise ValueError(f"CameraSegment: seeds must be integers of shape ({B},) or ({B}, {m}), got {seeds.dtype} {seeds.shape}")
+        if np.any(seeds < 0):
+            raise ValueError(f"CameraSegment: seeds must be >= 0, got {seeds[seeds < 0][:3]}")
+        sequences = np.asarray(sequences)
+        if sequences.shape == (m,):
+            sequences = np.broadcast_to(sequences, (B, m))
+        if sequences.shape != (B, m) or sequences.dtype.kind not in "iu":
+            raise ValueError(f"CameraSegment: sequences must be integers of shape ({m},) or ({B}, {m}), got {sequences.dtype} {sequences.shape}")
+        if np.any(sequences < 1):
+            raise ValueError("CameraSegment: trigger sequence numbers start at 1")
+        if occluders is not None and len(occluders) != B:
+            raise ValueError(f"CameraSegment: occluders must give one sequence per environment ({B}), got {len(occluders)}")
+        return p_WB, seeds, sequences
