@@ -65,15 +65,27 @@ class FrameTriangulations:
     rms_residual_px: np.ndarray
 
 
+_STACKED_DISTORTION_LENGTHS = (4, 5, 8)  # OpenCV's radial-tangential and rational models
+
+
 class _CameraStack:
     """The C cameras' matrices stacked for vectorised maths: R_CW (C, 3, 3), tvec (C, 3), the
-    projection matrices [R_CW | t] (C, 3, 4)."""
+    projection matrices [R_CW | t] (C, 3, 4), and for the lens models of 4, 5 or 8 coefficients
+    (zero skew, as ``cv2.projectPoints`` reads K) the intrinsics and distortion (C, 8) for a
+    projection vectorised over cameras as well as points."""
 
     def __init__(self, cameras: Sequence[Camera]):
         self.cameras = tuple(cameras)
         self.R_CW = np.stack([camera.R_CW for camera in self.cameras])
         self.tvec = np.stack([camera.tvec for camera in self.cameras])
         self.projection = np.concatenate([self.R_CW, self.tvec[:, :, None]], axis=2)
+        self.stacked = all(camera.distortion.size in _STACKED_DISTORTION_LENGTHS and camera.K[0, 1] == 0 for camera in self.cameras)
+        self.focal = np.array([[camera.K[0, 0], camera.K[1, 1]] for camera in self.cameras])  # (C, 2)
+        self.centre = np.array([[camera.K[0, 2], camera.K[1, 2]] for camera in self.cameras])  # (C, 2)
+        self.distortion = np.zeros((len(self.cameras), 8))  # k1, k2, p1, p2, k3, k4, k5, k6
+        for index, camera in enumerate(self.cameras):
+            count = min(camera.distortion.size, 8)
+            self.distortion[index, :count] = camera.distortion[:count]
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -91,12 +103,44 @@ class _CameraStack:
 
     def project_with_jacobian(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (N, C, 2) of positions (N, 3), m, in every camera and their Jacobians
-        d pixel / d p_W (N, C, 2, 3), px/m (``Camera.project_with_jacobian``)."""
-        pixels = np.empty((len(positions), len(self.cameras), 2))
-        jacobians = np.empty((len(positions), len(self.cameras), 2, 3))
-        for index, camera in enumerate(self.cameras):
-            pixels[:, index], jacobians[:, index] = camera.project_with_jacobian(positions)
-        return pixels, jacobians
+        d pixel / d p_W (N, C, 2, 3), px/m: ``Camera.project_with_jacobian`` (OpenCV's model;
+        equal to ``cv2.projectPoints`` to ~1e-12 px), vectorised over cameras when the lens
+        models allow, else one OpenCV call per camera."""
+        if not self.stacked:
+            pixels = np.empty((len(positions), len(self.cameras), 2))
+            jacobians = np.empty((len(positions), len(self.cameras), 2, 3))
+            for index, camera in enumerate(self.cameras):
+                pixels[:, index], jacobians[:, index] = camera.project_with_jacobian(positions)
+            return pixels, jacobians
+        p_C = np.einsum("cij,nj->nci", self.R_CW, positions) + self.tvec  # (N, C, 3)
+        inverse_depth = 1.0 / p_C[..., 2]
+        a, b = p_C[..., 0] * inverse_depth, p_C[..., 1] * inverse_depth  # x', y'
+        k1, k2, p1, p2, k3, k4, k5, k6 = self.distortion.T  # (C,) each
+        r2 = a * a + b * b
+        numerator = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = numerator / denominator
+        d_radial = ((k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)) * denominator - (k4 + r2 * (2.0 * k5 + 3.0 * r2 * k6)) * numerator) / denominator**2
+        x = a * radial + 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a)
+        y = b * radial + p1 * (r2 + 2.0 * b * b) + 2.0 * p2 * a * b
+        pixels = np.stack([x, y], axis=-1) * self.focal + self.centre
+        # d(a, b) / d p_C, then the chain rule through r2 and the distortion.
+        zero = np.zeros_like(a)
+        da = np.stack([inverse_depth, zero, -a * inverse_depth], axis=-1)  # (N, C, 3)
+        db = np.stack([zero, inverse_depth, -b * inverse_depth], axis=-1)
+        dr2 = 2.0 * (a[..., None] * da + b[..., None] * db)
+        dx = (
+            (radial + 2.0 * p1 * b + 4.0 * p2 * a)[..., None] * da
+            + (2.0 * p1 * a)[..., None] * db
+            + (a * d_radial + p2)[..., None] * dr2
+        )
+        dy = (
+            (radial + 2.0 * p2 * a + 4.0 * p1 * b)[..., None] * db
+            + (2.0 * p2 * b)[..., None] * da
+            + (b * d_radial + p1)[..., None] * dr2
+        )
+        d_pixel_d_p_C = np.stack([dx, dy], axis=-2) * self.focal[..., None]  # (N, C, 2, 3)
+        return pixels, d_pixel_d_p_C @ self.R_CW
 
     def depths(self, positions: np.ndarray) -> np.ndarray:
         """Depths (N, C), m, of positions (N, 3) along each camera's optical axis."""
@@ -104,17 +148,42 @@ class _CameraStack:
 
 
 def _least_squares_steps(jacobians: np.ndarray, residuals: np.ndarray, views: np.ndarray) -> np.ndarray:
-    """Gauss-Newton steps (N, 3), m: the minimum-norm least-squares solutions of J step = -r over
-    the views used (``numpy.linalg.lstsq`` with its default cut-off, per frame), with J (N, C, 2,
-    3), r (N, C, 2) and views (N, C) bool; unused views are zero rows, which change neither the
-    normal matrix nor the solution."""
+    """Gauss-Newton steps (N, 3), m: the least-squares solutions of J step = -r over the views
+    used, with J (N, C, 2, 3), r (N, C, 2) and views (N, C) bool (unused views are zero rows,
+    which change neither the normal matrix nor the solution). Solved from the normal equations
+    (closed-form 3 x 3 inverse); frames whose normal matrix is near singular get the minimum-norm
+    solution of ``numpy.linalg.lstsq`` (its default cut-off) instead."""
     J = np.where(views[:, :, None, None], jacobians, 0.0).reshape(len(views), -1, 3)
     b = -np.where(views[:, :, None], residuals, 0.0).reshape(len(views), -1)
-    U, S, Vt = np.linalg.svd(J, full_matrices=False)  # (N, 2C, 3), (N, 3), (N, 3, 3)
-    rows = 2 * views.sum(axis=1)
-    cutoff = np.finfo(float).eps * np.maximum(rows, 3)[:, None] * S[:, :1]
-    inverse = np.where(S > cutoff, 1.0 / np.where(S > cutoff, S, 1.0), 0.0)
-    return np.einsum("nji,nj->ni", Vt, inverse * np.einsum("nkj,nk->nj", U, b))
+    H = np.einsum("nki,nkj->nij", J, J)
+    g = np.einsum("nki,nk->ni", J, b)
+    cofactor = np.stack(
+        [
+            H[:, 1, 1] * H[:, 2, 2] - H[:, 1, 2] * H[:, 2, 1],
+            H[:, 0, 2] * H[:, 2, 1] - H[:, 0, 1] * H[:, 2, 2],
+            H[:, 0, 1] * H[:, 1, 2] - H[:, 0, 2] * H[:, 1, 1],
+            H[:, 1, 2] * H[:, 2, 0] - H[:, 1, 0] * H[:, 2, 2],
+            H[:, 0, 0] * H[:, 2, 2] - H[:, 0, 2] * H[:, 2, 0],
+            H[:, 0, 2] * H[:, 1, 0] - H[:, 0, 0] * H[:, 1, 2],
+            H[:, 1, 0] * H[:, 2, 1] - H[:, 1, 1] * H[:, 2, 0],
+            H[:, 0, 1] * H[:, 2, 0] - H[:, 0, 0] * H[:, 2, 1],
+            H[:, 0, 0] * H[:, 1, 1] - H[:, 0, 1] * H[:, 1, 0],
+        ],
+        axis=1,
+    ).reshape(-1, 3, 3)
+    determinant = np.einsum("ni,ni->n", H[:, 0], cofactor[:, :, 0])
+    scale = np.einsum("nii->n", H) / 3.0
+    regular = determinant > 1e-9 * scale**3  # condition number below ~1e9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        steps = np.einsum("nij,nj->ni", cofactor, g) / determinant[:, None]
+    singular = np.flatnonzero(~regular)
+    if singular.size:
+        U, S, Vt = np.linalg.svd(J[singular], full_matrices=False)  # (n, 2C, 3), (n, 3), (n, 3, 3)
+        rows = 2 * views[singular].sum(axis=1)
+        cutoff = np.finfo(float).eps * np.maximum(rows, 3)[:, None] * S[:, :1]
+        inverse = np.where(S > cutoff, 1.0 / np.where(S > cutoff, S, 1.0), 0.0)
+        steps[singular] = np.einsum("nji,nj->ni", Vt, inverse * np.einsum("nkj,nk->nj", U, b[singular]))
+    return steps
 
 
 def _linear_positions(stack: _CameraStack, normalised: np.ndarray, views: np.ndarray) -> np.ndarray:
@@ -222,19 +291,94 @@ def triangulate_frames(
 # ----------------------------------------------------------------------------------------------
 
 
+# numpy's SeedSequence (numpy/random/bit_generator.pyx) and PCG64 seeding (pcg64.h), written out
+# so that the generators of many triggers are seeded in one vectorised pass; tests check them bit
+# for bit against numpy.random.default_rng.
+_MASK32 = 0xFFFFFFFF
+_POOL_SIZE = 4
+_HASH_INIT_A, _HASH_MULT_A = 0x43B0D7E5, 0x931E8875
+_HASH_INIT_B, _HASH_MULT_B = 0x8B51F9DD, 0x58F38DED
+_MIX_MULT_L, _MIX_MULT_R = 0xCA01F9DD, 0x4973F715
+_PCG64_MULTIPLIER = 0x2360ED051FC65DA44385DF649FCCF645
+_MASK128 = (1 << 128) - 1
+
+
+def _hash_constants(init: int, mult: int, count: int) -> list[tuple[int, int]]:
+    """The data-independent (xor, multiplier) pairs of SeedSequence's successive hashes."""
+    pairs, value = [], init
+    for _ in range(count):
+        following = (value * mult) & _MASK32
+        pairs.append((value, following))
+        value = following
+    return pairs
+
+
+_MIX_HASHES = _hash_constants(_HASH_INIT_A, _HASH_MULT_A, _POOL_SIZE * _POOL_SIZE)
+_STATE_HASHES = _hash_constants(_HASH_INIT_B, _HASH_MULT_B, 2 * _POOL_SIZE)
+
+
+def _hash(value: np.ndarray, constants: tuple[int, int]) -> np.ndarray:
+    xor, mult = constants
+    value = ((value ^ np.uint64(xor)) * np.uint64(mult)) & np.uint64(_MASK32)
+    return value ^ (value >> np.uint64(16))
+
+
+def _seed_sequence_words(seeds: np.ndarray, sequences: np.ndarray) -> np.ndarray:
+    """``SeedSequence([seed, sequence]).generate_state(4, uint64)`` as (N, 8) 32-bit words
+    (little-endian pairs), for seeds (N,) < 2**64 and sequences (N,) < 2**32."""
+    seeds = seeds.astype(np.uint64)
+    low, high = seeds & np.uint64(_MASK32), seeds >> np.uint64(32)
+    two_words = high > 0  # an int seed is coerced to as many 32-bit words as it needs, at least one
+    entropy = np.zeros((len(seeds), _POOL_SIZE), dtype=np.uint64)
+    entropy[:, 0] = low
+    entropy[:, 1] = np.where(two_words, high, sequences)
+    entropy[:, 2] = np.where(two_words, sequences, 0)  # shorter entropy hashes zeros into the pool
+    constants = iter(_MIX_HASHES)
+    pool = [_hash(entropy[:, i], next(constants)) for i in range(_POOL_SIZE)]
+    for source in range(_POOL_SIZE):
+        for target in range(_POOL_SIZE):
+            if source != target:
+                hashed = _hash(pool[source], next(constants))
+                mixed = (np.uint64(_MIX_MULT_L) * pool[target] - np.uint64(_MIX_MULT_R) * hashed) & np.uint64(_MASK32)
+                pool[target] = mixed ^ (mixed >> np.uint64(16))
+    return np.stack([_hash(pool[i % _POOL_SIZE], constants) for i, constants in enumerate(_STATE_HASHES)], axis=1)
+
+
+def _pcg64_states(seeds: np.ndarray, sequences: np.ndarray) -> list[tuple[int, int]]:
+    """The (state, increment) of ``PCG64(SeedSequence([seed, sequence]))`` per trigger (pcg64's
+    ``srandom_r``: state 0, increment 2 initseq + 1, step, add initstate, step)."""
+    words = _seed_sequence_words(seeds, sequences)
+    halves = (words[:, 0::2] | (words[:, 1::2] << np.uint64(32))).tolist()  # (N, 4) uint64: s_hi, s_lo, i_hi, i_lo
+    states = []
+    for state_high, state_low, increment_high, increment_low in halves:
+        increment = ((((increment_high << 64) | increment_low) << 1) | 1) & _MASK128
+        state = (increment + ((state_high << 64) | state_low)) & _MASK128  # the first step from state 0 is the increment
+        states.append(((state * _PCG64_MULTIPLIER + increment) & _MASK128, increment))
+    return states
+
+
 def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count: int) -> tuple[np.ndarray, np.ndarray]:
     """The standard-normal pixel noise (N, C, 2) and dropout uniforms (N, C) of N triggers, trigger
     ``sequences[i]`` (N,) of the episode seeded ``seeds[i]`` (N,), each from its own generator
     ``numpy.random.default_rng([seed, sequence])`` in the reference's order (noise, then dropout;
-    ``cameras.simulate_detections``)."""
+    ``cameras.simulate_detections``). The generators are seeded in one vectorised pass and drawn
+    from one reused Generator whose state is set per trigger (the same numbers, bit for bit)."""
     seeds = np.asarray(seeds).reshape(-1)
     sequences = np.asarray(sequences).reshape(-1)
+    if seeds.shape != sequences.shape:
+        raise ValueError(f"draw_detection_noise: seeds {seeds.shape} and sequences {sequences.shape} must match")
+    if len(seeds) and (seeds.dtype.kind not in "iu" or sequences.dtype.kind not in "iu" or seeds.min() < 0 or sequences.min() < 0):
+        raise ValueError("draw_detection_noise: seeds (< 2**64) and sequences (< 2**32) must be non-negative integers")
+    if len(seeds) and sequences.max() > _MASK32:
+        raise ValueError(f"draw_detection_noise: sequences must be < 2**32, got {sequences.max()}")
     noise = np.empty((len(seeds), camera_count, 2))
     uniforms = np.empty((len(seeds), camera_count))
-    for index, (seed, sequence) in enumerate(zip(seeds.tolist(), sequences.tolist())):
-        rng = np.random.default_rng([seed, sequence])
-        noise[index] = rng.normal(0.0, 1.0, size=(camera_count, 2))
-        uniforms[index] = rng.random(camera_count)
+    bit_generator = np.random.PCG64()
+    generator = np.random.Generator(bit_generator)
+    for index, (state, increment) in enumerate(_pcg64_states(seeds, sequences)):
+        bit_generator.state = {"bit_generator": "PCG64", "state": {"state": state, "inc": increment}, "has_uint32": 0, "uinteger": 0}
+        noise[index] = generator.normal(0.0, 1.0, size=(camera_count, 2))
+        uniforms[index] = generator.random(camera_count)
     return noise, uniforms
 
 
@@ -387,9 +531,10 @@ class CameraSegment:
         """
         p_WB, seeds, sequences = self._check(p_WB, seeds, sequences, occluders)
         B, m = p_WB.shape[:2]
-        capture_times = np.broadcast_to(np.asarray(capture_times, dtype=float), (B, m)) if np.ndim(capture_times) else None
-        if capture_times is None or np.shape(capture_times) != (B, m):
-            raise ValueError(f"CameraSegment.measure: capture_times must have shape ({m},) or ({B}, {m}), got {np.shape(capture_times)}")
+        capture_times = np.asarray(capture_times, dtype=float)
+        if capture_times.shape not in ((m,), (B, m)) or not np.all(np.isfinite(capture_times)):
+            raise ValueError(f"CameraSegment.measure: capture_times must be finite, of shape ({m},) or ({B}, {m}), got {capture_times.shape}")
+        capture_times = np.broadcast_to(capture_times, (B, m))
         last_sequence = np.zeros(B, dtype=int) if last_sequence is None else np.asarray(last_sequence)
         if last_sequence.shape != (B,):
             raise ValueError(f"CameraSegment.measure: last_sequence must have shape ({B},), got {last_sequence.shape}")
