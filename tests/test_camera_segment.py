@@ -159,7 +159,10 @@ def test_noise_is_default_rng_bit_for_bit():
     seeds = np.concatenate([rng.integers(0, 2**64, 40, dtype=np.uint64), np.array([0, 1, 2**32 - 1, 2**32, 2**64 - 1], dtype=np.uint64)])
     sequences = rng.integers(1, 2**32, len(seeds))
     sequences[:3] = [1, 2, 3]
-    noise, uniforms = draw_detection_noise(seeds, sequences, C)
+    noise, uniforms = draw_detection_noise(seeds, sequences, C)  # seeded in one vectorised pass
+    few_noise, few_uniforms = draw_detection_noise(seeds[-8:], sequences[-8:], C)  # seeded one by one
+    np.testing.assert_array_equal(few_noise, noise[-8:])
+    np.testing.assert_array_equal(few_uniforms, uniforms[-8:])
     for index, (seed, sequence) in enumerate(zip(seeds.tolist(), sequences.tolist())):
         generator = np.random.default_rng([seed, sequence])
         np.testing.assert_array_equal(noise[index], generator.normal(0.0, 1.0, size=(C, 2)))

@@ -317,40 +317,55 @@ _MIX_HASHES = _hash_constants(_HASH_INIT_A, _HASH_MULT_A, _POOL_SIZE * _POOL_SIZ
 _STATE_HASHES = _hash_constants(_HASH_INIT_B, _HASH_MULT_B, 2 * _POOL_SIZE)
 
 
-def _hash(value: np.ndarray, constants: tuple[int, int]) -> np.ndarray:
+_VECTORISED_SEEDING_FROM = 32  # triggers; fewer are seeded with Python ints (less overhead)
+
+
+def _hash(value, constants: tuple[int, int]):
+    """SeedSequence's hashmix of 32-bit words: Python ints or uint64 arrays (the operators
+    below wrap the same way for both once masked to 32 bits)."""
     xor, mult = constants
-    value = ((value ^ np.uint64(xor)) * np.uint64(mult)) & np.uint64(_MASK32)
-    return value ^ (value >> np.uint64(16))
+    value = ((value ^ xor) * mult) & _MASK32
+    return value ^ (value >> 16)
 
 
-def _seed_sequence_words(seeds: np.ndarray, sequences: np.ndarray) -> np.ndarray:
-    """``SeedSequence([seed, sequence]).generate_state(4, uint64)`` as (N, 8) 32-bit words
-    (little-endian pairs), for seeds (N,) < 2**64 and sequences (N,) < 2**32."""
-    seeds = seeds.astype(np.uint64)
-    low, high = seeds & np.uint64(_MASK32), seeds >> np.uint64(32)
-    two_words = high > 0  # an int seed is coerced to as many 32-bit words as it needs, at least one
-    entropy = np.zeros((len(seeds), _POOL_SIZE), dtype=np.uint64)
-    entropy[:, 0] = low
-    entropy[:, 1] = np.where(two_words, high, sequences)
-    entropy[:, 2] = np.where(two_words, sequences, 0)  # shorter entropy hashes zeros into the pool
+def _seed_words(entropy: list) -> list:
+    """SeedSequence's pool mixing and ``generate_state(4, uint64)``: the 8 state words (32-bit,
+    little-endian pairs) from the 4 entropy words (zero-padded), each a Python int or a uint64
+    array of many triggers' words."""
     constants = iter(_MIX_HASHES)
-    pool = [_hash(entropy[:, i], next(constants)) for i in range(_POOL_SIZE)]
+    pool = [_hash(word, next(constants)) for word in entropy]
     for source in range(_POOL_SIZE):
         for target in range(_POOL_SIZE):
             if source != target:
-                hashed = _hash(pool[source], next(constants))
-                mixed = (np.uint64(_MIX_MULT_L) * pool[target] - np.uint64(_MIX_MULT_R) * hashed) & np.uint64(_MASK32)
-                pool[target] = mixed ^ (mixed >> np.uint64(16))
-    return np.stack([_hash(pool[i % _POOL_SIZE], constants) for i, constants in enumerate(_STATE_HASHES)], axis=1)
+                mixed = (_MIX_MULT_L * pool[target] - _MIX_MULT_R * _hash(pool[source], next(constants))) & _MASK32
+                pool[target] = mixed ^ (mixed >> 16)
+    return [_hash(pool[i % _POOL_SIZE], constants) for i, constants in enumerate(_STATE_HASHES)]
+
+
+def _entropy(seed, sequence, two_words) -> list:
+    """The entropy words of [seed, sequence]: an int seed is coerced to as many 32-bit words as
+    it needs (at least one), then the sequence's word; shorter entropy hashes zeros into the pool."""
+    low, high = seed & _MASK32, seed >> 32
+    if isinstance(two_words, bool):
+        return [low, high, sequence, 0] if two_words else [low, sequence, 0, 0]
+    return [low, np.where(two_words, high, sequence), np.where(two_words, sequence, 0), np.zeros_like(low)]
 
 
 def _pcg64_states(seeds: np.ndarray, sequences: np.ndarray) -> list[tuple[int, int]]:
-    """The (state, increment) of ``PCG64(SeedSequence([seed, sequence]))`` per trigger (pcg64's
-    ``srandom_r``: state 0, increment 2 initseq + 1, step, add initstate, step)."""
-    words = _seed_sequence_words(seeds, sequences)
-    halves = (words[:, 0::2] | (words[:, 1::2] << np.uint64(32))).tolist()  # (N, 4) uint64: s_hi, s_lo, i_hi, i_lo
+    """The (state, increment) of ``PCG64(SeedSequence([seed, sequence]))`` per trigger, seeds (N,)
+    < 2**64 and sequences (N,) < 2**32 (pcg64's ``srandom_r``: state 0, increment 2 initseq + 1,
+    step, add initstate, step)."""
+    if len(seeds) >= _VECTORISED_SEEDING_FROM:
+        seeds, sequences = seeds.astype(np.uint64), sequences.astype(np.uint64)
+        words = _seed_words(_entropy(seeds, sequences, seeds >= np.uint64(1 << 32)))
+        rows = np.stack([words[i] | (words[i + 1] << np.uint64(32)) for i in range(0, 8, 2)], axis=1).tolist()
+    else:
+        rows = []
+        for seed, sequence in zip(seeds.tolist(), sequences.tolist()):
+            words = _seed_words(_entropy(seed, sequence, seed >= 1 << 32))
+            rows.append([words[i] | (words[i + 1] << 32) for i in range(0, 8, 2)])
     states = []
-    for state_high, state_low, increment_high, increment_low in halves:
+    for state_high, state_low, increment_high, increment_low in rows:  # 64-bit halves of initstate, initseq
         increment = ((((increment_high << 64) | increment_low) << 1) | 1) & _MASK128
         state = (increment + ((state_high << 64) | state_low)) & _MASK128  # the first step from state 0 is the increment
         states.append(((state * _PCG64_MULTIPLIER + increment) & _MASK128, increment))
