@@ -240,7 +240,9 @@ def test_a_batch_gives_the_single_environment_results_row_by_row():
         np.testing.assert_allclose(batch.covariance[b], single.covariance[0], rtol=1e-12, atol=1e-18)
     np.testing.assert_array_equal(batch.release_time, np.broadcast_to(times + 0.0102, (B, m)))
     valid_counts = batch.valid.sum(axis=1)
-    np.testing.assert_array_equal(batch.last_sequence, np.where(valid_counts > 0, last + valid_counts, 0))
+    np.testing.assert_array_equal(batch.last_sequence, last + valid_counts)
+    nothing = dut.measure(p_WB[:1] + [0.0, 0.0, -5.0], times, seeds[:1], sequences[:1], last[1:2])  # under the floor: unseen
+    assert not nothing.valid.any() and nothing.last_sequence.tolist() == [3]
 
 
 def test_trigger_times_on_the_200_hz_grid():

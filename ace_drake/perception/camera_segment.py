@@ -429,6 +429,8 @@ class SegmentMeasurements:
     value (B, m, 3): p_WB, m; NaN where not valid.
     covariance (B, m, 3, 3): m^2; NaN where not valid.
     pixels (B, m, C, 2): the detections triangulated, px (NaN: none).
+    last_sequence (B,): each environment's latest measurement number after the segment (its
+        ``last_sequence`` before it when the segment adds none): where the next segment continues.
     """
 
     valid: np.ndarray
@@ -438,12 +440,7 @@ class SegmentMeasurements:
     value: np.ndarray
     covariance: np.ndarray
     pixels: np.ndarray
-
-    @property
-    def last_sequence(self) -> np.ndarray:
-        """(B,) the sequence number of each environment's latest measurement after the segment
-        (the ``last_sequence`` the next segment continues from)."""
-        return self.sequence.max(axis=1, initial=0) if self.sequence.size else np.zeros(len(self.sequence), dtype=int)
+    last_sequence: np.ndarray
 
     def measurements(self, environment: int) -> tuple[Measurement, ...]:
         """Environment ``environment``'s measurements in release order, as the Triangulator's
@@ -564,6 +561,7 @@ class CameraSegment:
             value=result.position,
             covariance=result.covariance,
             pixels=pixels,
+            last_sequence=last_sequence + result.valid.sum(axis=1),
         )
 
     def _check(self, p_WB, seeds, sequences, occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
