@@ -1,0 +1,591 @@
+"""The nine frame cameras and the triangulator over one control segment, for B environments at
+once (paper, Methods *Ball triangulation*): the batched, segment-stepped counterpart of the
+reference systems ``ApsCameraArray`` (analytic mode) + ``Triangulator`` (issue 29).
+
+The reference's timing, which this module reproduces and its callers must follow:
+
+- Triggers are on the ``1 / trigger_rate`` grid of the diagram's clock (200 Hz, offset 0): trigger
+  k is captured at t_k = k * period (``trigger_times``). The array numbers its triggers 1, 2, ...
+  from the episode's start (the first trigger of an episode that starts at time 0 is number 1).
+- Trigger number n of an episode with seed s draws its noise from its own generator,
+  ``numpy.random.default_rng([s, n])``: first the pixel noise (C, 2) (standard normal times
+  ``pixel_noise_sigma``), then the dropout uniforms (C,), whatever is visible
+  (``cameras.simulate_detections``). s is the 64 bits of the array's ``random_seed`` port
+  (``systems.random_seed.episode_seed``) at the trigger; nothing else advances a stream, so the
+  draws of an (environment, trigger) pair do not depend on any other pair.
+- A trigger's detections are released at t_k + latency (10.2 ms) and triangulated then: the
+  Triangulator's measurement has capture time t_k, release time t_k + latency, the triangulated
+  position and covariance (``triangulation.triangulate``), and sequence number one above the
+  previous measurement's (release order, 1, 2, ...); a trigger with fewer than ``min_views``
+  consistent views gives no measurement and takes no number.
+
+``triangulate_frames`` is ``triangulate`` over a batch of frames (..., C, 2): the same accepted
+views, outlier rejection and covariance, with the DLT, Gauss-Newton and rejection rounds
+vectorised over all frames still in play. ``CameraSegment`` is built once from the calibration and
+``CameraParams`` and maps the true ball positions at a segment's triggers (B, m, 3) to the
+measurements of those triggers (``SegmentMeasurements``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, project_points, segments_blocked, table_occluder, visibility
+from ace_drake.perception.measurements import Measurement
+from ace_drake.perception.params import CameraParams
+from ace_drake.perception.triangulation import GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, _inverse_or_inf
+
+TIME_TOLERANCE = 1e-9  # s; as ApsCameraArray: trigger times are products of the period in floating point
+
+
+# ----------------------------------------------------------------------------------------------
+# Batched triangulation
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FrameTriangulations:
+    """Triangulations of a batch of frames with leading shape S (``triangulate_frames``).
+
+    valid S: whether the frame gave a position (``triangulate`` returned a Triangulation).
+    position S + (3,): p_WB, m; NaN where not valid.
+    covariance S + (3, 3): m^2; NaN where not valid.
+    views S + (C,): the cameras used after outlier rejection; all False where not valid.
+    rms_residual_px S: px; NaN where not valid.
+    """
+
+    valid: np.ndarray
+    position: np.ndarray
+    covariance: np.ndarray
+    views: np.ndarray
+    rms_residual_px: np.ndarray
+
+
+_STACKED_DISTORTION_LENGTHS = (4, 5, 8)  # OpenCV's radial-tangential and rational models
+
+
+class _CameraStack:
+    """The C cameras' matrices stacked for vectorised maths: R_CW (C, 3, 3), tvec (C, 3), the
+    projection matrices [R_CW | t] (C, 3, 4), and for the lens models of 4, 5 or 8 coefficients
+    (zero skew, as ``cv2.projectPoints`` reads K) the intrinsics and distortion (C, 8) for a
+    projection vectorised over cameras as well as points."""
+
+    def __init__(self, cameras: Sequence[Camera]):
+        self.cameras = tuple(cameras)
+        self.R_CW = np.stack([camera.R_CW for camera in self.cameras])
+        self.tvec = np.stack([camera.tvec for camera in self.cameras])
+        self.projection = np.concatenate([self.R_CW, self.tvec[:, :, None]], axis=2)
+        self.stacked = all(camera.distortion.size in _STACKED_DISTORTION_LENGTHS and camera.K[0, 1] == 0 for camera in self.cameras)
+        self.focal = np.array([[camera.K[0, 0], camera.K[1, 1]] for camera in self.cameras])  # (C, 2)
+        self.centre = np.array([[camera.K[0, 2], camera.K[1, 2]] for camera in self.cameras])  # (C, 2)
+        self.distortion = np.zeros((len(self.cameras), 8))  # k1, k2, p1, p2, k3, k4, k5, k6
+        for index, camera in enumerate(self.cameras):
+            count = min(camera.distortion.size, 8)
+            self.distortion[index, :count] = camera.distortion[:count]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def normalised(self, pixels: np.ndarray, usable: np.ndarray) -> np.ndarray:
+        """Undistorted normalised image points (N, C, 2) of pixels (N, C, 2), px
+        (``cv2.undistortPoints`` per camera over all frames); zero where not ``usable`` (N, C)."""
+        out = np.zeros(pixels.shape)
+        for index, camera in enumerate(self.cameras):
+            rows = np.flatnonzero(usable[:, index])
+            if rows.size:
+                points = np.ascontiguousarray(pixels[rows, index].reshape(-1, 1, 2))
+                out[rows, index] = cv2.undistortPoints(points, camera.K, camera.distortion).reshape(-1, 2)
+        return out
+
+    def project_with_jacobian(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (N, C, 2) of positions (N, 3), m, in every camera and their Jacobians
+        d pixel / d p_W (N, C, 2, 3), px/m: ``Camera.project_with_jacobian`` (OpenCV's model;
+        equal to ``cv2.projectPoints`` to ~1e-12 px), vectorised over cameras when the lens
+        models allow, else one OpenCV call per camera."""
+        if not self.stacked:
+            pixels = np.empty((len(positions), len(self.cameras), 2))
+            jacobians = np.empty((len(positions), len(self.cameras), 2, 3))
+            for index, camera in enumerate(self.cameras):
+                pixels[:, index], jacobians[:, index] = camera.project_with_jacobian(positions)
+            return pixels, jacobians
+        p_C = np.einsum("cij,nj->nci", self.R_CW, positions) + self.tvec  # (N, C, 3)
+        inverse_depth = 1.0 / p_C[..., 2]
+        a, b = p_C[..., 0] * inverse_depth, p_C[..., 1] * inverse_depth  # x', y'
+        k1, k2, p1, p2, k3, k4, k5, k6 = self.distortion.T  # (C,) each
+        r2 = a * a + b * b
+        numerator = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = numerator / denominator
+        d_radial = ((k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)) * denominator - (k4 + r2 * (2.0 * k5 + 3.0 * r2 * k6)) * numerator) / denominator**2
+        x = a * radial + 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a)
+        y = b * radial + p1 * (r2 + 2.0 * b * b) + 2.0 * p2 * a * b
+        pixels = np.stack([x, y], axis=-1) * self.focal + self.centre
+        # d(a, b) / d p_C, then the chain rule through r2 and the distortion.
+        zero = np.zeros_like(a)
+        da = np.stack([inverse_depth, zero, -a * inverse_depth], axis=-1)  # (N, C, 3)
+        db = np.stack([zero, inverse_depth, -b * inverse_depth], axis=-1)
+        dr2 = 2.0 * (a[..., None] * da + b[..., None] * db)
+        dx = (
+            (radial + 2.0 * p1 * b + 4.0 * p2 * a)[..., None] * da
+            + (2.0 * p1 * a)[..., None] * db
+            + (a * d_radial + p2)[..., None] * dr2
+        )
+        dy = (
+            (radial + 2.0 * p2 * a + 4.0 * p1 * b)[..., None] * db
+            + (2.0 * p2 * b)[..., None] * da
+            + (b * d_radial + p1)[..., None] * dr2
+        )
+        d_pixel_d_p_C = np.stack([dx, dy], axis=-2) * self.focal[..., None]  # (N, C, 2, 3)
+        return pixels, d_pixel_d_p_C @ self.R_CW
+
+    def depths(self, positions: np.ndarray) -> np.ndarray:
+        """Depths (N, C), m, of positions (N, 3) along each camera's optical axis."""
+        return np.einsum("ck,nk->nc", self.R_CW[:, 2, :], positions) + self.tvec[:, 2]
+
+
+def _least_squares_steps(jacobians: np.ndarray, residuals: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """Gauss-Newton steps (N, 3), m: the least-squares solutions of J step = -r over the views
+    used, with J (N, C, 2, 3), r (N, C, 2) and views (N, C) bool (unused views are zero rows,
+    which change neither the normal matrix nor the solution). Solved from the normal equations
+    (closed-form 3 x 3 inverse); frames whose normal matrix is near singular get the minimum-norm
+    solution of ``numpy.linalg.lstsq`` (its default cut-off) instead."""
+    J = np.where(views[:, :, None, None], jacobians, 0.0).reshape(len(views), -1, 3)
+    b = -np.where(views[:, :, None], residuals, 0.0).reshape(len(views), -1)
+    H = np.einsum("nki,nkj->nij", J, J)
+    g = np.einsum("nki,nk->ni", J, b)
+    cofactor = np.stack(
+        [
+            H[:, 1, 1] * H[:, 2, 2] - H[:, 1, 2] * H[:, 2, 1],
+            H[:, 0, 2] * H[:, 2, 1] - H[:, 0, 1] * H[:, 2, 2],
+            H[:, 0, 1] * H[:, 1, 2] - H[:, 0, 2] * H[:, 1, 1],
+            H[:, 1, 2] * H[:, 2, 0] - H[:, 1, 0] * H[:, 2, 2],
+            H[:, 0, 0] * H[:, 2, 2] - H[:, 0, 2] * H[:, 2, 0],
+            H[:, 0, 2] * H[:, 1, 0] - H[:, 0, 0] * H[:, 1, 2],
+            H[:, 1, 0] * H[:, 2, 1] - H[:, 1, 1] * H[:, 2, 0],
+            H[:, 0, 1] * H[:, 2, 0] - H[:, 0, 0] * H[:, 2, 1],
+            H[:, 0, 0] * H[:, 1, 1] - H[:, 0, 1] * H[:, 1, 0],
+        ],
+        axis=1,
+    ).reshape(-1, 3, 3)
+    determinant = np.einsum("ni,ni->n", H[:, 0], cofactor[:, :, 0])
+    scale = np.einsum("nii->n", H) / 3.0
+    regular = determinant > 1e-9 * scale**3  # condition number below ~1e9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        steps = np.einsum("nij,nj->ni", cofactor, g) / determinant[:, None]
+    singular = np.flatnonzero(~regular)
+    if singular.size:
+        U, S, Vt = np.linalg.svd(J[singular], full_matrices=False)  # (n, 2C, 3), (n, 3), (n, 3, 3)
+        rows = 2 * views[singular].sum(axis=1)
+        cutoff = np.finfo(float).eps * np.maximum(rows, 3)[:, None] * S[:, :1]
+        inverse = np.where(S > cutoff, 1.0 / np.where(S > cutoff, S, 1.0), 0.0)
+        steps[singular] = np.einsum("nji,nj->ni", Vt, inverse * np.einsum("nkj,nk->nj", U, b[singular]))
+    return steps
+
+
+def _linear_positions(stack: _CameraStack, normalised: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """The DLT (``triangulation.triangulate_linear``) for N frames: p_W (N, 3), m, from the
+    normalised points (N, C, 2) of the views used (N, C) bool; unused views are zero rows."""
+    P = stack.projection  # (C, 3, 4)
+    rows = np.stack(
+        [normalised[..., 0, None] * P[None, :, 2] - P[None, :, 0], normalised[..., 1, None] * P[None, :, 2] - P[None, :, 1]],
+        axis=2,
+    )  # (N, C, 2, 4)
+    rows = rows * views[:, :, None, None]
+    _, _, vt = np.linalg.svd(rows.reshape(len(views), -1, 4))
+    homogeneous = vt[:, -1]
+    return homogeneous[:, :3] / homogeneous[:, 3:]
+
+
+def _refine_positions(
+    stack: _CameraStack, pixels: np.ndarray, positions: np.ndarray, views: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``triangulation.refine_position`` for N frames: Gauss-Newton on the reprojection error of
+    the views used (N, C), each frame stopping after its first step shorter than the tolerance.
+    Returns positions (N, 3), residuals (N, C, 2), px, and Jacobians (N, C, 2, 3), px/m, at them
+    (every camera's; only the views used are meaningful)."""
+    positions = positions.copy()
+    active = np.arange(len(positions))
+    for _ in range(GAUSS_NEWTON_ITERATIONS):
+        if active.size == 0:
+            break
+        projected, jacobians = stack.project_with_jacobian(positions[active])
+        steps = _least_squares_steps(jacobians, projected - pixels[active], views[active])
+        positions[active] = positions[active] + steps
+        active = active[np.linalg.norm(steps, axis=1) >= GAUSS_NEWTON_STEP_TOLERANCE]
+    projected, jacobians = stack.project_with_jacobian(positions)
+    return positions, projected - pixels, jacobians
+
+
+def triangulate_frames(
+    cameras: Sequence[Camera],
+    pixels: np.ndarray,
+    pixel_noise_sigma: float,
+    outlier_threshold_px: float = 8.0,
+    min_views: int = 2,
+) -> FrameTriangulations:
+    """``triangulation.triangulate`` for a batch of frames: the detections ``pixels`` S + (C, 2),
+    px, of the C ``cameras`` (NaN rows: no detection) for any leading shape S. Each frame gets
+    the views, outlier rejection, position and covariance that ``triangulate`` gives it (to
+    rounding, ~1e-12 m), computed in rounds vectorised over the frames still in play."""
+    if min_views < 2:
+        raise ValueError(f"triangulate_frames: min_views must be >= 2, got {min_views}")
+    pixels = np.asarray(pixels, dtype=float)
+    C = len(cameras)
+    if pixels.ndim < 2 or pixels.shape[-2:] != (C, 2):
+        raise ValueError(f"triangulate_frames: pixels must have shape (..., {C}, 2) for {C} cameras, got {pixels.shape}")
+    shape = pixels.shape[:-2]
+    flat = pixels.reshape(-1, C, 2)
+    N = len(flat)
+    stack = cameras if isinstance(cameras, _CameraStack) else _CameraStack(cameras)
+    usable = np.all(np.isfinite(flat), axis=2)
+    normalised = stack.normalised(flat, usable)
+    views = usable.copy()
+    valid = np.zeros(N, dtype=bool)
+    position = np.full((N, 3), np.nan)
+    covariance = np.full((N, 3, 3), np.nan)
+    rms = np.full(N, np.nan)
+    pending = np.flatnonzero(views.sum(axis=1) >= min_views)
+    while pending.size:
+        used = views[pending]
+        start = _linear_positions(stack, normalised[pending], used)
+        refined, residuals, jacobians = _refine_positions(stack, flat[pending], start, used)
+        norms = np.where(used, np.linalg.norm(residuals, axis=2), -np.inf)
+        worst = np.argmax(norms, axis=1)
+        worst_norm = norms[np.arange(len(pending)), worst]
+        count = used.sum(axis=1)
+        consistent = worst_norm <= outlier_threshold_px
+        if np.any(consistent):
+            rows = pending[consistent]
+            accepted_jacobians = np.where(used[consistent][:, :, None, None], jacobians[consistent], 0.0)
+            information = np.einsum("nvki,nvkj->nij", accepted_jacobians, accepted_jacobians)
+            accepted_covariance = pixel_noise_sigma**2 * _inverse_or_inf(information)
+            depths = np.where(used[consistent], stack.depths(refined[consistent]), np.inf)
+            good = np.all(depths > 0, axis=1) & np.all(np.isfinite(accepted_covariance), axis=(1, 2))
+            rows, good_index = rows[good], np.flatnonzero(good)
+            valid[rows] = True
+            position[rows] = refined[consistent][good_index]
+            covariance[rows] = accepted_covariance[good_index]
+            squared = np.where(used[consistent][good_index], norms[consistent][good_index], 0.0) ** 2
+            rms[rows] = np.sqrt(squared.sum(axis=1) / count[consistent][good_index])
+        # Inconsistent frames drop their worst view while more than two remain (triangulate).
+        again = ~consistent & (count > 2)
+        rows = pending[again]
+        views[rows, worst[again]] = False
+        pending = rows[views[rows].sum(axis=1) >= min_views]
+    views &= valid[:, None]
+    return FrameTriangulations(
+        valid=valid.reshape(shape),
+        position=position.reshape(shape + (3,)),
+        covariance=covariance.reshape(shape + (3, 3)),
+        views=views.reshape(shape + (C,)),
+        rms_residual_px=rms.reshape(shape),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Detection noise, as the reference draws it
+# ----------------------------------------------------------------------------------------------
+
+
+# numpy's SeedSequence (numpy/random/bit_generator.pyx) and PCG64 seeding (pcg64.h), written out
+# so that the generators of many triggers are seeded in one vectorised pass; tests check them bit
+# for bit against numpy.random.default_rng.
+_MASK32 = 0xFFFFFFFF
+_POOL_SIZE = 4
+_HASH_INIT_A, _HASH_MULT_A = 0x43B0D7E5, 0x931E8875
+_HASH_INIT_B, _HASH_MULT_B = 0x8B51F9DD, 0x58F38DED
+_MIX_MULT_L, _MIX_MULT_R = 0xCA01F9DD, 0x4973F715
+_PCG64_MULTIPLIER = 0x2360ED051FC65DA44385DF649FCCF645
+_MASK128 = (1 << 128) - 1
+
+
+def _hash_constants(init: int, mult: int, count: int) -> list[tuple[int, int]]:
+    """The data-independent (xor, multiplier) pairs of SeedSequence's successive hashes."""
+    pairs, value = [], init
+    for _ in range(count):
+        following = (value * mult) & _MASK32
+        pairs.append((value, following))
+        value = following
+    return pairs
+
+
+_MIX_HASHES = _hash_constants(_HASH_INIT_A, _HASH_MULT_A, _POOL_SIZE * _POOL_SIZE)
+_STATE_HASHES = _hash_constants(_HASH_INIT_B, _HASH_MULT_B, 2 * _POOL_SIZE)
+
+
+_VECTORISED_SEEDING_FROM = 32  # triggers; fewer are seeded with Python ints (less overhead)
+
+
+def _hash(value, constants: tuple[int, int]):
+    """SeedSequence's hashmix of 32-bit words: Python ints or uint64 arrays (the operators
+    below wrap the same way for both once masked to 32 bits)."""
+    xor, mult = constants
+    value = ((value ^ xor) * mult) & _MASK32
+    return value ^ (value >> 16)
+
+
+def _seed_words(entropy: list) -> list:
+    """SeedSequence's pool mixing and ``generate_state(4, uint64)``: the 8 state words (32-bit,
+    little-endian pairs) from the 4 entropy words (zero-padded), each a Python int or a uint64
+    array of many triggers' words."""
+    constants = iter(_MIX_HASHES)
+    pool = [_hash(word, next(constants)) for word in entropy]
+    for source in range(_POOL_SIZE):
+        for target in range(_POOL_SIZE):
+            if source != target:
+                mixed = (_MIX_MULT_L * pool[target] - _MIX_MULT_R * _hash(pool[source], next(constants))) & _MASK32
+                pool[target] = mixed ^ (mixed >> 16)
+    return [_hash(pool[i % _POOL_SIZE], constants) for i, constants in enumerate(_STATE_HASHES)]
+
+
+def _entropy(seed, sequence, two_words) -> list:
+    """The entropy words of [seed, sequence]: an int seed is coerced to as many 32-bit words as
+    it needs (at least one), then the sequence's word; shorter entropy hashes zeros into the pool."""
+    low, high = seed & _MASK32, seed >> 32
+    if isinstance(two_words, bool):
+        return [low, high, sequence, 0] if two_words else [low, sequence, 0, 0]
+    return [low, np.where(two_words, high, sequence), np.where(two_words, sequence, 0), np.zeros_like(low)]
+
+
+def _pcg64_states(seeds: np.ndarray, sequences: np.ndarray) -> list[tuple[int, int]]:
+    """The (state, increment) of ``PCG64(SeedSequence([seed, sequence]))`` per trigger, seeds (N,)
+    < 2**64 and sequences (N,) < 2**32 (pcg64's ``srandom_r``: state 0, increment 2 initseq + 1,
+    step, add initstate, step)."""
+    if len(seeds) >= _VECTORISED_SEEDING_FROM:
+        seeds, sequences = seeds.astype(np.uint64), sequences.astype(np.uint64)
+        words = _seed_words(_entropy(seeds, sequences, seeds >= np.uint64(1 << 32)))
+        rows = np.stack([words[i] | (words[i + 1] << np.uint64(32)) for i in range(0, 8, 2)], axis=1).tolist()
+    else:
+        rows = []
+        for seed, sequence in zip(seeds.tolist(), sequences.tolist()):
+            words = _seed_words(_entropy(seed, sequence, seed >= 1 << 32))
+            rows.append([words[i] | (words[i + 1] << 32) for i in range(0, 8, 2)])
+    states = []
+    for state_high, state_low, increment_high, increment_low in rows:  # 64-bit halves of initstate, initseq
+        increment = ((((increment_high << 64) | increment_low) << 1) | 1) & _MASK128
+        state = (increment + ((state_high << 64) | state_low)) & _MASK128  # the first step from state 0 is the increment
+        states.append(((state * _PCG64_MULTIPLIER + increment) & _MASK128, increment))
+    return states
+
+
+def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The standard-normal pixel noise (N, C, 2) and dropout uniforms (N, C) of N triggers, trigger
+    ``sequences[i]`` (N,) of the episode seeded ``seeds[i]`` (N,), each from its own generator
+    ``numpy.random.default_rng([seed, sequence])`` in the reference's order (noise, then dropout;
+    ``cameras.simulate_detections``). The generators are seeded in one vectorised pass and drawn
+    from one reused Generator whose state is set per trigger (the same numbers, bit for bit)."""
+    seeds = np.asarray(seeds).reshape(-1)
+    sequences = np.asarray(sequences).reshape(-1)
+    if seeds.shape != sequences.shape:
+        raise ValueError(f"draw_detection_noise: seeds {seeds.shape} and sequences {sequences.shape} must match")
+    if len(seeds) and (seeds.dtype.kind not in "iu" or sequences.dtype.kind not in "iu" or seeds.min() < 0 or sequences.min() < 0):
+        raise ValueError("draw_detection_noise: seeds (< 2**64) and sequences (< 2**32) must be non-negative integers")
+    if len(seeds) and sequences.max() > _MASK32:
+        raise ValueError(f"draw_detection_noise: sequences must be < 2**32, got {sequences.max()}")
+    noise = np.empty((len(seeds), camera_count, 2))
+    uniforms = np.empty((len(seeds), camera_count))
+    bit_generator = np.random.PCG64()
+    generator = np.random.Generator(bit_generator)
+    for index, (state, increment) in enumerate(_pcg64_states(seeds, sequences)):
+        bit_generator.state = {"bit_generator": "PCG64", "state": {"state": state, "inc": increment}, "has_uint32": 0, "uinteger": 0}
+        noise[index] = generator.normal(0.0, 1.0, size=(camera_count, 2))
+        uniforms[index] = generator.random(camera_count)
+    return noise, uniforms
+
+
+# ----------------------------------------------------------------------------------------------
+# One control segment for B environments
+# ----------------------------------------------------------------------------------------------
+
+
+def trigger_times(start: float, end: float, trigger_rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """The camera triggers in [start, end), s, on the grid k / trigger_rate (Hz) from time 0:
+    their indices k (m,) and times k / trigger_rate (m,), s, as the reference's periodic event
+    has them (within ``TIME_TOLERANCE`` of a grid time counts as on it). A trigger index k is
+    trigger number k + 1 of an episode that started at time 0."""
+    if not trigger_rate > 0:
+        raise ValueError(f"trigger_times: trigger_rate must be > 0 Hz, got {trigger_rate}")
+    if not (np.isfinite(start) and np.isfinite(end) and end >= start):
+        raise ValueError(f"trigger_times: expected finite start <= end (s), got [{start}, {end})")
+    period = 1.0 / trigger_rate
+    first = int(np.ceil((start - TIME_TOLERANCE) / period))
+    stop = int(np.ceil((end - TIME_TOLERANCE) / period))
+    indices = np.arange(first, max(stop, first))
+    return indices, indices * period
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SegmentMeasurements:
+    """The position measurements of a segment's m triggers in B environments (``CameraSegment``).
+
+    valid (B, m): whether the trigger gave a measurement (enough consistent views).
+    sequence (B, m): the Triangulator's sequence number of each measurement (release order,
+        following ``last_sequence``); 0 where not valid.
+    capture_time, release_time (B, m): s; release = capture + latency.
+    value (B, m, 3): p_WB, m; NaN where not valid.
+    covariance (B, m, 3, 3): m^2; NaN where not valid.
+    pixels (B, m, C, 2): the detections triangulated, px (NaN: none).
+    last_sequence (B,): each environment's latest measurement number after the segment (its
+        ``last_sequence`` before it when the segment adds none): where the next segment continues.
+    """
+
+    valid: np.ndarray
+    sequence: np.ndarray
+    capture_time: np.ndarray
+    release_time: np.ndarray
+    value: np.ndarray
+    covariance: np.ndarray
+    pixels: np.ndarray
+    last_sequence: np.ndarray
+
+    def measurements(self, environment: int) -> tuple[Measurement, ...]:
+        """Environment ``environment``'s measurements in release order, as the Triangulator's
+        ``MeasurementHistory`` holds them."""
+        return tuple(
+            Measurement(
+                int(self.sequence[environment, k]),
+                float(self.capture_time[environment, k]),
+                float(self.release_time[environment, k]),
+                self.value[environment, k],
+                self.covariance[environment, k],
+            )
+            for k in np.flatnonzero(self.valid[environment])
+        )
+
+
+class CameraSegment:
+    """The camera array and the triangulator of the reference diagram (``ApsCameraArray``,
+    analytic mode, + ``Triangulator``) as one batched function of a control segment.
+
+    Built once from the calibrated cameras and ``CameraParams``; ``measure`` takes the true ball
+    centres at a segment's triggers in B environments and returns their measurements (module
+    docstring for the timing). Static occluders (default: the table) are fixed at construction;
+    per-environment occluders (e.g. the robot's links) may be passed per call.
+    """
+
+    def __init__(
+        self,
+        cameras: Sequence[Camera],
+        params: CameraParams | None = None,
+        occluders: Sequence[Occluder] | None = None,
+        ball_radius: float = BALL_RADIUS,
+    ):
+        """Args: cameras, the calibrated array (``cameras.load_cameras``); params, rate, latency,
+        noise, dropout, outlier threshold and minimum views (analytic mode only); occluders, the
+        static shapes hiding the ball (default: the table, ``table_occluder``); ball_radius, m."""
+        if not cameras:
+            raise ValueError("CameraSegment: needs at least one camera")
+        self.params = params or CameraParams()
+        if self.params.mode != "analytic":
+            raise ValueError(f"CameraSegment: only the analytic mode is batched, got mode {self.params.mode!r}")
+        self.cameras = tuple(cameras)
+        self.camera_names = tuple(camera.name for camera in self.cameras)
+        self.occluders = tuple(occluders) if occluders is not None else (table_occluder(),)
+        self.ball_radius = float(ball_radius)
+        self.period = 1.0 / self.params.trigger_rate
+        self._stack = _CameraStack(self.cameras)
+        self._origins = np.array([camera.p_WC for camera in self.cameras])
+
+    def detect(
+        self,
+        p_WB: np.ndarray,
+        seeds: np.ndarray,
+        sequences: np.ndarray,
+        occluders: Sequence[Sequence[Occluder]] | None = None,
+    ) -> np.ndarray:
+        """The detections (B, m, C, 2), px (NaN: none), of m triggers in B environments:
+        ``cameras.simulate_detections`` of each ball centre p_WB (B, m, 3), m, with trigger
+        ``sequences`` (B, m) (or (m,)) of the episode seeded ``seeds`` (B,) (or (B, m), the seed
+        at each trigger); ``occluders``: per environment, shapes added to the static ones."""
+        p_WB, seeds, sequences = self._check(p_WB, seeds, sequences, occluders)
+        B, m = p_WB.shape[:2]
+        C = len(self.cameras)
+        points = p_WB.reshape(-1, 3)
+        noise, uniforms = draw_detection_noise(seeds.reshape(-1), sequences.reshape(-1), C)
+        pixels, _ = project_points(self.cameras, points)  # (C, N, 2)
+        seen = visibility(self.cameras, points, self.occluders, self.ball_radius, pixels=pixels)  # (C, N)
+        if occluders is not None:
+            for environment, extra in enumerate(occluders):
+                if extra:
+                    rows = slice(environment * m, (environment + 1) * m)
+                    seen[:, rows] &= ~segments_blocked(self._origins, points[rows], tuple(extra))
+        detected = seen.T & (uniforms >= self.params.dropout_probability)  # (N, C)
+        noisy = pixels.transpose(1, 0, 2) + noise * self.params.pixel_noise_sigma
+        return np.where(detected[..., None], noisy, np.nan).reshape(B, m, C, 2)
+
+    def triangulate(self, pixels: np.ndarray) -> FrameTriangulations:
+        """``triangulate_frames`` of detections (..., C, 2) with this array's parameters."""
+        p = self.params
+        return triangulate_frames(self._stack, pixels, p.pixel_noise_sigma, p.outlier_threshold_px, p.min_views)
+
+    def measure(
+        self,
+        p_WB: np.ndarray,
+        capture_times: np.ndarray,
+        seeds: np.ndarray,
+        sequences: np.ndarray,
+        last_sequence: np.ndarray | None = None,
+        occluders: Sequence[Sequence[Occluder]] | None = None,
+    ) -> SegmentMeasurements:
+        """The measurements of a segment's m triggers in B environments.
+
+        p_WB (B, m, 3): the true ball centre at each trigger, m.
+        capture_times (m,) or (B, m): the trigger times, s (``trigger_times``).
+        seeds (B,) or (B, m): each environment's episode seed (the 64 bits of the random_seed port
+            at the trigger, ``systems.random_seed.episode_seed``).
+        sequences (m,) or (B, m): the triggers' numbers in their episodes, 1, 2, ...
+        last_sequence (B,): each environment's last measurement number before the segment (0).
+        occluders: per environment, occluders added to the static ones for the whole segment.
+        """
+        p_WB, seeds, sequences = self._check(p_WB, seeds, sequences, occluders)
+        B, m = p_WB.shape[:2]
+        capture_times = np.asarray(capture_times, dtype=float)
+        if capture_times.shape not in ((m,), (B, m)) or not np.all(np.isfinite(capture_times)):
+            raise ValueError(f"CameraSegment.measure: capture_times must be finite, of shape ({m},) or ({B}, {m}), got {capture_times.shape}")
+        capture_times = np.broadcast_to(capture_times, (B, m))
+        last_sequence = np.zeros(B, dtype=int) if last_sequence is None else np.asarray(last_sequence)
+        if last_sequence.shape != (B,):
+            raise ValueError(f"CameraSegment.measure: last_sequence must have shape ({B},), got {last_sequence.shape}")
+        pixels = self.detect(p_WB, seeds, sequences, occluders)
+        result = self.triangulate(pixels)
+        sequence = np.where(result.valid, last_sequence[:, None] + np.cumsum(result.valid, axis=1), 0)
+        return SegmentMeasurements(
+            valid=result.valid,
+            sequence=sequence,
+            capture_time=capture_times.copy(),
+            release_time=capture_times + self.params.latency,
+            value=result.position,
+            covariance=result.covariance,
+            pixels=pixels,
+            last_sequence=last_sequence + result.valid.sum(axis=1),
+        )
+
+    def _check(self, p_WB, seeds, sequences, occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Validated (B, m, 3) positions and (B, m) seeds and trigger numbers."""
+        p_WB = np.asarray(p_WB, dtype=float)
+        if p_WB.ndim != 3 or p_WB.shape[2] != 3:
+            raise ValueError(f"CameraSegment: p_WB must have shape (B, m, 3) (m), got {p_WB.shape}")
+        if not np.all(np.isfinite(p_WB)):
+            raise ValueError("CameraSegment: p_WB must be finite")
+        B, m = p_WB.shape[:2]
+        seeds = np.asarray(seeds)
+        if seeds.shape == (B,):
+            seeds = np.repeat(seeds[:, None], m, axis=1)
+        if seeds.shape != (B, m) or seeds.dtype.kind not in "iu":
+            raise ValueError(f"CameraSegment: seeds must be integers of shape ({B},) or ({B}, {m}), got {seeds.dtype} {seeds.shape}")
+        if np.any(seeds < 0):
+            raise ValueError(f"CameraSegment: seeds must be >= 0, got {seeds[seeds < 0][:3]}")
+        sequences = np.asarray(sequences)
+        if sequences.shape == (m,):
+            sequences = np.broadcast_to(sequences, (B, m))
+        if sequences.shape != (B, m) or sequences.dtype.kind not in "iu":
+            raise ValueError(f"CameraSegment: sequences must be integers of shape ({m},) or ({B}, {m}), got {sequences.dtype} {sequences.shape}")
+        if np.any(sequences < 1):
+            raise ValueError("CameraSegment: trigger sequence numbers start at 1")
+        if occluders is not None and len(occluders) != B:
+            raise ValueError(f"CameraSegment: occluders must give one sequence per environment ({B}), got {len(occluders)}")
+        return p_WB, seeds, sequences
