@@ -37,6 +37,7 @@ from ace_drake.contracts import ObservationLayout
 from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.control.params import ControlParams, RallyParams
 from ace_drake.control.stack import ControlStack, make_control_stack
+from ace_drake.perception.camera_segment import CameraSegment
 from ace_drake.perception.cameras import load_cameras
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.contact import ResidualModel
@@ -62,6 +63,7 @@ from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.robot.kinematics import RacketKinematics
 from ace_drake.systems.segment.action_mapper import SegmentActionMapper
 from ace_drake.systems.segment.ball_estimator import SegmentBallEstimator
+from ace_drake.systems.segment.camera_array import SegmentCameraArray
 from ace_drake.systems.segment.ball_plant import SegmentBallPlant
 from ace_drake.systems.segment.clock import EpisodeClock
 from ace_drake.systems.segment.end_effector import SegmentEndEffector
@@ -77,6 +79,7 @@ from ace_drake.systems.segment.spline_qp import SegmentSplineQp
 from ace_drake.systems.statistical_position_sensor import StatisticalPositionSensor
 from ace_drake.systems.triangulator import Triangulator
 
+TRIANGULATION_HISTORY = 32  # positions the triangulator keeps on its port (the Triangulator's default)
 SIMULATION_ACCURACY = 1e-6  # integrator target accuracy; places witness events within ~1e-8 s
 MAX_STEP = 1e-3  # s; keeps the racket from being tunnelled through at relative speeds up to 50 m/s
 
@@ -547,12 +550,13 @@ def add_segment_rally(builder: DiagramBuilder, params: RallyParams, policy, batc
     """The rally episode of ``add_rally`` for B = ``batch`` environments, segment-stepped
     (``params.stepping`` "segment"; docs/architecture.md, *Segment stepping*): the same systems
     under the same names, each carrying B environments and advancing once per 32 ms tick, plus
-    the ``episode_clock`` they share. The statistical position sensor only (cameras: the
-    continuous-time diagram). Inputs: ``light_curtain`` (abstract float (B,)) and, when
+    the ``episode_clock`` they share; the position path is the statistical sensor
+    (``position_sensor``) or the analytic cameras with their triangulation in one system
+    (``aps_cameras``). Inputs: ``light_curtain`` (abstract float (B,)) and, when
     ``policy`` is None, ``action_request`` (abstract float (B, 17)). Start episodes with
     ``start_segment_episodes``."""
-    if params.perception.positions != "statistical":
-        raise ValueError(f"add_segment_rally: the segment-stepped diagram has the statistical position sensor only, got positions={params.perception.positions!r}")
+    if params.perception.positions == "cameras" and params.perception.camera.mode != "analytic":
+        raise ValueError(f"add_segment_rally: the segment-stepped cameras are analytic only, got mode {params.perception.camera.mode!r} (rendered: the continuous-time diagram)")
     if batch < 1:
         raise ValueError(f"add_segment_rally: batch must be >= 1, got {batch}")
     scenario = load_scenario(MODELS_DIR / params.scenario)
@@ -566,7 +570,11 @@ def add_segment_rally(builder: DiagramBuilder, params: RallyParams, policy, batc
     ball = add("ball", SegmentBallPlant(params.physics, batch, timing, perturb=params.perturb))
     joints = add("joint_plant", SegmentJointPlant(scenario.dynamics, batch, timing))
     racket = add("robot_kinematics", SegmentRacketKinematics(kinematics))
-    positions = add("position_sensor", SegmentPositionSensor(params.perception.position, batch, timing))
+    if params.perception.positions == "cameras":
+        cameras = CameraSegment(load_cameras(MODELS_DIR / params.perception.camera.calibration), params.perception.camera)
+        positions = add("aps_cameras", SegmentCameraArray(cameras, TRIANGULATION_HISTORY, batch, timing))
+    else:
+        positions = add("position_sensor", SegmentPositionSensor(params.perception.position, batch, timing))
     spins = add("spin_sensor", SegmentSpinSensor(params.perception.spin, batch, timing))
     estimator = add("ball_estimator", SegmentBallEstimator(params.perception.estimator, params.physics, batch, timing))
     observation = add("observation_builder", SegmentObservationBuilder(layout, batch, timing, predictor, params.hit_memory))
@@ -628,7 +636,7 @@ def make_segment_simulator(diagram: Diagram, context=None) -> Simulator:
     return Simulator(diagram, context or diagram.CreateDefaultContext())
 
 
-SEED_STREAMS = {"ball": 1, "position_sensor": 2, "spin_sensor": 3}  # per-system streams of an episode's seed
+SEED_STREAMS = {"ball": 1, "position_sensor": 2, "spin_sensor": 3, "aps_cameras": 4}  # per-system streams of an episode's seed
 
 
 def system_seeds(seeds, stream: int) -> np.ndarray:
@@ -662,7 +670,9 @@ def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills
     clock.StartEpisodes(clock_context, rows)
     ball, ball_context = sub("ball")
     ball.StartEpisodes(ball_context, rows, shots, system_seeds(seeds, SEED_STREAMS["ball"]))
-    for name in ("position_sensor", "spin_sensor"):
+    for name in ("position_sensor", "aps_cameras", "spin_sensor"):
+        if not diagram.HasSubsystemNamed(name):
+            continue
         system, system_context = sub(name)
         system.StartEpisodes(system_context, rows, system_seeds(seeds, SEED_STREAMS[name]))
     estimator, estimator_context = sub("ball_estimator")

@@ -48,7 +48,7 @@ class SegmentPositionSensor(LeafSystem):
         self.params = params
         self.batch = int(batch)
         self.timing = timing
-        self._trigger = trigger_samples(params.trigger_period, timing, "SegmentPositionSensor")
+        self._trigger = trigger_samples(self._trigger_period(), timing, type(self).__name__)
         self._empty = SensorQueue(MeasurementHistory(capacity=params.history_capacity))
         self._queue_index = self.DeclareAbstractState(AbstractValue.Make((self._empty,) * self.batch))
         self._seed_index = self.DeclareAbstractState(AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
@@ -59,6 +59,9 @@ class SegmentPositionSensor(LeafSystem):
             prerequisites_of_calc={self.abstract_state_ticket(self._queue_index), self.input_port_ticket(self.episode_ticks_port.get_index())},
         )
         self.DeclarePeriodicUnrestrictedUpdateEvent(timing.duration, 0.0, self.Trigger)
+
+    def _trigger_period(self) -> float:
+        return self.params.trigger_period
 
     def StartEpisodes(self, context, rows, seeds) -> None:
         """Empties the queues of environments ``rows`` and sets their episode seeds (k,)."""
@@ -77,15 +80,25 @@ class SegmentPositionSensor(LeafSystem):
         flight = self.ball_flight_port.Eval(context)
         ticks = self.episode_ticks_port.Eval(context)
         first = self.timing.first_sample(ticks)
-        seeds = self._seeds(context)
-        queues = list(self._queues(context))
+        sampled = self._sample(flight, ticks, first, self._seeds(context))
+        end = self.timing.seconds(first + self.timing.samples)
+        queues = tuple(queue.sampled(sampled[row], float(end[row])) for row, queue in enumerate(self._queues(context)))
+        state.get_mutable_abstract_state(self._queue_index).set_value(queues)
+
+    def _triggers(self, first: int) -> np.ndarray:
+        """The episode samples of the triggers in the tick starting at episode sample ``first``
+        (those at or after the episode's time 0)."""
+        start = max(int(first), 0)
+        return np.arange(-(-start // self._trigger) * self._trigger, int(first) + self.timing.samples, self._trigger)
+
+    def _sample(self, flight, ticks: np.ndarray, first: np.ndarray, seeds: np.ndarray) -> list[tuple]:
+        """Each environment's PendingMeasurements of the tick's triggers."""
+        sampled = []
         for row in range(self.batch):
-            start = max(int(first[row]), 0)
-            triggers = np.arange(-(-start // self._trigger) * self._trigger, int(first[row]) + self.timing.samples, self._trigger)
+            triggers = self._triggers(first[row])
             rng = np.random.default_rng([int(seeds[row]), POSITION_STREAM, int(ticks[row])])
-            sampled = sample_position_measurements(flight.samples[row, triggers - first[row], :3], self.timing.seconds(triggers), self.params, rng)
-            queues[row] = queues[row].sampled(sampled, float(self.timing.seconds(first[row] + self.timing.samples)))
-        state.get_mutable_abstract_state(self._queue_index).set_value(tuple(queues))
+            sampled.append(sample_position_measurements(flight.samples[row, triggers - first[row], :3], self.timing.seconds(triggers), self.params, rng))
+        return sampled
 
     def _queues(self, context) -> tuple[SensorQueue, ...]:
         return context.get_abstract_state(self._queue_index).get_value()
