@@ -90,7 +90,7 @@ def cmd_evaluate(args) -> int:
     sampling = work("evaluate --skill sampled")() if args.skill == "sampled" else None
     figures = work("evaluate")(args.controller, sensors=args.sensors, seed=args.seed, ball_params=args.params, data=args.data,
                                players=players, episodes=args.episodes, skill=args.skill, skill_sampling=sampling,
-                               action_noise=args.action_noise, progress=log)
+                               action_noise=args.action_noise, stepping=args.stepping, batch=args.batch, progress=log)
     if args.json:
         emit_json(figures)
         return 0
@@ -378,6 +378,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--episodes", type=int, help="at most this many episodes (default: all shots of --data, or 200)")
     evaluate.add_argument("--skill", help="the skill of every episode: Y,WP,WS (y_desired m, w_p, w_s) or 'sampled' (one per shot from the training distribution, seeded); default: 0,1,0")
     evaluate.add_argument("--action-noise", type=float, default=0.0, help="add Gaussian noise of this std (action units) to every action, seeded (default: none)")
+    evaluate.add_argument("--stepping", choices=("segment", "continuous"), default="segment",
+                          help="the batched segment-stepped diagram, or the continuous-time reference one episode at a time (default: %(default)s)")
+    evaluate.add_argument("--batch", type=int, default=32, help="episodes played at once on the segment-stepped diagram (default: %(default)s)")
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")

@@ -160,8 +160,9 @@ def reads_hit_prediction(policy, params: RallyParams) -> bool:
     return bool(np.isin(policy.index.numpy(), part).any())
 
 
-def rally_params(ball_params=None, sensors: str = "cameras", seed: int = 0) -> RallyParams:
+def rally_params(ball_params=None, sensors: str = "cameras", seed: int = 0, stepping: str = "continuous") -> RallyParams:
     """The rally diagram's config of the command line's options: the ball model of the YAML
     ``ball_params`` (None: the paper's), ball positions from ``sensors`` ("cameras" or
-    "statistical"), ``seed``."""
-    return RallyParams(physics=load_ball_params(ball_params), perception=PerceptionParams(positions=sensors), seed=seed)
+    "statistical"), ``seed``, and the diagram's ``stepping`` ("continuous", the reference, or
+    "segment", the batched diagram)."""
+    return RallyParams(physics=load_ball_params(ball_params), perception=PerceptionParams(positions=sensors), seed=seed, stepping=stepping)

@@ -28,9 +28,9 @@ from ace_drake.artefacts import provenance, sha256
 from ace_drake.config import ConfigError
 from ace_drake.contracts import Outcome
 from ace_drake.control.params import RallyParams
-from ace_drake.diagrams import build_rally_diagram
+from ace_drake.diagrams import build_rally_diagram, build_segment_rally_diagram
 from ace_drake.evaluation.controllers import NoisyActions, diagram_params_for, hit_state_controller, make_controller, rally_params
-from ace_drake.evaluation.runner import Episode, RallyRunner
+from ace_drake.evaluation.runner import Episode, RallyRunner, SegmentRallyRunner
 from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import terminal_reward, travel_frame_spin
 from ace_drake.play.params import ShotParams
@@ -153,23 +153,51 @@ def run_episodes(
 
 
 def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarray, seed: int = 0, progress=None,
-             skills: np.ndarray | None = None) -> dict:
-    """Evaluates ``controller`` (a policy callable or torch module) on ``shots`` with the rally
+             skills: np.ndarray | None = None, batch: int = 1) -> dict:
+    """Evaluates ``controller`` (a policy callable or torch module; for a batch of a stateful
+    controller, a sequence of ``batch`` of them, one per environment) on ``shots`` with the rally
     diagram of ``params`` (without the observation's hit prediction when the controller does not
     read it: ``evaluation.controllers.diagram_params_for``), each shot with its skill of ``skills``
-    (``run_episodes``): the figures of ``summarize`` plus the wall time."""
-
-    controller = hit_state_controller(controller, params)
-    params = diagram_params_for(controller, params)
+    and shot i seeded ``seed * 1_000_003 + i``: on the continuous-time diagram one episode after
+    another (``run_episodes``), on the segment-stepped one (``params.stepping``) ``batch`` at a
+    time (``SegmentRallyRunner``). Returns the figures of ``summarize`` plus the wall time."""
+    controllers = list(controller) if isinstance(controller, (list, tuple)) else [controller]
+    controllers = [hit_state_controller(c, params) for c in controllers]
+    params = diagram_params_for(controllers[0], params)
     start = time.perf_counter()
-    runner = RallyRunner(build_rally_diagram(params, controller), params)
-    episodes = run_episodes(runner, shots, serve, seed, progress, skills)
-    return {**summarize(episodes), "wall_time_s": time.perf_counter() - start}
+    if params.stepping == "continuous":
+        if len(controllers) != 1 or batch != 1:
+            raise ConfigError("evaluate: the continuous-time diagram plays one episode at a time (batch 1); batches need stepping 'segment'")
+        runner = RallyRunner(build_rally_diagram(params, controllers[0]), params)
+        episodes = run_episodes(runner, shots, serve, seed, progress, skills)
+    else:
+        if len(controllers) not in (1, batch):
+            raise ConfigError(f"evaluate: {len(controllers)} controllers for a batch of {batch}")
+        policy = controllers if len(controllers) > 1 else controllers[0]
+        runner = SegmentRallyRunner(build_segment_rally_diagram(params, policy, batch), params)
+        seeds = seed * 1_000_003 + np.arange(len(shots))
+        episodes = runner.run_many(shots, serve, seeds, skills, _batch_progress(len(shots), progress, start))
+    return {**summarize(episodes), "wall_time_s": time.perf_counter() - start, "stepping": params.stepping, "batch": batch}
+
+
+def _batch_progress(total: int, progress, start: float):
+    """A ``run_many`` progress callback that reports every 10% of ``total`` episodes."""
+    if progress is None:
+        return None
+    done = [0, 0]
+
+    def report(ended: int) -> None:
+        done[0] += ended
+        if done[0] * 10 // total > done[1] or done[0] == total:
+            done[1] = done[0] * 10 // total
+            progress(f"evaluate: {done[0]}/{total} episodes, {time.perf_counter() - start:.0f} s")
+
+    return report
 
 
 def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int = 0, ball_params=None, data=None,
                         players: Sequence[str] = (), episodes: int | None = None, skill: str | None = None, skill_sampling=None,
-                        action_noise: float = 0.0, progress: Callable[[str], None] = print) -> dict:
+                        action_noise: float = 0.0, stepping: str = "segment", batch: int = 32, progress: Callable[[str], None] = print) -> dict:
     """``ace-drake evaluate``: ``evaluate`` of the controller named ``controller``
     (``make_controller``; with ``action_noise`` > 0, Gaussian noise of that std in action units on
     every action, seeded) in the rally diagram of ``rally_params(ball_params, sensors, seed)``,
@@ -178,13 +206,18 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     episodes. The skill of every episode (``evaluation_skills``): ``skill`` "Y,WP,WS" for all, or
     "sampled": one per shot from ``skill_sampling``, or None: the diagram's default. Returns
     ``evaluate``'s figures with the settings, the provenance (command, date) and, with ``data``,
-    its sha256. Raises ConfigError for a bad option."""
+    its sha256. ``stepping``: "segment" (the batched diagram, ``batch`` episodes at a time) or
+    "continuous" (the reference diagram, one at a time). Raises ConfigError for a bad option."""
     if episodes is not None and episodes < 1:
         raise ConfigError(f"evaluate: --episodes must be >= 1, got {episodes}")
     players = tuple(players)
     if players and not data:
         raise ConfigError("evaluate: --players selects shots of --data; give a match-data CSV")
-    params = rally_params(ball_params, sensors, seed)
+    if batch < 1:
+        raise ConfigError(f"evaluate: --batch must be >= 1, got {batch}")
+    if stepping == "continuous":
+        batch = 1
+    params = rally_params(ball_params, sensors, seed, stepping)
     if data:
         shots, serve = human_shots(data, players)
         shots, serve = shots[:episodes], serve[:episodes]
@@ -195,12 +228,17 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
         shots, serve = sample.states, sample.serve
         source = f"{len(shots)} shots from the built-in synthetic distribution"
     skills, skill_text = evaluation_skills(skill, len(shots), params, seed, skill_sampling)
-    player = make_controller(controller, params)
+    batch = max(1, min(batch, len(shots)))
+    # A controller with a memory (a reset()) plays one episode at a time: one per environment.
+    first = make_controller(controller, params)
+    stateful = callable(getattr(first, "reset", None)) or action_noise > 0
+    controllers = [first] + [make_controller(controller, params) for _ in range(batch - 1)] if stateful else [first]
     noise = f", Gaussian action noise {action_noise:g}" if action_noise else ""
     if action_noise:
-        player = NoisyActions(player, action_noise, seed=seed)
-    progress(f"evaluate: '{controller}'{noise} on {source}, {sensors} sensors, seed {seed}, {skill_text}")
-    figures = evaluate(player, params, shots, serve, seed, progress=progress, skills=skills)
+        controllers = [NoisyActions(player, action_noise, seed=seed) for player in controllers]
+    stepped = f", {stepping} diagram" + (f", {batch} at a time" if batch > 1 else "")
+    progress(f"evaluate: '{controller}'{noise} on {source}, {sensors} sensors, seed {seed}, {skill_text}{stepped}")
+    figures = evaluate(controllers if len(controllers) > 1 else controllers[0], params, shots, serve, seed, progress=progress, skills=skills, batch=batch)
     return {"controller": controller, "action_noise": action_noise, "data": data, "players": list(players), "sensors": sensors,
             "seed": seed, "skills": skill or "default", **figures, **provenance(), **({"data_sha256": sha256(data)} if data else {})}
 
