@@ -46,13 +46,22 @@ from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.feasible_set import InfeasibleStartError
 from ace_drake.control.params import RallyParams
 from ace_drake.control.stack import ControlStack
-from ace_drake.diagrams import build_controlled_robot_diagram, build_rally_diagram, make_simulator, start_controlled_robot
+from ace_drake.diagrams import (
+    build_controlled_robot_diagram,
+    build_rally_diagram,
+    build_segment_rally_diagram,
+    make_segment_simulator,
+    make_simulator,
+    start_controlled_robot,
+    start_segment_episodes,
+)
 from ace_drake.evaluation.runner import RallyRunner
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.params import ShotParams
 from ace_drake.play.shots import make_distribution
 from ace_drake.robot.model import load_scenario
 from ace_drake.training.env import RallyEnv
+from ace_drake.training.vector_env import RallyVectorEnv
 
 SENSOR_PATHS = {"cameras": "analytic cameras + triangulator", "statistical": "statistical position sensor"}
 # The rally rows: (key, position sensor, hit prediction on).
@@ -141,11 +150,13 @@ def _ceilings(shots: np.ndarray, seconds: float, say) -> dict:
     }
 
 
-def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, seed: int = 0, profile: bool = True, progress: Callable[[str], None] | None = None) -> dict:
+def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, seed: int = 0, profile: bool = True,
+              batches=(1, 16, 64, 256), vector_steps: int = 40, progress: Callable[[str], None] | None = None) -> dict:
     """The figures of the module docstring. ``seconds``: simulated s per rally episode;
     ``episodes``: timed rally episodes per sensor path (after one warm-up); ``env_episodes``:
-    RallyEnv episodes with random actions (after one warm-up); ``profile``: add the per-system
-    profile."""
+    RallyEnv episodes with random actions (after one warm-up); ``batches``: the RallyVectorEnv
+    sizes B measured, each for ``vector_steps`` steps (after a warm-up); ``profile``: add the
+    per-system profile."""
 
     say = progress or (lambda _: None)
     if seconds <= 0 or episodes < 1 or env_episodes < 1:
@@ -187,6 +198,17 @@ def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, s
     env = RallyEnv(distribution=distribution)
     figures["env"] = _bench_env(env, env_episodes, seed, say)
 
+    for positions in ("cameras", "statistical"):
+        say(f"segment-stepped rally diagram, B = 1, {SENSOR_PATHS[positions]}")
+        figures[f"rally_{positions}_b1"] = _segment_rally(positions, shots, seconds, seed, say)
+    figures["ratio_cameras_b1_new_to_old"] = figures["rally_cameras_b1"]["real_time_factor_median"] / figures["rally_cameras"]["real_time_factor_median"]
+    figures["segment_env"] = {}
+    for batch in batches:
+        say(f"RallyVectorEnv, B = {batch}, random actions")
+        figures["segment_env"][str(batch)] = _bench_vector_env(batch, vector_steps, seed, distribution, say)
+    best = max(figures["segment_env"].values(), key=lambda entry: entry["steps_per_second"])
+    figures["ratio_env_steps_new_to_old"] = best["steps_per_second"] / figures["env"]["steps_per_second"]
+
     if profile:
         figures["profile"] = {}
         for positions, bench in benches.items():
@@ -195,7 +217,69 @@ def bench_sim(seconds: float = 1.0, episodes: int = 5, env_episodes: int = 40, s
         say("profiling RallyEnv episodes with random actions")
         rng = np.random.default_rng(seed)
         figures["profile"]["env"] = profile_by_system(lambda: [_env_episode(env, rng, None) for _ in range(3)], None)
+        batch = 64 if 64 in batches else max(batches)
+        say(f"profiling RallyVectorEnv steps, B = {batch}")
+        vector = RallyVectorEnv(batch, distribution=distribution)
+        vector.reset(seed=seed)
+        figures["profile"][f"segment_env_b{batch}"] = profile_by_system(
+            lambda: [vector.step(rng.uniform(-1.0, 1.0, (batch, ACTION_SIZE))) for _ in range(10)], None)
     return figures
+
+
+def _segment_rally(positions: str, shots: np.ndarray, seconds: float, seed: int, say) -> dict:
+    """The ready-pose rally of ``RallyBench`` on the segment-stepped diagram (B = 1): real-time
+    factors over the same shots (the first a warm-up)."""
+    params = RallyParams(perception=PerceptionParams(positions=positions), stepping="segment")
+    policy = ReadyPosePolicy.for_rally(params, ObservationLayout(params.position_history, params.spin_history))
+    diagram = build_segment_rally_diagram(params, policy, 1)
+    simulator = make_segment_simulator(diagram)
+    context, default = simulator.get_mutable_context(), diagram.CreateDefaultContext()
+    ticks = int(np.ceil(seconds / params.control.segment_samples / 1e-3))
+    walls = []
+    for index, shot in enumerate(shots):
+        context.SetTimeStateAndParametersFrom(default)
+        start_segment_episodes(diagram, context, [0], shot[None], [seed + index])
+        diagram.GetInputPort("light_curtain").FixValue(context, np.zeros(1))
+        simulator.Initialize()
+        start = time.perf_counter()
+        simulator.AdvanceTo(ticks * params.control.segment_samples * 1e-3)
+        if index > 0:
+            walls.append(time.perf_counter() - start)
+            say(f"  episode {index}: {ticks * 0.032 / walls[-1]:.1f} x real time")
+    rtf = ticks * params.control.segment_samples * 1e-3 / np.array(walls)
+    return {"sensors": SENSOR_PATHS[positions], "real_time_factor_median": float(np.median(rtf)), "real_time_factor_min": float(np.min(rtf))}
+
+
+def _bench_vector_env(batch: int, steps: int, seed: int, distribution, say) -> dict:
+    """RallyVectorEnv of B = ``batch`` with random actions: steps per second (B per step) after a
+    warm-up of a few steps, and the process's resident memory after it."""
+    env = RallyVectorEnv(batch, distribution=distribution)
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    for _ in range(3):
+        env.step(rng.uniform(-1.0, 1.0, (batch, ACTION_SIZE)))
+    start, cpu = time.perf_counter(), time.process_time()
+    ends = 0
+    for _ in range(steps):
+        _, _, terminated, _, _ = env.step(rng.uniform(-1.0, 1.0, (batch, ACTION_SIZE)))
+        ends += int(terminated.sum())
+    wall = time.perf_counter() - start
+    figures = {"steps_per_second": steps * batch / wall, "steps_per_cpu_second": steps * batch / (time.process_time() - cpu),
+               "episodes_ended": ends, "resident_memory_mb": resident_memory_mb()}
+    say(f"  B = {batch}: {figures['steps_per_second']:.0f} steps/s, {figures['resident_memory_mb']:.0f} MB resident")
+    return figures
+
+
+def resident_memory_mb() -> float:
+    """This process's resident memory now, MB (Linux /proc; NaN elsewhere)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
 
 
 def _env_episode(env, rng: np.random.Generator, seed: int | None) -> tuple[int, float]:
@@ -327,6 +411,15 @@ def print_sim_figures(figures: dict, systems_shown: int = 8) -> None:
         f"median episode {env['steps_per_second_median_episode']:.1f}), {env['episode_steps_median']:.0f} steps per episode, "
         f"{env['real_time_factor']:.2f} x real time; ends: {env['ends']}"
     )
+    print("segment-stepped rally diagram (B = 1), same controller and shots:")
+    for positions in ("cameras", "statistical"):
+        row = figures[f"rally_{positions}_b1"]
+        print(f"  {row['sensors']:<54} {row['real_time_factor_median']:6.2f} x real time (median; min {row['real_time_factor_min']:.2f})")
+    print(f"  cameras, segment-stepped / continuous: {figures['ratio_cameras_b1_new_to_old']:.1f}")
+    print("RallyVectorEnv (segment-stepped, statistical sensors), random actions:")
+    for batch, row in figures["segment_env"].items():
+        print(f"  B = {batch:>4}: {row['steps_per_second']:8.0f} steps/s ({row['steps_per_cpu_second']:.0f} per CPU s), {row['resident_memory_mb']:.0f} MB resident")
+    print(f"  best / RallyEnv: {figures['ratio_env_steps_new_to_old']:.1f}")
     for name, profile in figures.get("profile", {}).items():
         print(f"profile ({name}): outside the systems {100 * profile['outside_systems_share']:.0f} %")
         for system, row in list(profile["systems"].items())[:systems_shown]:

@@ -64,7 +64,7 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
     is always False. infos (arrays over the B environments): ``privileged`` (B, 28) float32 (the
     true ball [p, v, w], the joints' true [q, v] and the skill, ``training.env.PRIVILEGED_PARTS``),
     ``time`` (s, each episode's), ``outcome`` and ``end`` (strings), ``serve``, ``skill`` (B, 3),
-    ``start``, ``segments`` (B, 2) [accepted, refused], ``episode`` (each environment's episode
+    ``start``, ``segments`` (B, 2) [accepted, refused], ``episode_index`` (each environment's episode
     index) and ``result`` (the EpisodeResults, objects).
     """
 
@@ -110,11 +110,13 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
 
     # ------------------------------------------------------------------------------ gymnasium
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Starts episode 0 of every environment (``seed`` default: a random one) and returns the
-        first observations (B, n) and infos. ``options`` is not supported."""
+        """Starts episode 0 of every environment (``seed`` None: one drawn from the vector env's
+        own generator, ``np_random``) and returns the first observations (B, n) and infos.
+        ``options`` is not supported."""
         if options:
             raise ValueError(f"RallyVectorEnv.reset: options are not supported, got {sorted(options)}")
-        self._seed = int(np.random.SeedSequence().entropy % (2**31)) if seed is None else int(seed)
+        super().reset(seed=seed)
+        self._seed = int(self.np_random.integers(2**31 - 1)) if seed is None else int(seed)
         self._shot_rngs = [np.random.default_rng([self._seed, self.first_index + i, SHOT_STREAM]) for i in range(self.num_envs)]
         self._shots = [[] for _ in range(self.num_envs)]
         self._episode_index[:] = 0
@@ -259,6 +261,6 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
             "skill": np.array([e.skill for e in episodes]),
             "start": np.array([e.start for e in episodes]),
             "segments": np.array([[s.accepted, s.rejected] for s in states]),
-            "episode": self._episode_index.copy(),
+            "episode_index": self._episode_index.copy(),
             "result": np.array([e.result for e in episodes], dtype=object),
         }
