@@ -306,3 +306,106 @@ class RolloutWorker:
         step = relative - before
         s = np.clip(-before @ step / max(step @ step, 1e-12), 0.0, 1.0)
         return min(closest, float(np.linalg.norm(before + s * step))), relative
+
+
+VECTOR_MODES = ("policy", "ou")
+
+
+class VectorRolloutWorker:
+    """B environments stepped together (``RallyVectorEnv`` on the segment-stepped diagram),
+    returning whole episodes as ``RolloutWorker`` does: ``collect(episodes, mode)`` steps the
+    batch until at least ``episodes`` episodes have ended and returns those that did (episodes
+    still running go on in the next call). The modes of the paper's method: ``"policy"`` (the
+    actor, sampled; one batched forward pass per step) and ``"ou"`` (one Ornstein-Uhlenbeck
+    process per environment); the eq. (12) action only. The demonstrator, DAgger and the hit-state
+    action play on ``RolloutWorker``.
+
+    Worker ``index`` of a run with seed ``s`` steps environments index * B ... index * B + B - 1
+    (``RallyVectorEnv.first_index``), so the episodes are a function of the seed and the
+    environment's number, whatever the number of workers.
+
+    Args: batch, B; the others as ``RolloutWorker``'s (env_params, sac, seed, index, exploration,
+    distribution, play).
+    """
+
+    def __init__(self, batch: int, env_params: RallyEnvParams | None = None, sac=None, seed: int = 0, index: int = 0,
+                 exploration: ExplorationParams | None = None, distribution=None, returner=None, play=None):
+        from ace_drake.training.vector_env import RallyVectorEnv  # only vector workers build the segment diagram
+
+        config = sac or SacConfig()
+        if config.action != "terminal":
+            raise ValueError(f"VectorRolloutWorker: only the eq. (12) action ('terminal') plays batched, got {config.action!r}")
+        self.env = RallyVectorEnv(batch, env_params, distribution, first_index=index * batch)
+        self.batch = batch
+        self.index = index
+        self.exploration = exploration or ExplorationParams()
+        sequence = np.random.SeedSequence([seed, index])
+        env_seed, noise_seed, torch_seed = sequence.generate_state(3)
+        self.rng = np.random.default_rng(int(noise_seed))
+        self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31), self.env.params.rally, play=play)
+        self.generator = torch.Generator().manual_seed(int(torch_seed) % 2**63)
+        self.noises = [OrnsteinUhlenbeck(self.exploration.ou_theta, self.exploration.ou_sigma, self.env.timing.duration) for _ in range(batch)]
+        self._obs, self._info = self.env.reset(seed=int(env_seed) % 2**31)
+        self._rows = [self._empty_rows() for _ in range(batch)]
+        self._started = [time.perf_counter()] * batch
+        self._closest = [self._blade_distance(None, row) for row in range(batch)]
+        self._fresh = np.ones(batch, dtype=bool)  # the environment's episode has not stepped yet
+        self._restarting = np.zeros(batch, dtype=bool)  # its last step ended an episode: the next one restarts it
+        self.episodes = 0
+        self.steps = 0
+
+    def set_actor(self, state_dict: dict) -> None:
+        """Installs actor weights (``SacLearner.actor.state_dict()``)."""
+        self.learner.actor.load_state_dict(state_dict)
+
+    def collect(self, episodes: int, mode: str = "policy") -> list[Episode]:
+        """Steps all B environments with ``mode`` (VECTOR_MODES) until at least ``episodes``
+        episodes have ended; returns the ended ones."""
+        if mode not in VECTOR_MODES:
+            raise ValueError(f"VectorRolloutWorker.collect: mode must be one of {VECTOR_MODES}, got {mode!r}")
+        ended: list[Episode] = []
+        while len(ended) < episodes:
+            for row in np.flatnonzero(self._fresh):
+                if mode == "ou":
+                    self.noises[row].reset(self.rng)
+            if mode == "policy":
+                actions = self.learner.act(self._obs, generator=self.generator, std_scale=self.exploration.policy_std_scale)
+            else:
+                actions = np.array([noise.sample(self.rng) for noise in self.noises])
+            obs, rewards, terminated, _, info = self.env.step(actions)
+            self._fresh[:] = False
+            for row in range(self.batch):
+                if self._restarting[row]:
+                    # NEXT_STEP autoreset: this step started the row's next episode; its action was ignored
+                    self._rows[row], self._started[row] = self._empty_rows(), time.perf_counter()
+                    self._closest[row] = self._blade_distance(None, row)
+                    self._fresh[row] = True
+                    continue
+                self._closest[row] = self._blade_distance(self._closest[row], row)
+                for key, value in (("obs", self._obs[row]), ("privileged", self._info["privileged"][row]), ("action", actions[row]),
+                                   ("reward", rewards[row]), ("next_obs", obs[row]), ("next_privileged", info["privileged"][row]),
+                                   ("done", float(terminated[row]))):
+                    self._rows[row][key].append(value)
+                if terminated[row]:
+                    transitions = {key: np.asarray(value, dtype=np.float32) for key, value in self._rows[row].items()}
+                    ended.append(Episode(transitions, EpisodeSummary(info["result"][row], self._closest[row][0]), mode, str(info["outcome"][row]),
+                                         str(info["end"][row]), info["skill"][row].copy(), time.perf_counter() - self._started[row]))
+                    self.episodes += 1
+                    self.steps += len(transitions["reward"])
+            self._restarting = terminated.copy()
+            self._obs, self._info = obs, info
+        return ended
+
+    @staticmethod
+    def _empty_rows() -> dict:
+        return {key: [] for key in TRANSITION_KEYS}
+
+    def _blade_distance(self, previous, row: int):
+        """(closest approach so far (m), relative position now) of environment ``row``."""
+        relative = self.env.ball_from_blade()[row]
+        if previous is None:
+            return float(np.linalg.norm(relative)), relative
+        closest, before = previous
+        step = relative - before
+        s = np.clip(-before @ step / max(step @ step, 1e-12), 0.0, 1.0)
+        return min(closest, float(np.linalg.norm(before + s * step))), relative

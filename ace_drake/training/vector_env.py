@@ -183,6 +183,12 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
         skills = np.array([e.skill for e in self._episodes])
         return np.concatenate([self._ball_states(), joints, skills], axis=1).astype(np.float32)
 
+    def ball_from_blade(self) -> np.ndarray:
+        """The true ball centres relative to the blade centres now (B, 3), m (world axes)."""
+        joints = self._joints.joint_state_port.Eval(self._joints.GetMyContextFromRoot(self.context))
+        n = joints.shape[1] // 2
+        return self._ball_states()[:, :3] - self._kinematics.racket_pose(joints[:, :n])[0]
+
     # ------------------------------------------------------------------------------ helpers
     def _start(self, rows: np.ndarray) -> None:
         """Draws and starts the next episode of environments ``rows`` (module docstring)."""

@@ -18,7 +18,7 @@ from collections import deque
 
 import ray
 
-from ace_drake.training.rollout import RolloutWorker
+from ace_drake.training.rollout import RolloutWorker, VectorRolloutWorker
 
 BACKENDS = ("ray", "local")
 
@@ -26,7 +26,8 @@ BACKENDS = ("ray", "local")
 class WorkerPool:
     """``count`` rollout workers (module docstring). ``worker_args``: the keyword arguments of
     ``RolloutWorker`` shared by all (``env_params``, ``sac``, ``seed``, ``exploration``); worker
-    i gets ``index=i``."""
+    i gets ``index=i``. With a ``batch`` among them, each worker is a ``VectorRolloutWorker``
+    stepping that many environments on the segment-stepped diagram."""
 
     def __init__(self, count: int, worker_args: dict, backend: str = "ray", address: str | None = None):
         if backend not in BACKENDS:
@@ -37,6 +38,7 @@ class WorkerPool:
             raise ValueError("WorkerPool: the local backend runs exactly one worker (use backend 'ray' for more)")
         self.backend = backend
         self.count = count
+        worker_class = VectorRolloutWorker if "batch" in worker_args else RolloutWorker
         self._actor_ref = None
         self._actor_state = None
         self._pending: dict = {}  # ray: object ref -> worker index; local: deque of (index, task)
@@ -47,10 +49,10 @@ class WorkerPool:
                     ray.init(address=address, log_to_driver=False)
                 else:  # a local cluster: this machine's cores, no dashboard
                     ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
-            remote = ray.remote(num_cpus=1)(RolloutWorker)
+            remote = ray.remote(num_cpus=1)(worker_class)
             self._workers = [remote.remote(**worker_args, index=i) for i in range(count)]
         else:
-            self._workers = [RolloutWorker(**worker_args, index=0)]
+            self._workers = [worker_class(**worker_args, index=0)]
             self._queue: deque = deque()
 
     def publish(self, actor_state: dict) -> None:
