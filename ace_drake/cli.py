@@ -261,7 +261,12 @@ def _bench_train(args) -> int:
         for workers, rate in figures["env_steps_per_s"].items():
             print(f"env steps/s with {workers} worker(s): {rate:.1f}")
         print(f"2 workers / 1 worker: {figures['worker_speedup']:.2f}")
-        print(f"learner updates/s: {figures['updates_per_s']:.1f}; updates per env step (2 workers): {figures['updates_per_env_step']:.2f}")
+        for batch, rate in figures["vector_env_steps_per_s"].items():
+            print(f"env steps/s with 2 workers of RallyVectorEnv B = {batch}: {rate:.0f}")
+        if figures["ratio_env_steps_new_to_old"] is not None:
+            print(f"best vector / RallyEnv (2 workers each): {figures['ratio_env_steps_new_to_old']:.1f}")
+        updates = ", ".join(f"{rate:.1f} with {threads} thread(s)" for threads, rate in figures["updates_per_s"].items())
+        print(f"learner updates/s: {updates}; updates per env step at the best collection: {figures['updates_per_env_step']:.3f}")
     return 0
 
 

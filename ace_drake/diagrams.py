@@ -711,6 +711,7 @@ DOCUMENTED_DIAGRAMS = {
     "controlled_robot_diagram": _documented_controlled_robot_diagram,
     "rally_diagram": build_rally_diagram,
     "training_diagram": build_training_diagram,
+    "segment_rally_diagram": build_segment_rally_diagram,
 }
 
 

@@ -28,10 +28,12 @@ from ace_drake.learning.sac import SacConfig, SacLearner
 from ace_drake.training.workers import WorkerPool
 
 
-def _collect(workers: int, seconds: float, episodes: int, seed: int, progress) -> tuple[float, list]:
-    """Steps per wall second of ``workers`` Ray workers over ``seconds``, and the episodes."""
+def _collect(workers: int, seconds: float, episodes: int, seed: int, progress, batch: int | None = None) -> tuple[float, list]:
+    """Steps per wall second of ``workers`` Ray workers over ``seconds``, and the episodes: each a
+    ``RolloutWorker`` (one RallyEnv), or with ``batch`` a ``VectorRolloutWorker`` of that many
+    environments on the segment-stepped diagram."""
 
-    pool = WorkerPool(workers, {"seed": seed}, "ray")
+    pool = WorkerPool(workers, {"seed": seed} if batch is None else {"seed": seed, "batch": batch}, "ray")
     try:
         for index in range(workers):  # warm-up: building the diagram, fitting the shot distribution
             pool.submit(index, 1, "policy")
@@ -50,37 +52,51 @@ def _collect(workers: int, seconds: float, episodes: int, seed: int, progress) -
         wall = time.perf_counter() - start
     finally:
         pool.shutdown()
-    progress(f"bench train: {workers} worker(s): {steps} steps in {wall:.1f} s")
+    kind = "RallyEnv" if batch is None else f"RallyVectorEnv B = {batch}"
+    progress(f"bench train: {workers} worker(s), {kind}: {steps} steps in {wall:.1f} s ({steps / wall:.0f} steps/s)")
     return steps / wall, collected
 
 
-def bench_train(seconds: float = 60.0, episodes: int = 2, updates: int = 200, seed: int = 0, progress=print) -> dict:
+def bench_train(seconds: float = 60.0, episodes: int = 2, updates: int = 200, seed: int = 0, batches=(1, 16, 64, 256), progress=print) -> dict:
     """The figures of the module docstring (keys ``env_steps_per_s`` {1, 2}, ``worker_speedup``,
-    ``updates_per_s``, ``updates_per_env_step``), with the provenance (command, date)."""
-
+    ``vector_env_steps_per_s`` {B: steps/s of 2 workers of B environments each},
+    ``ratio_env_steps_new_to_old``, ``updates_per_s`` {threads}, ``updates_per_env_step``), with
+    the provenance (command, date). A vector worker's task plays until ``episodes`` x B episodes
+    have ended."""
 
     rates, episodes_played = {}, []
     for workers in (1, 2):
         rates[workers], played = _collect(workers, seconds, episodes, seed, progress)
         episodes_played += played
-    torch.set_num_threads(1)
+    vector_rates = {}
+    for batch in batches:
+        vector_rates[batch], played = _collect(2, seconds, episodes * batch, seed, progress, batch=batch)
+        episodes_played += played[:200]
+    best = max(vector_rates.values()) if vector_rates else None
     learner = SacLearner(SacConfig(seed=seed))
     replay = EventReplay(layout=learner.config.layout)
     for episode in episodes_played:
         replay.add_episode(episode.transitions, episode.summary)
-    chunk, times = 20, []
-    for _ in range(max(1, updates // chunk)):
-        start = time.perf_counter()
-        for _ in range(chunk):
-            learner.update(replay.sample(learner.config.batch_size))
-        times.append((time.perf_counter() - start) / chunk)
-    updates_per_s = 1.0 / float(np.median(times))
-    progress(f"bench train: {updates_per_s:.1f} updates/s (batch {learner.config.batch_size})")
+    updates_per_s = {}
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        chunk, times = 20, []
+        for _ in range(max(1, updates // chunk)):
+            start = time.perf_counter()
+            for _ in range(chunk):
+                learner.update(replay.sample(learner.config.batch_size))
+            times.append((time.perf_counter() - start) / chunk)
+        updates_per_s[threads] = 1.0 / float(np.median(times))
+        progress(f"bench train: {updates_per_s[threads]:.1f} updates/s (batch {learner.config.batch_size}, {threads} torch thread(s))")
+    torch.set_num_threads(1)
+    collection = best if best is not None else rates[2]
     return {
         "env_steps_per_s": {str(k): round(v, 2) for k, v in rates.items()},
         "worker_speedup": round(rates[2] / rates[1], 3),
-        "updates_per_s": round(updates_per_s, 2),
-        "updates_per_env_step": round(updates_per_s / rates[2], 3),
+        "vector_env_steps_per_s": {str(k): round(v, 1) for k, v in vector_rates.items()},
+        "ratio_env_steps_new_to_old": round(best / rates[2], 2) if best is not None else None,
+        "updates_per_s": {str(k): round(v, 2) for k, v in updates_per_s.items()},
+        "updates_per_env_step": round(max(updates_per_s.values()) / collection, 4),
         "batch_size": learner.config.batch_size,
         "seconds_per_collection": seconds,
         "episodes_collected": len(episodes_played),
