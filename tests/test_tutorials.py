@@ -116,6 +116,11 @@ def test_tutorial_05_rally_returns_the_ball_and_writes_its_files(tmp_path):
     landing = {int(w_s): (float(y_desired), float(y), float(spin)) for y_desired, w_s, y, spin in skills}
     assert all(abs(y - y_desired) < 0.15 for y_desired, y, _ in landing.values())
     assert landing[1][2] > landing[0][2] + 50.0 > landing[-1][2] + 100.0
+    # Part 5: a batch of rallies on the segment-stepped diagram, most of them returned.
+    batch = re.search(r"5\. 16 shots, 8 at a time on the segment-stepped diagram: (\{.*\});", run.stdout)
+    assert batch, run.stdout
+    outcomes = eval(batch.group(1))  # a dict literal printed by the tutorial
+    assert sum(outcomes.values()) == 16 and outcomes.get("returned", 0) >= 10
 
 
 def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):

@@ -14,7 +14,11 @@ is the ball's racket. It shows
   3. the replay: a self-contained Meshcat HTML file of the rally;
   4. the skill (paper, Methods *States*, *Rewards*): the same shot played with other skills
      [y_desired, w_p, w_s], the returner aiming at y_desired and brushing the ball for topspin
-     (w_s > 0) or backspin (w_s < 0).
+     (w_s > 0) or backspin (w_s < 0);
+  5. a batch of rallies: the same wiring, segment-stepped and batched
+     (``diagrams.build_segment_rally_diagram``, docs/architecture.md *Segment stepping*): BATCH
+     returners play BATCH_SHOTS shots together, each environment taking the next shot when its
+     episode ends (``evaluation.runner.SegmentRallyRunner``), as ``ace-drake evaluate`` does.
 
 Numbers are SI units (m, s, rad). Run it from the repository root:
 
@@ -31,6 +35,8 @@ from __future__ import annotations
 import argparse
 import shutil
 import subprocess
+import time
+from collections import Counter
 from pathlib import Path
 
 import matplotlib
@@ -39,9 +45,9 @@ import numpy as np
 from pydrake.geometry import Meshcat
 
 from ace_drake.control.params import RallyParams
-from ace_drake.diagrams import build_rally_diagram, graphviz_dot
+from ace_drake.diagrams import build_rally_diagram, build_segment_rally_diagram, graphviz_dot
 from ace_drake.evaluation.controllers import DEFAULT_CONTROLLER, make_controller
-from ace_drake.evaluation.runner import RallyRunner
+from ace_drake.evaluation.runner import RallyRunner, SegmentRallyRunner
 from ace_drake.learning.rewards import travel_frame_spin
 from ace_drake.physics.flight import make_state
 from ace_drake.play.shots import human_shots
@@ -62,6 +68,11 @@ SEED = 1
 # Part 4's skills [y_desired (m), w_p, w_s]: aimed left with topspin, at the centre line with none,
 # aimed right with backspin.
 SKILLS = ((0.3, 1.0, 1.0), (0.0, 1.0, 0.0), (-0.3, 1.0, -1.0))
+
+
+# Part 5: environments in the batch, and the shots they share out.
+BATCH = 8
+BATCH_SHOTS = 16
 
 
 def parse_args() -> argparse.Namespace:
@@ -177,6 +188,26 @@ def main() -> None:
         landing = "" if result.landing is None else (
             f", lands at y = {result.landing.state_pre[1]:+.2f} m with topspin {travel_frame_spin(result.landing.state_pre):+.0f} rad/s")
         print(f"   skill ({skill[0]:+.1f}, {skill[1]:.0f}, {skill[2]:+.0f}): {result.outcome.value}{landing}")
+
+    # ------------------------------------------------------------------ 5. a batch of rallies
+    # The segment-stepped diagram has the same systems under the same names, each carrying B
+    # environments; it advances once per 32 ms segment, computing each segment's 1 kHz joint
+    # samples, racket poses, ball flight with its contacts and sensor samples vectorised. The
+    # model-based returner remembers its episode, so each environment gets its own.
+    batch_params = RallyParams(stepping="segment")
+    returners = [make_controller(DEFAULT_CONTROLLER, batch_params) for _ in range(BATCH)]
+    batch_diagram = build_segment_rally_diagram(batch_params, returners, BATCH)
+    if DATA.is_file():
+        batch_shots, batch_serve = shots[:BATCH_SHOTS], serve[:BATCH_SHOTS]
+    else:
+        batch_shots, batch_serve = np.tile(BUILT_IN_SHOT, (BATCH_SHOTS, 1)), np.zeros(BATCH_SHOTS, dtype=bool)
+    start = time.perf_counter()
+    episodes = SegmentRallyRunner(batch_diagram, batch_params).run_many(batch_shots, batch_serve, seeds=SEED + np.arange(BATCH_SHOTS))
+    wall = time.perf_counter() - start
+    outcomes = Counter(episode.result.outcome.value for episode in episodes)
+    simulated = sum(episode.duration for episode in episodes)
+    print(f"\n5. {BATCH_SHOTS} shots, {BATCH} at a time on the segment-stepped diagram: {dict(outcomes)}; "
+          f"{simulated:.1f} s of play simulated in {wall:.1f} s ({simulated / wall:.1f} x real time)")
 
 
 if __name__ == "__main__":

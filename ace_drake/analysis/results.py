@@ -35,7 +35,7 @@ BENCHMARKS_BEGIN, BENCHMARKS_END = "<!-- benchmarks:begin -->", "<!-- benchmarks
 README = "README.md"
 BENCHMARKS_PAGE = "docs/benchmarks.md"
 EVALUATE_COMMAND = "ace-drake evaluate --controller {controller} --data ../shared/data/ace_match_events_elite.csv --json"
-BENCHMARK_COMMANDS = {"sim": "ace-drake bench sim --json"}  # bench output carries no command of its own
+BENCHMARK_COMMANDS = {"sim": "ace-drake bench sim --json", "train": "ace-drake bench train --json"}  # bench output carries no command of its own
 NOT_MEASURED = "not measured"
 
 
@@ -134,6 +134,13 @@ def speed_rows(sim: dict | None, source: str) -> list[Row]:
                     "the same shots and seconds", _source(source)))
     rows.append(Row("training environment (RallyEnv) speed", f"{sim['env']['steps_per_second']:.1f} steps per second",
                     f"{sim['env']['actions']} actions, statistical sensors", _source(source)))
+    if "rally_cameras_b1" in sim:
+        b1 = sim["rally_cameras_b1"]
+        rows.append(Row(f"segment-stepped rally diagram speed (B = 1), {b1['sensors']}", f"{b1['real_time_factor_median']:.1f} x real time",
+                        f"as above; x {sim['ratio_cameras_b1_new_to_old']:.1f} the continuous-time diagram's", _source(source)))
+        best = max(sim["segment_env"].items(), key=lambda item: item[1]["steps_per_second"])
+        rows.append(Row("batched training environment (RallyVectorEnv) speed", f"{best[1]['steps_per_second']:.0f} steps per second at B = {best[0]}",
+                        f"one process, x {sim['ratio_env_steps_new_to_old']:.1f} RallyEnv's", _source(source)))
     return rows
 
 
@@ -189,9 +196,18 @@ def render_benchmarks(root: Path) -> str:
             ("without the hit prediction against with it", f"x {sim['ratio_no_hit_prediction_to_statistical']:.2f}"),
             (f"RallyEnv, {env['actions']} actions", f"{env['steps_per_second']:.1f} steps/s, {env['episode_steps_median']:g} steps per episode (median)"),
         ]))
+        if "segment_env" in sim:
+            rows = [(sim[f"rally_{path}_b1"]["sensors"], f"{sim[f'rally_{path}_b1']['real_time_factor_median']:.1f}",
+                     f"{sim[f'rally_{path}_b1']['real_time_factor_min']:.1f}") for path in ("cameras", "statistical")]
+            parts.append(f"The segment-stepped diagram (B = 1), the same controller and shots (cameras: x {sim['ratio_cameras_b1_new_to_old']:.1f} the continuous-time diagram):")
+            parts.append(render_table(("segment-stepped rally diagram", "x real time, median", "min"), rows))
+            rows = [(batch, f"{row['steps_per_second']:.0f}", f"{row['steps_per_cpu_second']:.0f}", f"{row['resident_memory_mb']:.0f}")
+                    for batch, row in sim["segment_env"].items()]
+            parts.append(f"RallyVectorEnv, {env['actions']} actions, one process (best: x {sim['ratio_env_steps_new_to_old']:.1f} RallyEnv's steps/s):")
+            parts.append(render_table(("B", "steps/s", "steps per CPU s", "resident MB"), rows))
         profile = sim.get("profile", {})
         if profile:
-            paths = [path for path in ("cameras", "statistical", "env") if path in profile]
+            paths = [path for path in profile]
             def largest_share(name: str) -> float:
                 return max(profile[path]["systems"].get(name, {"share": 0.0})["share"] for path in paths)
 
@@ -203,6 +219,16 @@ def render_benchmarks(root: Path) -> str:
                          *(percent(profile[path]["outside_systems_share"]) for path in paths)))
             parts.append("Where the time goes (share of the profiled wall time; tracing slows Python more than C++):")
             parts.append(render_table(("system", *(f"{path}" for path in paths)), rows))
+    train = read_json(root / "docs/benchmarks/train.json")
+    if train is not None:
+        rows = [(f"RallyEnv, {workers} worker(s)", f"{rate:.0f}") for workers, rate in train["env_steps_per_s"].items()]
+        rows += [(f"RallyVectorEnv B = {batch}, 2 workers", f"{rate:.0f}") for batch, rate in train.get("vector_env_steps_per_s", {}).items()]
+        parts.append(f"`docs/benchmarks/train.json` (`{BENCHMARK_COMMANDS['train']}`; Ray workers, {train['seconds_per_collection']:g} s of collection each):")
+        parts.append(render_table(("collection", "environment steps/s"), rows))
+        updates = ", ".join(f"{rate:.1f} with {threads} torch thread(s)" for threads, rate in train["updates_per_s"].items())
+        ratio = train.get("ratio_env_steps_new_to_old")
+        parts.append(f"Learner: {updates} (batch {train['batch_size']}); updates per environment step at the best collection: "
+                     f"{train['updates_per_env_step']:.3f}" + (f"; best vector collection x {ratio:.1f} RallyEnv's." if ratio else "."))
     return "\n\n".join(parts) if parts else NOT_MEASURED
 
 
