@@ -119,25 +119,32 @@ def _norm3(x, y, z):
 
 
 @numba.njit(cache=True)
-def contact_free_horizon(mean, cfg):
-    """How long (s, at most FREE_HORIZON_MAX) the ball at ``mean`` (9,) surely touches nothing:
-    ``physics.propagate.contact_gap_lower_bound`` first, then the exact table, net and floor gaps
-    (``physics.contact.table_gap``, ``net_gap``, ``floor_gap``; tests/test_ekf_kernels.py checks
-    these twins against them)."""
-    x, y, z = mean[0], mean[1], mean[2]
+def contact_gaps(x, y, z, cfg):
+    """The table, net and floor guards (m) of a ball centre: twins of ``physics.contact.table_gap``,
+    ``net_gap`` and ``floor_gap`` (tests/test_ekf_kernels.py checks them against those)."""
     radius = cfg[F_RADIUS]
-    floor_clear = z + cfg[F_SURFACE_HEIGHT] - radius
-    clear = min(z - radius, abs(x) - radius, floor_clear)
-    speed = math.sqrt(((0.0 + mean[3] * mean[3]) + mean[4] * mean[4]) + mean[5] * mean[5])
-    if clear > FREE_HORIZON_MAX * (speed + FREE_SPEED_MARGIN) * (1.0 + 1e-9):
-        return FREE_HORIZON_MAX
     dx = abs(x) - 0.5 * cfg[F_TABLE_LENGTH]
     dy = abs(y) - 0.5 * cfg[F_TABLE_WIDTH]
     signed = math.hypot(max(dx, 0.0), max(dy, 0.0)) + min(max(dx, dy), 0.0)
     table = max(z - radius, signed)
     half_span = 0.5 * cfg[F_TABLE_WIDTH] + cfg[F_NET_OVERHANG]
     net = _norm3(x, y - min(max(y, -half_span), half_span), z - min(max(z, 0.0), cfg[F_NET_HEIGHT])) - radius
-    gap = min(table, net, floor_clear)
+    floor = z + cfg[F_SURFACE_HEIGHT] - radius
+    return table, net, floor
+
+
+@numba.njit(cache=True)
+def contact_free_horizon(mean, cfg):
+    """How long (s, at most FREE_HORIZON_MAX) the ball at ``mean`` (9,) surely touches nothing:
+    ``physics.propagate.contact_gap_lower_bound`` first, then the exact gaps (``contact_gaps``)."""
+    x, y, z = mean[0], mean[1], mean[2]
+    radius = cfg[F_RADIUS]
+    clear = min(z - radius, abs(x) - radius, z + cfg[F_SURFACE_HEIGHT] - radius)
+    speed = math.sqrt(((0.0 + mean[3] * mean[3]) + mean[4] * mean[4]) + mean[5] * mean[5])
+    if clear > FREE_HORIZON_MAX * (speed + FREE_SPEED_MARGIN) * (1.0 + 1e-9):
+        return FREE_HORIZON_MAX
+    table, net, floor = contact_gaps(x, y, z, cfg)
+    gap = min(table, net, floor)
     if gap <= 0.0:
         return 0.0
     return min(FREE_HORIZON_MAX, gap / (_norm3(mean[3], mean[4], mean[5]) + FREE_SPEED_MARGIN))
@@ -176,14 +183,46 @@ def _bias_covariance(spin, cfg, out):
 
 # ------------------------------------------------------------------------------ prediction
 @numba.njit(cache=True)
+def _flight_without_contact(batch, duration, dt, cfg):
+    """``physics.propagate.simulate(batch, duration, dt)`` in place when none of the rows of batch
+    (M, 9) crosses a table, net or floor guard: the same steps (h = min(dt, duration - t)) by the
+    same compiled RK4 step, so the same numbers. Returns False, batch unchanged, as soon as a
+    guard of some row goes from positive to non-positive (a contact, which ``simulate`` locates)."""
+    rows = batch.shape[0]
+    gaps = np.empty((rows, 3))
+    for r in range(rows):
+        gaps[r, 0], gaps[r, 1], gaps[r, 2] = contact_gaps(batch[r, 0], batch[r, 1], batch[r, 2], cfg)
+    n_steps = int(math.ceil(duration / dt - 1e-9))
+    t = 0.0
+    x = batch.copy()
+    x1 = np.empty_like(x)
+    h_rows = np.empty(rows)
+    flight = cfg[F_FLIGHT:]
+    for _ in range(n_steps):
+        h = min(dt, duration - t)
+        if h > 0.0:
+            h_rows[:] = h
+            _rk4_rows(x, h_rows, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6], x1)
+            for r in range(rows):
+                table, net, floor = contact_gaps(x1[r, 0], x1[r, 1], x1[r, 2], cfg)
+                if (gaps[r, 0] > 0.0 and table <= 0.0) or (gaps[r, 1] > 0.0 and net <= 0.0) or (gaps[r, 2] > 0.0 and floor <= 0.0):
+                    return False
+                gaps[r, 0], gaps[r, 1], gaps[r, 2] = table, net, floor
+            x, x1 = x1, x
+        t += h
+    batch[:, :] = x
+    return True
+
+
+@numba.njit(cache=True)
 def predict(mean, covariance, duration, cfg, request, result, out_mean, out_covariance):
     """The EKF prediction over ``duration`` s of a mean (9,) and covariance (12, 12) over [x, b]
     into out_mean, out_covariance (``BallEkf.predict``). Returns (OK or BLOCKED, the time of the
     mean's last contact in s after the start, NaN for none).
 
-    request (10 * 9 + 2,): where a prediction that needs ``simulate`` leaves its batch and
-    [duration, step] (BLOCKED); result (10 * 9 + 2,): [final batch, 1 when present, last contact
-    time], consumed by the next such prediction."""
+    request (10 * 9 + 2,): where a prediction that needs ``simulate`` (a guard crossing) leaves
+    its batch and [duration, step] (BLOCKED); result (10 * 9 + 2,): [final batch, 1 when present,
+    last contact time], consumed by the next such prediction."""
     if duration <= 0.0:
         out_mean[:] = mean
         out_covariance[:, :] = covariance
@@ -206,6 +245,8 @@ def predict(mean, covariance, duration, cfg, request, result, out_mean, out_cova
         for _ in range(substeps):
             _rk4_rows(batch, step_array, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6], other)
             batch, other = other, batch
+    elif _flight_without_contact(batch, duration, step, cfg):
+        pass
     elif result[90] == 1.0:
         for r in range(10):
             for c in range(9):
@@ -222,32 +263,45 @@ def predict(mean, covariance, duration, cfg, request, result, out_mean, out_cova
     for i in range(9):
         for j in range(9):
             jacobian[i, j] = (batch[1 + j, i] - batch[0, i]) / steps[j]
-    p_xx = np.ascontiguousarray(covariance[:9, :9])
-    x_x = jacobian @ p_xx @ jacobian.T
+    # F P F^T over x, F P_xb (as matrix products, summed in index order)
+    f_p = np.zeros((9, 12))
+    for i in range(9):
+        for k in range(9):
+            f = jacobian[i, k]
+            for j in range(12):
+                f_p[i, j] += f * covariance[k, j]
+    for i in range(9):
+        for j in range(9):
+            s = 0.0
+            for k in range(9):
+                s += f_p[i, k] * jacobian[j, k]
+            out_covariance[i, j] = s
     q_a, q_w = cfg[F_Q_A], cfg[F_Q_W]
     for k in range(3):  # process noise: white acceleration and a spin random walk
-        x_x[k, k] += q_a * duration**3 / 3.0
-        x_x[k, 3 + k] += q_a * duration**2 / 2.0
-        x_x[3 + k, k] += q_a * duration**2 / 2.0
-        x_x[3 + k, 3 + k] += q_a * duration
-        x_x[6 + k, 6 + k] += q_w * duration
+        out_covariance[k, k] += q_a * duration**3 / 3.0
+        out_covariance[k, 3 + k] += q_a * duration**2 / 2.0
+        out_covariance[3 + k, k] += q_a * duration**2 / 2.0
+        out_covariance[3 + k, 3 + k] += q_a * duration
+        out_covariance[6 + k, 6 + k] += q_w * duration
     out_mean[:] = batch[0]
-    out_covariance[:9, :9] = x_x
     if not math.isnan(last_contact):
         for k in range(3):
             out_covariance[3 + k, 3 + k] += cfg[F_BOUNCE_V] ** 2
             out_covariance[6 + k, 6 + k] += cfg[F_BOUNCE_W] ** 2
-        out_covariance[:9, 9:] = 0.0
-        out_covariance[9:, :9] = 0.0
         unshaped = cfg[F_BIAS_MAGNITUDE] ** 2
         for r in range(3):
-            for c in range(3):
-                out_covariance[9 + r, 9 + c] = unshaped if r == c else 0.0
+            for c in range(12):
+                out_covariance[9 + r, c] = 0.0
+                out_covariance[c, 9 + r] = 0.0
+            out_covariance[9 + r, 9 + r] = unshaped
     else:
-        x_b = jacobian @ np.ascontiguousarray(covariance[:9, 9:])
-        out_covariance[:9, 9:] = x_b
-        out_covariance[9:, :9] = x_b.T
-        out_covariance[9:, 9:] = covariance[9:, 9:]
+        for i in range(9):
+            for j in range(3):
+                out_covariance[i, 9 + j] = f_p[i, 9 + j]
+                out_covariance[9 + j, i] = f_p[i, 9 + j]
+        for r in range(3):
+            for c in range(3):
+                out_covariance[9 + r, 9 + c] = covariance[9 + r, 9 + c]
     return OK, last_contact
 
 
@@ -255,27 +309,38 @@ def predict(mean, covariance, duration, cfg, request, result, out_mean, out_cova
 def _kalman_update(mean, covariance, innovation, spin, noise):
     """Schmidt-Kalman update in place: the gain's bias rows are zero; Joseph form (valid for any
     gain). A position sees p (H = [I 0 0 0]); a spin (spin True) sees w + b (H = [0 0 I I])."""
-    covariance_h = np.empty((12, 3))  # P H^T
+    covariance_h = np.empty((3, 12))  # (P H^T)^T
     for r in range(12):
         for c in range(3):
-            covariance_h[r, c] = covariance[r, 6 + c] + covariance[r, 9 + c] if spin else covariance[r, c]
+            covariance_h[c, r] = covariance[r, 6 + c] + covariance[r, 9 + c] if spin else covariance[r, c]
     innovation_covariance = np.empty((3, 3))  # H P H^T + R
     for r in range(3):
         for c in range(3):
-            h_p_h = covariance_h[6 + r, c] + covariance_h[9 + r, c] if spin else covariance_h[r, c]
+            h_p_h = covariance_h[c, 6 + r] + covariance_h[c, 9 + r] if spin else covariance_h[c, r]
             innovation_covariance[r, c] = h_p_h + noise[r, c]
-    gain = np.ascontiguousarray(np.linalg.solve(innovation_covariance, np.ascontiguousarray(covariance_h.T)).T)
-    gain[9:] = 0.0
-    mean[:] = mean + np.ascontiguousarray(gain[:9]) @ innovation
-    reduction = np.eye(12)  # I - K H
+    gain_t = np.empty((3, 12))  # K^T
+    _solve3(innovation_covariance, covariance_h, gain_t)
+    gain_t[:, 9:] = 0.0
+    for r in range(9):
+        mean[r] = mean[r] + (gain_t[0, r] * innovation[0] + gain_t[1, r] * innovation[1] + gain_t[2, r] * innovation[2])
+    # (I - K H) P (I - K H)^T + K R K^T with (I - K H) P = P - K (H P)
+    reduced = np.empty((12, 12))
+    for r in range(12):
+        for c in range(12):
+            reduced[r, c] = covariance[r, c] - (gain_t[0, r] * covariance_h[0, c] + gain_t[1, r] * covariance_h[1, c] + gain_t[2, r] * covariance_h[2, c])
+    reduced_h = np.empty((12, 3))  # ((I - K H) P) H^T
     for r in range(12):
         for c in range(3):
-            if spin:
-                reduction[r, 6 + c] -= gain[r, c]
-                reduction[r, 9 + c] -= gain[r, c]
-            else:
-                reduction[r, c] -= gain[r, c]
-    joseph = reduction @ covariance @ reduction.T + gain @ noise @ gain.T
+            reduced_h[r, c] = reduced[r, 6 + c] + reduced[r, 9 + c] if spin else reduced[r, c]
+    gain_noise = np.empty((12, 3))  # K R
+    for r in range(12):
+        for c in range(3):
+            gain_noise[r, c] = gain_t[0, r] * noise[0, c] + gain_t[1, r] * noise[1, c] + gain_t[2, r] * noise[2, c]
+    joseph = np.empty((12, 12))
+    for r in range(12):
+        for c in range(12):
+            joseph[r, c] = reduced[r, c] - (reduced_h[r, 0] * gain_t[0, c] + reduced_h[r, 1] * gain_t[1, c] + reduced_h[r, 2] * gain_t[2, c]) \
+                + (gain_noise[r, 0] * gain_t[0, c] + gain_noise[r, 1] * gain_t[1, c] + gain_noise[r, 2] * gain_t[2, c])
     for r in range(12):
         for c in range(12):
             covariance[r, c] = 0.5 * (joseph[r, c] + joseph[c, r])
@@ -559,9 +624,8 @@ def merge(old_obs_f, old_obs_i, old_core_f, old_core_i, old_index, old_base_key,
             start = first
             while start < n_old and _key_less_equal(old_obs_f[b, start, O_KEY], old_obs_i[b, start, O_KIND], old_obs_i[b, start, O_SEQUENCE], new_f[r, O_KEY], new_i[r, O_KIND], new_i[r, O_SEQUENCE]):
                 start += 1
-        for i in range(keep, start):
-            obs_f[b, i - keep] = old_obs_f[b, i]
-            obs_i[b, i - keep] = old_obs_i[b, i]
+        obs_f[b, :start - keep] = old_obs_f[b, keep:start]
+        obs_i[b, :start - keep] = old_obs_i[b, keep:start]
         # the replay: the steps from start on and the new observations, merged (steps first among equal keys)
         out, i, j = start - keep, start, 0
         while i < n_old or j < rows.shape[0]:
@@ -576,9 +640,8 @@ def merge(old_obs_f, old_obs_i, old_core_f, old_core_i, old_index, old_base_key,
                 j += 1
             out += 1
         cores = (start if rows.shape[0] else n_old) - first + 1
-        for c in range(cores):
-            core_f[b, c] = old_core_f[b, core0 + c]
-            core_i[b, c] = old_core_i[b, core0 + c]
+        core_f[b, :cores] = old_core_f[b, core0:core0 + cores]
+        core_i[b, :cores] = old_core_i[b, core0:core0 + cores]
         index[b, X_N] = out
         index[b, X_FIRST] = first - keep
         index[b, X_CORE0] = 0
