@@ -294,3 +294,115 @@ def test_observation_orders_contacts_first_at_equal_times():
     contact = Observation.contact(0.1)
     position = Observation.of(measurement(1, 0.1, [0, 0, 0]), 1)
     assert contact.key < position.key
+
+
+# ---------------------------------------------------------------------------------- B environments
+TICK = 0.032
+RACKET_ROW, GAP_ROW, SILENT_ROW = 1, 3, 5
+
+
+@functools.cache
+def batch_streams():
+    """Seven environments' inputs tick by tick: returns from ``play.shots`` through both statistical
+    sensors (20 % position dropout) for 0.6 s (a bounce on the robot's half, the floor); a racket
+    contact at 0.2 s in RACKET_ROW, nothing captured in 0.12-0.4 s in GAP_ROW (a gap reset), no
+    measurement at all in SILENT_ROW. Returns per row a list of (positions, spins, racket times)."""
+    from ace_drake.perception.params import PositionSensorParams
+    from ace_drake.play.shots import RETURN_RANGES, synthetic_candidates, valid_shots
+
+    candidates = synthetic_candidates(np.random.default_rng(3), RETURN_RANGES, 60)
+    starts = candidates[valid_shots(candidates, False)][:7]
+    shots = simulate_shots(starts, 0.6, seed=3, position=PositionSensorParams(dropout_probability=0.2))
+    ticks = int(0.6 / TICK)
+    rows = []
+    for row, shot in enumerate(shots):
+        keep = lambda m: row != SILENT_ROW and not (row == GAP_ROW and 0.12 < m.capture_time < 0.4)
+        numbered = [
+            [Measurement(i + 1, m.capture_time, m.release_time, m.value, m.covariance) for i, m in enumerate(filter(keep, pending))]
+            for pending in (shot.positions, shot.spins)
+        ]
+        due = lambda ms, k: [m for m in ms if k * TICK < m.release_time <= (k + 1) * TICK]
+        rows.append([
+            (due(numbered[0], k), due(numbered[1], k), [0.2] if row == RACKET_ROW and k * TICK < 0.2 <= (k + 1) * TICK else [])
+            for k in range(ticks)
+        ])
+    return rows
+
+
+def assert_same_filter(actual, expected):
+    a, e = actual.latest, expected.latest
+    assert (a.time, a.tracking, a.resets, a.last_capture, a.spin_fused, a.not_before) == (e.time, e.tracking, e.resets, e.last_capture, e.spin_fused, e.not_before)
+    assert (actual.discarded, actual.history_length) == (expected.discarded, expected.history_length)
+    assert len(a.start_positions) == len(e.start_positions) and len(a.start_spins) == len(e.start_spins)
+    if e.tracking:
+        np.testing.assert_array_equal(a.mean, e.mean)
+        np.testing.assert_array_equal(a.covariance, e.covariance)
+
+
+def test_the_batch_is_each_environments_filter():
+    # Bit for bit: the kernels run each environment's steps alone, whatever the others do.
+    streams = batch_streams()
+    dut = BallEkf()
+    states = [dut.initial_state()] * len(streams)
+    batch = tuple(states)
+    resets, bounced = np.zeros(len(streams), dtype=int), False
+    for k in range(len(streams[0])):
+        now = (k + 1) * TICK
+        batch = dut.update_batch(batch, *zip(*(rows[k] for rows in streams)))
+        states = [dut.update(state, *rows[k]) for state, rows in zip(states, streams)]
+        means, covariances, status = dut.estimate_batch(batch, np.full(len(streams), now))
+        for row, state in enumerate(states):
+            assert_same_filter(batch[row], state)
+            expected = dut.estimate(state, now)
+            assert status[row, 0] == float(expected is not None)
+            if expected is not None:
+                np.testing.assert_array_equal(means[row], expected.mean)
+                np.testing.assert_array_equal(covariances[row], expected.covariance)
+                assert (status[row, 1], status[row, 2]) == (float(expected.spin_valid), expected.last_capture_time)
+            else:
+                np.testing.assert_array_equal(means[row], 0.0)
+        resets = np.array([state.latest.resets for state in states])
+        bounced = bounced or any(np.isfinite(state.latest.segment_start) for state in states)
+    # The streams exercise what they are for: predictions through a bounce (``simulate``), the
+    # racket contact and the gap restart tracks.
+    assert bounced
+    assert resets[RACKET_ROW] >= 1 and resets[GAP_ROW] >= 1
+    assert not batch[SILENT_ROW].latest.tracking and batch[SILENT_ROW].history_length == 0
+    assert sum(state.latest.tracking for state in states) >= 4
+
+
+def test_one_environment_is_update():
+    dut = BallEkf()
+    state = single = dut.initial_state()
+    for positions, spins, racket in batch_streams()[RACKET_ROW]:
+        (state,) = dut.update_batch([state], [positions], [spins], [racket])
+        single = dut.update(single, positions, spins, racket)
+        assert_same_filter(state, single)
+
+
+def test_empty_inputs_change_nothing():
+    dut = BallEkf()
+    batch = dut.initial_batch(3)
+    assert dut.update_arrays(batch, dut.observations([(), (), ()], [(), (), ()])).row(2).latest == dut.initial_state().latest
+    means, covariances, status = dut.estimate_batch(batch, [0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(status[:, 0], 0.0)
+    np.testing.assert_array_equal(means, 0.0)
+    state = dut.update(dut.initial_state())
+    assert dut.estimate(state, 0.1) is None
+    tracked = dut.update(dut.initial_state(), positions_along(trajectory(make_state([1.5, 0.0, 0.3], [-8.0, 0.0, 1.0]), 0.02), [0.0, 0.005, 0.01]))
+    assert dut.update(tracked) is tracked
+    with pytest.raises(ValueError, match="environments"):
+        dut.update_arrays(batch, dut.observations([()], [()]))
+
+
+def test_a_cleared_environment_starts_again():
+    dut = BallEkf()
+    streams = batch_streams()
+    batch = dut.initial_batch(2)
+    for k in range(5):
+        batch = dut.update_arrays(batch, dut.observations(*zip(*(rows[k][:2] for rows in streams[:2]))))
+    assert batch.row(0).latest.tracking and batch.row(1).latest.tracking
+    cleared = batch.cleared([1])
+    assert not cleared.row(1).latest.tracking and cleared.row(1).history_length == 0
+    assert_same_filter(cleared.row(0), batch.row(0))
+    assert batch.row(1).latest.tracking  # the original is untouched

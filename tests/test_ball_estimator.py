@@ -202,3 +202,50 @@ def test_measurements_lost_between_updates_are_an_error_not_a_silent_gap():
     rig.at(0.08)  # about 40 spins released: all still in the history
     with pytest.raises(RuntimeError, match="history_capacity"):
         rig.at(0.2)
+
+
+def released_streams(count=4, ticks=18, tick=0.032, offset=0.0):
+    """Per tick, B sensor histories and contact events as the segment-stepped sensors give them:
+    returns through both statistical sensors, released tick by tick (histories of 64), and a
+    racket contact at 0.2 s in environment 1. Yields (k tick - offset (s), ...) for k = 1, 2, ...."""
+    from ace_drake.perception.ekf_evaluation import simulate_shots
+    from ace_drake.perception.measurements import MeasurementHistory
+    from ace_drake.perception.sensor_models import release_due
+    from ace_drake.physics.propagate import ContactEvent
+    from ace_drake.play.shots import RETURN_RANGES, synthetic_candidates, valid_shots
+
+    candidates = synthetic_candidates(np.random.default_rng(4), RETURN_RANGES, 40)
+    shots = simulate_shots(candidates[valid_shots(candidates, False)][:count], ticks * tick, seed=4)
+    histories = [[MeasurementHistory(capacity=64), MeasurementHistory(capacity=64)] for _ in shots]
+    pending = [[shot.positions, shot.spins] for shot in shots]
+    racket = ContactEvent(ContactKind.RACKET, 0.2, np.zeros(9), np.zeros(9))
+    for k in range(1, ticks + 1):
+        now = k * tick - offset
+        for row in range(count):
+            for kind in range(2):
+                histories[row][kind], pending[row][kind] = release_due(histories[row][kind], pending[row][kind], now)
+        events = [(racket,) if row == 1 and now >= 0.2 else () for row in range(count)]
+        yield now, [h[0] for h in histories], [h[1] for h in histories], events
+
+
+def test_fusing_a_batch_is_fusing_each_environment():
+    from ace_drake.systems.ball_estimator import EstimatorBatchState, EstimatorState, fuse_measurements, fuse_measurements_batch
+
+    ekf = BallEkf()
+    batch = EstimatorBatchState.initial(ekf, 4)
+    single = [EstimatorState()] * 4
+    for now, positions, spins, events in released_streams():
+        batch = fuse_measurements_batch(ekf, batch, positions, spins, events, np.full(4, now))
+        single = [fuse_measurements(ekf, single[b], positions[b], spins[b], events[b], now) for b in range(4)]
+        again = fuse_measurements_batch(ekf, batch, positions, spins, events, np.full(4, now))
+        assert again is batch  # nothing new
+        for b in range(4):
+            row = batch.row(b)
+            assert (row.last_position_sequence, row.last_spin_sequence, row.contacts_seen) == (
+                single[b].last_position_sequence, single[b].last_spin_sequence, single[b].contacts_seen)
+            a, e = row.filter.latest, single[b].filter.latest
+            assert (a.tracking, a.resets, a.time) == (e.tracking, e.resets, e.time)
+            if e.tracking:
+                np.testing.assert_array_equal(a.mean, e.mean)
+                np.testing.assert_array_equal(a.covariance, e.covariance)
+    assert single[1].filter.latest.resets >= 1 and all(state.filter.latest.tracking for state in single)

@@ -53,33 +53,36 @@ Method, in the order a measurement meets it:
   position's normalised innovation squared exceeds ``max_position_innovation``: a contact that
   the prediction got wrong (a net-cord ball decided by millimetres) is not something the filter's
   linearisation can recover from quickly.
+
+**Batches of environments.** The filter's state is arrays (``EkfBatch``, B environments; the
+layout is ``perception.ekf_kernels``'), and every step above is a compiled kernel there, run over
+all environments at once; only a prediction whose mean could touch the table, net or floor calls
+back into ``physics.propagate.simulate`` (all environments waiting for one are served, then the
+kernel resumes). ``update_arrays`` / ``update_batch`` / ``estimate_batch`` are the batched API;
+``update`` and ``estimate`` are their B = 1 case, and an ``EkfState`` is one row of an EkfBatch.
 """
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
+import functools
 import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 from scipy import stats
 
+from ace_drake.perception import ekf_kernels as kernels
+from ace_drake.perception.ekf_kernels import CONTACT, FREE_HORIZON_MAX, FREE_SPEED_MARGIN, MAX_START_SPINS, POSITION, SPIN  # noqa: F401
 from ace_drake.perception.measurements import Measurement
 from ace_drake.perception.params import EstimatorParams
-from ace_drake.physics.flight import flight_acceleration, rk4_step
+from ace_drake.physics.flight import _flight_constants
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.physics.propagate import DEFAULT_KINDS, contact_gap, contact_gap_lower_bound, simulate
+from ace_drake.physics.propagate import simulate
 
 STATE_SIZE = 9
 BIAS = slice(9, 12)  # the spin sensor's bias, a consider parameter, in the 12 x 12 covariance
-CONTACT, POSITION, SPIN = 0, 1, 2  # observation kinds, also their order among equal capture times
-# Over at most FREE_HORIZON_MAX the ball's speed grows by less than FREE_SPEED_MARGIN: its
-# acceleration stays under 250 m/s^2 (drag 140 m/s^2 and Magnus under 70 m/s^2 at 30 m/s, and g),
-# so it cannot touch anything sooner than gap / (|v| + margin).
-FREE_HORIZON_MAX = 0.02  # s
-FREE_SPEED_MARGIN = 5.0  # m/s
-MAX_START_SPINS = 16  # spins kept while a track starts
+REQUEST_SIZE = 92  # a prediction's batch (10 x 9) and [duration, step] / [present, last contact]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +91,8 @@ class Observation:
 
     capture_time: s. kind: CONTACT, POSITION or SPIN. sequence: the sensor's number (0 for a
     contact). value (3,): m or rad/s; covariance (3, 3): m^2 or (rad/s)^2. lag: s, processed this
-    long after its capture time.
+    long after its capture time. ``key`` is the processing order: capture time + lag, then
+    contact < position < spin, then sequence (the kernels' order, ``ekf_kernels.merge``).
     """
 
     capture_time: float
@@ -97,8 +101,6 @@ class Observation:
     value: np.ndarray
     covariance: np.ndarray
     lag: float = 0.0
-    # Processing order: capture time + lag, then contact < position < spin, then sequence. Stored,
-    # not a property: the filter compares keys of its whole history at every update.
     key: tuple[float, int, int] = dataclasses.field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -117,7 +119,7 @@ class Observation:
 
 @dataclasses.dataclass(frozen=True)
 class FilterCore:
-    """The filter after some observations; immutable.
+    """The filter after some observations (read from an EkfBatch; a copy).
 
     mean (9,) and covariance (12, 12) over [p, v, w, b] at ``time`` (s), or None while a track
     starts. free_until: s, no contact of the mean trajectory before then. segment_start: s, the
@@ -147,34 +149,142 @@ class FilterCore:
         """Whether a track has started (the mean exists)."""
         return self.mean is not None
 
-    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
-        return self
+
+@dataclasses.dataclass(frozen=True)
+class EkfBatch:
+    """The filters of B environments, as arrays (layout: ``perception.ekf_kernels``); immutable
+    by convention (every update returns a new one), so that it can live in a Drake Context's
+    abstract state.
+
+    obs_f (B, O, 14), obs_i (B, O, 2): observations in processing order. core_f (B, C, 158),
+    core_i (B, C, 6 + P + 16): the filter before the history and after each of its steps.
+    index (B, 6) int64 and base_key (B, 3): counts and offsets.
+    """
+
+    obs_f: np.ndarray
+    obs_i: np.ndarray
+    core_f: np.ndarray
+    core_i: np.ndarray
+    index: np.ndarray
+    base_key: np.ndarray
+
+    @staticmethod
+    def empty(batch: int, initial_position_count: int) -> EkfBatch:
+        """B environments with no track and no history."""
+        core_f = np.empty((batch, 1, kernels.CORE_F))
+        core_i = np.empty((batch, 1, kernels.core_int_size(initial_position_count)), dtype=np.int64)
+        for b in range(batch):
+            kernels.empty_core(core_f[b, 0], core_i[b, 0])
+        base_key = np.zeros((batch, 3))
+        base_key[:, 0] = -math.inf
+        return EkfBatch(
+            np.zeros((batch, 0, kernels.OBS_F)), np.zeros((batch, 0, kernels.OBS_I), dtype=np.int64), core_f, core_i,
+            np.zeros((batch, kernels.INDEX_SIZE), dtype=np.int64), base_key,
+        )
+
+    @property
+    def size(self) -> int:
+        """B."""
+        return self.index.shape[0]
+
+    def row(self, b: int) -> EkfState:
+        """Environment b's filter (a view, no copy)."""
+        return EkfState(self, int(b))
+
+    def rows(self) -> tuple[EkfState, ...]:
+        """Every environment's filter."""
+        return tuple(EkfState(self, b) for b in range(self.size))
+
+    def cleared(self, rows) -> EkfBatch:
+        """A copy with the environments ``rows`` (indices) back to no track and no history."""
+        rows = np.asarray(rows, dtype=int).reshape(-1)
+        index, core_f, core_i, base_key = self.index.copy(), self.core_f.copy(), self.core_i.copy(), self.base_key.copy()
+        for b in rows:
+            kernels.empty_core(core_f[b, 0], core_i[b, 0])
+        index[rows] = 0
+        base_key[rows] = (-math.inf, 0.0, 0.0)
+        return EkfBatch(self.obs_f, self.obs_i, core_f, core_i, index, base_key)
+
+    @staticmethod
+    def stack(states: Sequence[EkfState], initial_position_count: int) -> EkfBatch:
+        """One batch of the filters ``states`` (copies of their rows; ``EkfState()`` is empty)."""
+        if states and all(s.batch is states[0].batch for s in states) and states[0].batch is not None \
+                and states[0].batch.size == len(states) and all(s.row == b for b, s in enumerate(states)):
+            return states[0].batch  # already this batch, in order
+        parts = [(s.batch, s.row) if s.batch is not None else (EkfBatch.empty(1, initial_position_count), 0) for s in states]
+        columns = kernels.core_int_size(initial_position_count)
+        for batch, _ in parts:
+            if batch.core_i.shape[2] != columns:
+                raise ValueError(f"EkfBatch.stack: a state made for {batch.core_i.shape[2] - kernels.I_START - MAX_START_SPINS} start positions, expected {initial_position_count}")
+        count = len(parts)
+        observations = max([int(batch.index[row, kernels.X_N]) for batch, row in parts] + [0])
+        cores = max(int(batch.index[row, kernels.X_CORE0] + batch.index[row, kernels.X_N] - batch.index[row, kernels.X_FIRST]) + 1 for batch, row in parts) if parts else 1
+        out = EkfBatch(
+            np.zeros((count, observations, kernels.OBS_F)), np.zeros((count, observations, kernels.OBS_I), dtype=np.int64),
+            np.zeros((count, cores, kernels.CORE_F)), np.zeros((count, cores, columns), dtype=np.int64),
+            np.zeros((count, kernels.INDEX_SIZE), dtype=np.int64), np.zeros((count, 3)),
+        )
+        for b, (batch, row) in enumerate(parts):
+            n = int(batch.index[row, kernels.X_N])
+            c = int(batch.index[row, kernels.X_CORE0] + n - batch.index[row, kernels.X_FIRST]) + 1
+            out.obs_f[b, :n], out.obs_i[b, :n] = batch.obs_f[row, :n], batch.obs_i[row, :n]
+            out.core_f[b, :c], out.core_i[b, :c] = batch.core_f[row, :c], batch.core_i[row, :c]
+            out.index[b], out.base_key[b] = batch.index[row], batch.base_key[row]
+        return out
 
 
 @dataclasses.dataclass(frozen=True)
 class EkfState:
-    """Everything the filter keeps between updates; immutable, so that it can live in a Drake
-    Context's abstract state.
+    """Everything the filter keeps between updates for one environment: row ``row`` of an
+    EkfBatch (None: no track and no history); immutable."""
 
-    steps: the observations of the last ``history_duration`` s of capture time, in processing
-    order, with ``cores``, the filter after each. base: the filter before the first of them;
-    base_key: the key of the last observation pruned into it. discarded: observations that came
-    too late to re-filter.
-    """
+    batch: EkfBatch | None = None
+    row: int = 0
 
-    base: FilterCore = dataclasses.field(default_factory=FilterCore)
-    base_key: tuple[float, int, int] = (-math.inf, 0, 0)
-    steps: tuple[Observation, ...] = ()
-    cores: tuple[FilterCore, ...] = ()
-    discarded: int = 0
-
-    @property
+    @functools.cached_property
     def latest(self) -> FilterCore:
         """The filter after every observation so far."""
-        return self.cores[-1] if self.cores else self.base
+        if self.batch is None:
+            return FilterCore()
+        b, index = self.row, self.batch.index[self.row]
+        return self._core(int(index[kernels.X_CORE0] + index[kernels.X_N] - index[kernels.X_FIRST]))
 
-    def __deepcopy__(self, memo):
-        return self
+    @property
+    def discarded(self) -> int:
+        """Observations that came too late to re-filter."""
+        return 0 if self.batch is None else int(self.batch.index[self.row, kernels.X_DISCARDED])
+
+    @property
+    def history_length(self) -> int:
+        """How many observations the re-filtering history holds."""
+        return 0 if self.batch is None else int(self.batch.index[self.row, kernels.X_N] - self.batch.index[self.row, kernels.X_FIRST])
+
+    def _core(self, c: int) -> FilterCore:
+        f, i = self.batch.core_f[self.row, c], self.batch.core_i[self.row, c]
+        count = i.shape[0] - kernels.I_START - MAX_START_SPINS
+        tracking = bool(i[kernels.I_TRACKING])
+        return FilterCore(
+            time=float(f[kernels.C_TIME]),
+            mean=f[kernels.C_MEAN:kernels.C_MEAN + 9].copy() if tracking else None,
+            covariance=f[kernels.C_COVARIANCE:].reshape(12, 12).copy() if tracking else None,
+            free_until=float(f[kernels.C_FREE]),
+            segment_start=float(f[kernels.C_SEGMENT]),
+            last_capture=float(f[kernels.C_LAST]),
+            spin_fused=bool(i[kernels.I_SPIN_FUSED]),
+            bias_shaped=bool(i[kernels.I_BIAS_SHAPED]),
+            start_positions=tuple(self._observation(n) for n in i[kernels.I_START:kernels.I_START + i[kernels.I_POSITIONS]]),
+            start_spins=tuple(self._observation(n) for n in i[kernels.I_START + count:kernels.I_START + count + i[kernels.I_SPINS]]),
+            not_before=float(f[kernels.C_NOT_BEFORE]),
+            resets=int(i[kernels.I_RESETS]),
+        )
+
+    def _observation(self, number: int) -> Observation:
+        k = int(number - self.batch.index[self.row, kernels.X_OFFSET])
+        f, i = self.batch.obs_f[self.row, k], self.batch.obs_i[self.row, k]
+        capture, key = float(f[kernels.O_CAPTURE]), float(f[kernels.O_KEY])
+        observation = Observation(capture, int(i[kernels.O_KIND]), int(i[kernels.O_SEQUENCE]), f[2:5].copy(), f[5:14].reshape(3, 3).copy(), key - capture)
+        object.__setattr__(observation, "key", (key, observation.kind, observation.sequence))
+        return observation
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,35 +300,58 @@ class BallEstimate:
     last_capture_time: float
 
 
+@dataclasses.dataclass(frozen=True)
+class ObservationBatch:
+    """New observations of B environments, rows start[b]:start[b + 1] environment b's:
+    values (M, 14) [key (s), capture time (s), value (3,), covariance (9,)] and kinds (M, 2)
+    [kind, sequence], in the layout of ``perception.ekf_kernels``."""
+
+    values: np.ndarray
+    kinds: np.ndarray
+    start: np.ndarray
+
+
 class BallEkf:
     """The extended Kalman filter of this module's docstring. Stateless itself: every method takes
-    an ``EkfState`` and returns a new one, so one instance serves any number of episodes.
+    a state (``EkfState``, or ``EkfBatch`` for B environments) and returns a new one, so one
+    instance serves any number of episodes.
 
     Example::
 
         ekf = BallEkf()
         state = ekf.update(ekf.initial_state(), positions=new_positions, spins=new_spins)
         estimate = ekf.estimate(state, time=now)  # None until a track has started
+        # B environments at once: the same numbers, environment by environment
+        batch = ekf.initial_batch(B)
+        batch = ekf.update_arrays(batch, ekf.observations(positions_per_env, spins_per_env))
+        means, covariances, status = ekf.estimate_batch(batch, times)
     """
 
     def __init__(self, params: EstimatorParams | None = None, physics: BallPhysicsParams | None = None):
         """Args: params, the filter's settings; physics, the ball model used to predict."""
         self.params = params or EstimatorParams()
         self.physics = physics or BallPhysicsParams()
-        p = self.params
+        p, ph = self.params, self.physics
         # The bias block until a spin measurement shapes it (it has no effect before).
-        self._unshaped_bias_covariance = p.spin_bias_magnitude_std**2 * np.eye(3)
         self._start_covariance = np.diag(
             [p.initial_position_variance] * 3 + [p.initial_velocity_variance] * 3 + [p.initial_spin_variance] * 3 + [0.0] * 3
         )
-        self._start_covariance[BIAS, BIAS] = self._unshaped_bias_covariance
+        self._start_covariance[BIAS, BIAS] = p.spin_bias_magnitude_std**2 * np.eye(3)
         # Fitting p and v to n positions leaves 3 (n - 2) degrees of freedom.
-        self._fit_threshold = float(stats.chi2.ppf(p.initial_fit_confidence, 3 * (p.initial_position_count - 2)))
-        # What each measurement sees of [x, b] (the columns of H that are I): p; w + b.
-        self._position_h = (slice(0, 3),)
-        self._spin_h = (slice(6, 9), BIAS)
+        fit_threshold = float(stats.chi2.ppf(p.initial_fit_confidence, 3 * (p.initial_position_count - 2)))
+        config = np.empty(kernels.CONFIG_SIZE)
+        config[: kernels.F_FLIGHT] = [
+            p.max_measurement_gap, p.max_position_jump, p.max_position_innovation, p.history_duration,
+            p.finite_difference_step, p.max_integration_step, p.acceleration_noise_density, p.spin_noise_density,
+            p.bounce_velocity_std, p.bounce_spin_std, p.spin_bias_magnitude_std, p.spin_bias_axis_std, fit_threshold,
+            math.nan if p.position_observation_variance is None else p.position_observation_variance,
+            math.nan if p.spin_observation_variance is None else p.spin_observation_variance,
+            ph.aero.ball_radius, ph.table.length, ph.table.width, ph.table.surface_height, ph.net.height, ph.net.overhang,
+        ]
+        config[kernels.F_FLIGHT:] = _flight_constants(ph.aero)
+        self._config = config
 
-    # ------------------------------------------------------------------------------ public
+    # ------------------------------------------------------------------------------ one environment
     def initial_state(self) -> EkfState:
         """No track and no history."""
         return EkfState()
@@ -232,46 +365,25 @@ class BallEkf:
     ) -> EkfState:
         """Fuses new position (m) and spin (rad/s) measurements and racket contacts (s), in any
         order; those captured before the kept history are discarded and counted (see the module
-        docstring). Returns the new state."""
-        new = [Observation.of(m, POSITION) for m in positions]
-        new += [Observation.of(m, SPIN, self.params.spin_fusion_lag) for m in spins]
-        new += [Observation.contact(t) for t in racket_contact_times]
-        if not new:
+        docstring). Returns the new state (``state`` itself when there is nothing new)."""
+        observations = self.observations([tuple(positions)], [tuple(spins)], [tuple(racket_contact_times)])
+        if observations.start[-1] == 0:
             return state
-        new.sort(key=lambda o: o.key)
-        late = sum(1 for o in new if o.key <= state.base_key)
-        new = new[late:]
-        if not new:
-            return dataclasses.replace(state, discarded=state.discarded + late)
-        keys = [o.key for o in state.steps]
-        start = bisect.bisect_right(keys, new[0].key)
-        core = state.cores[start - 1] if start > 0 else state.base
-        replay = sorted((*state.steps[start:], *new), key=lambda o: o.key)
-        steps, cores = list(state.steps[:start]), list(state.cores[:start])
-        for observation in replay:
-            core = self._process(core, observation)
-            steps.append(observation)
-            cores.append(core)
-        # Keep history_duration s for measurements that come late.
-        horizon = steps[-1].key[0] - self.params.history_duration
-        pruned = 0
-        while pruned < len(steps) - 1 and steps[pruned].key[0] < horizon:
-            pruned += 1
-        base, base_key = state.base, state.base_key
-        if pruned:
-            base, base_key = cores[pruned - 1], steps[pruned - 1].key
-        return EkfState(base, base_key, tuple(steps[pruned:]), tuple(cores[pruned:]), state.discarded + late)
+        batch = self.update_arrays(EkfBatch.stack([state], self.params.initial_position_count), observations)
+        new = batch.row(0)
+        if new.history_length == state.history_length and new.discarded > state.discarded:
+            new.__dict__["latest"] = state.latest  # all late: the filter is the one before
+        return new
 
     def estimate(self, state: EkfState, time: float) -> BallEstimate | None:
         """The estimate at ``time`` (s), predicted from the latest posterior (not before it), or
         None while no track has started."""
-        core = state.latest
-        if not core.tracking:
+        if state.batch is None:
             return None
-        if time < core.time:
-            raise ValueError(f"BallEkf.estimate: time {time} s is before the posterior's {core.time} s")
-        mean, covariance, _ = self.predict(core.mean, core.covariance, time - core.time)
-        return BallEstimate(float(time), mean, covariance[:STATE_SIZE, :STATE_SIZE], core.spin_fused, core.last_capture)
+        means, covariances, status = self.estimate_batch(EkfBatch.stack([state], self.params.initial_position_count), [time])
+        if status[0, 0] == 0.0:
+            return None
+        return BallEstimate(float(time), means[0], covariances[0], bool(status[0, 1]), float(status[0, 2]))
 
     def predict(self, mean: np.ndarray, covariance: np.ndarray, duration: float) -> tuple[np.ndarray, np.ndarray, float | None]:
         """The EKF prediction over ``duration`` s of a mean (9,) and covariance (12, 12) over
@@ -279,216 +391,143 @@ class BallEkf:
         noise; a contact adds the bounce noise and re-draws the spin bias (uncorrelated, to be
         shaped by the next spin measurement). Returns (mean, covariance, the time of the mean's last
         contact in s after the start, or None)."""
-        if duration <= 0.0:
-            return mean, covariance, None
-        params = self.params
-        steps = params.finite_difference_step * (1.0 + np.abs(mean))
-        batch = np.vstack([mean, mean + np.diag(steps)])
-        substeps = max(1, math.ceil(duration / params.max_integration_step - 1e-9))
-        step = duration / substeps
-        if duration <= self._contact_free_horizon(mean):
-            for _ in range(substeps):
-                batch = rk4_step(batch, step, self.physics.aero)
-            last_contact = None
-        else:
-            trajectory = simulate(batch, self.physics, duration, dt=step, record=False)
-            batch = trajectory.final_state
-            last_contact = trajectory.events[0][-1].time if trajectory.events[0] else None
-        jacobian = (batch[1:] - batch[0]).T / steps[None, :]
-        predicted = np.empty_like(covariance)
-        x_x = jacobian @ covariance[:STATE_SIZE, :STATE_SIZE] @ jacobian.T + self._process_noise(duration)
-        predicted[:STATE_SIZE, :STATE_SIZE] = x_x
-        if last_contact is not None:
-            predicted[3:6, 3:6] += params.bounce_velocity_std**2 * np.eye(3)
-            predicted[6:9, 6:9] += params.bounce_spin_std**2 * np.eye(3)
-            predicted[:STATE_SIZE, BIAS] = 0.0
-            predicted[BIAS, :STATE_SIZE] = 0.0
-            predicted[BIAS, BIAS] = self._unshaped_bias_covariance
-        else:
-            x_b = jacobian @ covariance[:STATE_SIZE, BIAS]
-            predicted[:STATE_SIZE, BIAS] = x_b
-            predicted[BIAS, :STATE_SIZE] = x_b.T
-            predicted[BIAS, BIAS] = covariance[BIAS, BIAS]
-        return batch[0], predicted, last_contact
-
-    # ------------------------------------------------------------------------------ steps
-    def _process(self, core: FilterCore, observation: Observation) -> FilterCore:
-        """The filter after one more observation, in capture order."""
-        if observation.kind == CONTACT:
-            return self._reset(core, observation.capture_time)
-        if observation.capture_time < core.not_before:
-            return core
-        if core.tracking and observation.capture_time - core.last_capture > self.params.max_measurement_gap:
-            core = self._reset(core, core.not_before)
-        if not core.tracking:
-            return self._collect(core, observation)
-        if observation.kind == POSITION:
-            return self._fuse_position(core, observation)
-        return self._fuse_spin(core, observation)
-
-    def _reset(self, core: FilterCore, not_before: float) -> FilterCore:
-        return FilterCore(
-            time=core.time,
-            last_capture=core.last_capture,
-            not_before=not_before,
-            resets=core.resets + int(core.tracking),
-        )
-
-    def _collect(self, core: FilterCore, observation: Observation) -> FilterCore:
-        """Gathers observations to start a track; starts it when enough positions fit."""
-        gap = self.params.max_measurement_gap
-        time = observation.capture_time
-        positions = tuple(o for o in core.start_positions if time - o.capture_time <= gap)
-        spins = tuple(o for o in core.start_spins if time - o.capture_time <= gap)
-        if observation.kind == SPIN:
-            spins = (*spins, observation)[-MAX_START_SPINS:]
-            return dataclasses.replace(core, start_positions=positions, start_spins=spins, last_capture=time)
-        positions = (*positions, observation)[-self.params.initial_position_count :]
-        collecting = dataclasses.replace(core, start_positions=positions, start_spins=spins, last_capture=time)
-        if len(positions) < self.params.initial_position_count:
-            return collecting
-        fitted = self._fit_start(positions)
-        if fitted is None:
-            return dataclasses.replace(collecting, start_positions=positions[1:])
-        mean = np.concatenate([fitted, np.zeros(3)])
-        started = FilterCore(
-            time=time,
-            mean=mean,
-            covariance=self._start_covariance.copy(),
-            free_until=time + self._contact_free_horizon(mean),
-            last_capture=time,
-            not_before=core.not_before,
-            resets=core.resets,
-        )
-        # Spin is constant in flight: the spins captured while the track started measure it now.
-        for spin in spins:
-            started = self._fuse_spin(started, spin)
-        return dataclasses.replace(started, last_capture=time)
-
-    def _fit_start(self, positions: Sequence[Observation]) -> np.ndarray | None:
-        """[p, v] (6,) at the last position from a least-squares fit of p + v tau + a tau^2 / 2,
-        a the flight acceleration without spin at the fitted velocity (two passes); None if the
-        normalised residual sum exceeds its chi-square threshold."""
-        tau = np.array([o.capture_time for o in positions]) - positions[-1].capture_time
-        measured = np.array([o.value for o in positions])
-        design = np.column_stack([np.ones_like(tau), tau])
-        acceleration = flight_acceleration(np.zeros(3), np.zeros(3), self.physics.aero)
+        mean = np.array(mean, dtype=float)
+        covariance = np.array(covariance, dtype=float)
+        if mean.shape != (9,) or covariance.shape != (12, 12):
+            raise ValueError(f"BallEkf.predict: mean must be (9,) and covariance (12, 12), got {mean.shape} and {covariance.shape}")
+        requests, results = np.zeros((1, REQUEST_SIZE)), np.zeros((1, REQUEST_SIZE))
+        out_mean, out_covariance = np.empty(9), np.empty((12, 12))
         for _ in range(2):
-            target = measured - 0.5 * tau[:, None] ** 2 * acceleration[None, :]
-            solution, *_ = np.linalg.lstsq(design, target, rcond=None)
-            acceleration = flight_acceleration(solution[1], np.zeros(3), self.physics.aero)
-        residual = measured - design @ solution - 0.5 * tau[:, None] ** 2 * acceleration[None, :]
-        normalised = sum(r @ np.linalg.solve(self._position_noise(o), r) for r, o in zip(residual, positions))
-        if normalised > self._fit_threshold:
-            return None
-        return np.concatenate([solution[0], solution[1]])
+            status, last_contact = kernels.predict(mean, covariance, float(duration), self._config, requests[0], results[0], out_mean, out_covariance)
+            if status == kernels.OK:
+                return out_mean, out_covariance, None if math.isnan(last_contact) else float(last_contact)
+            self._simulate_requests(requests, results, [0])
+        raise AssertionError("BallEkf.predict: the kernel did not take the simulated prediction")
 
-    def _fuse_position(self, core: FilterCore, observation: Observation) -> FilterCore:
-        time = observation.capture_time
-        mean, covariance, last_contact = self.predict(core.mean, core.covariance, time - core.time)
-        innovation = observation.value - mean[:3]
-        noise = self._position_noise(observation)
-        normalised = innovation @ np.linalg.solve(covariance[:3, :3] + noise, innovation)
-        if np.linalg.norm(innovation) > self.params.max_position_jump or normalised > self.params.max_position_innovation:
-            return self._collect(self._reset(core, core.not_before), observation)
-        mean, covariance = self._kalman_update(mean, covariance, innovation, self._position_h, noise)
-        return dataclasses.replace(
-            core,
-            time=time,
-            mean=mean,
-            covariance=covariance,
-            free_until=time + self._contact_free_horizon(mean),
-            segment_start=core.segment_start if last_contact is None else core.time + last_contact,
-            last_capture=time,
-            bias_shaped=core.bias_shaped and last_contact is None,
+    # ------------------------------------------------------------------------------ B environments
+    def initial_batch(self, batch: int) -> EkfBatch:
+        """B environments with no track and no history."""
+        return EkfBatch.empty(int(batch), self.params.initial_position_count)
+
+    def observations(
+        self,
+        positions: Sequence[Sequence[Measurement]],
+        spins: Sequence[Sequence[Measurement]],
+        racket_contact_times: Sequence[Sequence[float]] | None = None,
+    ) -> ObservationBatch:
+        """The ObservationBatch of B environments' new positions (m), spins (rad/s) and racket
+        contact times (s): one sequence per environment each (None: no contacts)."""
+        count = len(positions)
+        if len(spins) != count or (racket_contact_times is not None and len(racket_contact_times) != count):
+            raise ValueError(f"BallEkf.observations: {count} environments of positions but {len(spins)} of spins"
+                             + ("" if racket_contact_times is None else f" and {len(racket_contact_times)} of racket contacts"))
+        sizes = np.empty(count, dtype=np.int64)
+        measurements, kinds, contact_rows, contact_times = [], [], [], []
+        row = 0
+        for b in range(count):
+            p, s = positions[b], spins[b]
+            measurements += p
+            measurements += s
+            kinds += [POSITION] * len(p) + [SPIN] * len(s)
+            row += len(p) + len(s)
+            if racket_contact_times is not None and len(racket_contact_times[b]):
+                for time in racket_contact_times[b]:
+                    contact_rows.append(row)
+                    contact_times.append(float(time))
+                    row += 1
+            sizes[b] = row
+        start = np.zeros(count + 1, dtype=np.int64)
+        start[1:] = sizes
+        values = np.zeros((row, kernels.OBS_F))
+        kinds_out = np.zeros((row, kernels.OBS_I), dtype=np.int64)
+        if measurements:
+            is_measurement = np.ones(row, dtype=bool)
+            is_measurement[contact_rows] = False
+            rows = np.flatnonzero(is_measurement)
+            kind = np.array(kinds, dtype=np.int64)
+            capture = np.array([m.capture_time for m in measurements], dtype=float)
+            values[rows, kernels.O_KEY] = capture + np.where(kind == SPIN, self.params.spin_fusion_lag, 0.0)
+            values[rows, kernels.O_CAPTURE] = capture
+            values[rows, kernels.O_VALUE:kernels.O_VALUE + 3] = np.array([m.value for m in measurements])
+            values[rows, kernels.O_COVARIANCE:] = np.array([m.covariance for m in measurements]).reshape(-1, 9)
+            kinds_out[rows, kernels.O_KIND] = kind
+            kinds_out[rows, kernels.O_SEQUENCE] = [m.sequence for m in measurements]
+        if contact_rows:
+            values[contact_rows, kernels.O_KEY] = contact_times
+            values[contact_rows, kernels.O_CAPTURE] = contact_times
+        return ObservationBatch(values, kinds_out, start)
+
+    def update_arrays(self, batch: EkfBatch, observations: ObservationBatch) -> EkfBatch:
+        """``update`` of every environment: B filters and their new observations (in any order
+        within an environment) -> the B filters after them (a new EkfBatch)."""
+        if observations.start.shape[0] != batch.size + 1:
+            raise ValueError(f"BallEkf.update_arrays: observations for {observations.start.shape[0] - 1} environments, the batch has {batch.size}")
+        new_counts = np.diff(observations.start)
+        index = batch.index
+        size = batch.size
+        capacity_obs = int(max(1, np.max(index[:, kernels.X_N] - index[:, kernels.X_KEEP] + new_counts, initial=0)))
+        capacity_cores = int(np.max(index[:, kernels.X_N] - index[:, kernels.X_FIRST] + new_counts, initial=0)) + 1
+        out = EkfBatch(
+            np.empty((size, capacity_obs, kernels.OBS_F)), np.empty((size, capacity_obs, kernels.OBS_I), dtype=np.int64),
+            np.empty((size, capacity_cores, kernels.CORE_F)), np.empty((size, capacity_cores, batch.core_i.shape[2]), dtype=np.int64),
+            np.empty((size, kernels.INDEX_SIZE), dtype=np.int64), np.empty((size, 3)),
         )
+        progress = np.empty(size, dtype=np.int64)
+        kernels.merge(batch.obs_f, batch.obs_i, batch.core_f, batch.core_i, batch.index, batch.base_key,
+                      observations.values, observations.kinds, observations.start,
+                      out.obs_f, out.obs_i, out.core_f, out.core_i, out.index, out.base_key, progress)
+        requests, results = np.zeros((size, REQUEST_SIZE)), np.zeros((size, REQUEST_SIZE))
+        blocked = np.zeros(size, dtype=bool)
+        while True:
+            kernels.advance(out.obs_f, out.obs_i, out.core_f, out.core_i, out.index, out.base_key, progress,
+                            self._config, self._start_covariance, requests, results, blocked)
+            rows = np.flatnonzero(blocked)
+            if rows.size == 0:
+                return out
+            self._simulate_requests(requests, results, rows)
 
-    def _fuse_spin(self, core: FilterCore, observation: Observation) -> FilterCore:
-        time = observation.capture_time
-        if time < core.segment_start:
-            return core  # captured before a contact the track has predicted through: stale
-        bias_shaped, segment_start = core.bias_shaped, core.segment_start
-        if time <= core.free_until:
-            # Same flight as the posterior: the spin then is the spin now (paper eq. (1)).
-            mean, covariance, posterior_time, free_until = core.mean, core.covariance, core.time, core.free_until
-        else:
-            mean, covariance, last_contact = self.predict(core.mean, core.covariance, time - core.time)
-            posterior_time, free_until = time, time + self._contact_free_horizon(mean)
-            if last_contact is not None:
-                bias_shaped, segment_start = False, core.time + last_contact
-        if not bias_shaped:
-            # The first spin since the bias was drawn: no cross-covariance yet, shape its block.
-            covariance = covariance.copy()
-            covariance[BIAS, BIAS] = self._bias_covariance(observation.value)
-        noise = self._spin_noise(observation)
-        mean, covariance = self._kalman_update(mean, covariance, observation.value - mean[6:9], self._spin_h, noise)
-        return dataclasses.replace(
-            core,
-            time=posterior_time,
-            mean=mean,
-            covariance=covariance,
-            free_until=free_until,
-            segment_start=segment_start,
-            last_capture=max(core.last_capture, time),
-            spin_fused=True,
-            bias_shaped=True,
-        )
+    def update_batch(
+        self,
+        states: Sequence[EkfState],
+        positions: Sequence[Sequence[Measurement]],
+        spins: Sequence[Sequence[Measurement]],
+        racket_contact_times: Sequence[Sequence[float]] | None = None,
+    ) -> tuple[EkfState, ...]:
+        """``update`` of B environments at once: the same states, environment by environment, as
+        B calls of ``update`` (rows of one new EkfBatch)."""
+        batch = EkfBatch.stack(list(states), self.params.initial_position_count)
+        return self.update_arrays(batch, self.observations(positions, spins, racket_contact_times)).rows()
 
-    # ------------------------------------------------------------------------------ maths
-    def _kalman_update(self, mean, covariance, innovation, observed, noise):
-        """Schmidt-Kalman update: the gain's bias rows are zero; Joseph form (valid for any gain).
+    def estimate_batch(self, states: EkfBatch | Sequence[EkfState], times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The estimates of B environments at times (B,) s: means (B, 9) [p, v, w],
+        covariances (B, 9, 9), status (B, 3) [valid (1 with a track, else 0, and then zeros in
+        the mean and covariance), spin valid, capture time of the newest measurement used (s)]."""
+        batch = states if isinstance(states, EkfBatch) else EkfBatch.stack(list(states), self.params.initial_position_count)
+        times = np.broadcast_to(np.asarray(times, dtype=float), (batch.size,)).copy()
+        size = batch.size
+        means, covariances, status = np.zeros((size, 9)), np.zeros((size, 9, 9)), np.zeros((size, 3))
+        requests, results = np.zeros((size, REQUEST_SIZE)), np.zeros((size, REQUEST_SIZE))
+        pending = np.ones(size, dtype=bool)
+        while True:
+            kernels.estimate(batch.core_f, batch.core_i, batch.index, times, self._config, requests, results, pending, means, covariances, status)
+            rows = np.flatnonzero(pending)
+            if rows.size == 0:
+                break
+            self._simulate_requests(requests, results, rows)
+        early = np.flatnonzero(status[:, 0] < 0.0)
+        if early.size:
+            b = early[0]
+            core = batch.row(b).latest
+            raise ValueError(f"BallEkf.estimate: time {times[b]} s is before the posterior's {core.time} s (environment {b})")
+        return means, covariances, status
 
-        ``observed``: the slices of [x, b] whose sum the measurement sees (H = [I at each]); the
-        products with H are these columns and rows, the same numbers as the matrix products."""
-        covariance_h = sum(covariance[:, block] for block in observed)  # P H^T
-        innovation_covariance = sum(covariance_h[block] for block in observed) + noise  # H P H^T + R
-        gain = np.linalg.solve(innovation_covariance, covariance_h.T).T
-        gain[BIAS] = 0.0
-        mean = mean + gain[:STATE_SIZE] @ innovation
-        reduction = np.eye(12)  # I - K H
-        for block in observed:
-            reduction[:, block] -= gain
-        covariance = reduction @ covariance @ reduction.T + gain @ noise @ gain.T
-        return mean, 0.5 * (covariance + covariance.T)
-
-    def _bias_covariance(self, spin: np.ndarray) -> np.ndarray:
-        """The spin sensor's bias covariance around a measured spin (3,), (rad/s)^2: magnitude
-        along its axis, |w| times the axis std across it (as ``spin_precision_covariance``)."""
-        rate = float(np.linalg.norm(spin))
-        magnitude_variance = self.params.spin_bias_magnitude_std**2
-        if rate < 1e-9:
-            return magnitude_variance * np.eye(3)
-        along = np.outer(spin, spin) / rate**2
-        return magnitude_variance * along + (rate * self.params.spin_bias_axis_std) ** 2 * (np.eye(3) - along)
-
-    def _process_noise(self, duration: float) -> np.ndarray:
-        """Q over ``duration`` s: white acceleration (position-velocity block) and spin random walk."""
-        q_a, q_w = self.params.acceleration_noise_density, self.params.spin_noise_density
-        noise = np.zeros((STATE_SIZE, STATE_SIZE))
-        eye = np.eye(3)
-        noise[0:3, 0:3] = q_a * duration**3 / 3.0 * eye
-        noise[0:3, 3:6] = noise[3:6, 0:3] = q_a * duration**2 / 2.0 * eye
-        noise[3:6, 3:6] = q_a * duration * eye
-        noise[6:9, 6:9] = q_w * duration * eye
-        return noise
-
-    def _contact_free_horizon(self, mean: np.ndarray) -> float:
-        """How long (s, at most FREE_HORIZON_MAX) the ball at ``mean`` surely touches nothing."""
-        # Far from everything (most of a flight) the cheap lower bounds on the gaps already give
-        # the maximum; a relative 1e-9 covers their round-off and that of the speed.
-        position, velocity = mean[:3].tolist(), mean[3:6].tolist()
-        clear = min(contact_gap_lower_bound(kind, position, self.physics) for kind in DEFAULT_KINDS)
-        if clear > FREE_HORIZON_MAX * (math.sqrt(sum(v * v for v in velocity)) + FREE_SPEED_MARGIN) * (1.0 + 1e-9):
-            return FREE_HORIZON_MAX
-        gap = min(float(contact_gap(kind, mean, self.physics)) for kind in DEFAULT_KINDS)
-        if gap <= 0.0:
-            return 0.0
-        return min(FREE_HORIZON_MAX, gap / (float(np.linalg.norm(mean[3:6])) + FREE_SPEED_MARGIN))
-
-    def _position_noise(self, observation: Observation) -> np.ndarray:
-        variance = self.params.position_observation_variance
-        return observation.covariance if variance is None else variance * np.eye(3)
-
-    def _spin_noise(self, observation: Observation) -> np.ndarray:
-        variance = self.params.spin_observation_variance
-        return observation.covariance if variance is None else variance * np.eye(3)
+    # ------------------------------------------------------------------------------ contacts
+    def _simulate_requests(self, requests: np.ndarray, results: np.ndarray, rows) -> None:
+        """Runs the predictions the kernels left in requests[rows] through ``simulate`` (table,
+        net and floor contacts located exactly) into results[rows]."""
+        for b in rows:
+            states = requests[b, :90].reshape(10, 9)
+            trajectory = simulate(states, self.physics, float(requests[b, 90]), dt=float(requests[b, 91]), record=False)
+            results[b, :90] = trajectory.final_state.ravel()
+            results[b, 90] = 1.0
+            results[b, 91] = trajectory.events[0][-1].time if trajectory.events[0] else math.nan

@@ -8,7 +8,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem, ValueProducer
 
-from ace_drake.perception.ball_ekf import BallEkf, BallEstimate, EkfState
+from ace_drake.perception.ball_ekf import BallEkf, BallEstimate, EkfBatch, EkfState
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import EstimatorParams
 from ace_drake.physics.params import BallPhysicsParams
@@ -31,16 +31,46 @@ class EstimatorState:
         return self
 
 
-def fuse_measurements(ekf: BallEkf, current: EstimatorState, positions_history: MeasurementHistory, spins_history: MeasurementHistory, events, time: float) -> EstimatorState:
-    """``current`` with every measurement the histories show numbered above the last ones read, and
-    every new racket contact in ``events``, fused (``BallEkf.update``); ``current`` itself when
-    there is nothing new. ``time`` (s) only names the instant in the error raised when a history
-    no longer holds what was released since the last fusion. The BallEstimator's rule, shared by
-    the segment-stepped estimator."""
+@dataclasses.dataclass(frozen=True)
+class EstimatorBatchState:
+    """B estimators' state (``EstimatorState`` of each environment, as arrays): the filters
+    (EkfBatch) and, per environment, the last position and spin sequence numbers read and the
+    number of contact events seen, (B,) int64 each."""
+
+    filters: EkfBatch
+    last_position_sequence: np.ndarray
+    last_spin_sequence: np.ndarray
+    contacts_seen: np.ndarray
+
+    @staticmethod
+    def initial(ekf: BallEkf, batch: int) -> EstimatorBatchState:
+        """B estimators with nothing read yet."""
+        zeros = np.zeros(int(batch), dtype=np.int64)
+        return EstimatorBatchState(ekf.initial_batch(batch), zeros, zeros.copy(), zeros.copy())
+
+    def row(self, b: int) -> EstimatorState:
+        """Environment b's EstimatorState (its filter a view of the batch)."""
+        return EstimatorState(self.filters.row(b), int(self.last_position_sequence[b]), int(self.last_spin_sequence[b]), int(self.contacts_seen[b]))
+
+    def cleared(self, rows) -> EstimatorBatchState:
+        """A copy with environments ``rows`` back to the initial state (a new episode)."""
+        rows = np.asarray(rows, dtype=int).reshape(-1)
+        sequences = [self.last_position_sequence.copy(), self.last_spin_sequence.copy(), self.contacts_seen.copy()]
+        for values in sequences:
+            values[rows] = 0
+        return EstimatorBatchState(self.filters.cleared(rows), *sequences)
+
+    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
+        return self
+
+
+def _new_measurements(last_position: int, last_spin: int, contacts_seen: int, positions_history: MeasurementHistory, spins_history: MeasurementHistory, events, time: float):
+    """What one estimator has not read yet: (positions, spins, racket contact times (s), whether
+    anything changed). ``fuse_measurements``'s rule, shared with ``fuse_measurements_batch``."""
     # A sensor or plant that started a new episode numbers from the start again.
-    last_position = current.last_position_sequence if positions_history.last_sequence >= current.last_position_sequence else 0
-    last_spin = current.last_spin_sequence if spins_history.last_sequence >= current.last_spin_sequence else 0
-    contacts_seen = current.contacts_seen if len(events) >= current.contacts_seen else 0
+    last_position = last_position if positions_history.last_sequence >= last_position else 0
+    last_spin = last_spin if spins_history.last_sequence >= last_spin else 0
+    contacts_seen = contacts_seen if len(events) >= contacts_seen else 0
     for kind, history, last in (("position", positions_history, last_position), ("spin", spins_history, last_spin)):
         if history.measurements and history.measurements[0].sequence > last + 1:
             raise RuntimeError(
@@ -52,9 +82,49 @@ def fuse_measurements(ekf: BallEkf, current: EstimatorState, positions_history: 
     positions = positions_history.since(last_position)
     spins = spins_history.since(last_spin)
     racket_times = [event.time for event in events[contacts_seen:] if event.kind == ContactKind.RACKET]
-    if not (positions or spins or racket_times) and len(events) == contacts_seen:
+    return positions, spins, racket_times, bool(positions or spins or racket_times) or len(events) != contacts_seen
+
+
+def fuse_measurements(ekf: BallEkf, current: EstimatorState, positions_history: MeasurementHistory, spins_history: MeasurementHistory, events, time: float) -> EstimatorState:
+    """``current`` with every measurement the histories show numbered above the last ones read, and
+    every new racket contact in ``events``, fused (``BallEkf.update``); ``current`` itself when
+    there is nothing new. ``time`` (s) only names the instant in the error raised when a history
+    no longer holds what was released since the last fusion. The BallEstimator's rule, shared by
+    the segment-stepped estimator (``fuse_measurements_batch``)."""
+    positions, spins, racket_times, changed = _new_measurements(
+        current.last_position_sequence, current.last_spin_sequence, current.contacts_seen, positions_history, spins_history, events, time
+    )
+    if not changed:
         return current
     return EstimatorState(ekf.update(current.filter, positions, spins, racket_times), positions_history.last_sequence, spins_history.last_sequence, len(events))
+
+
+def fuse_measurements_batch(ekf: BallEkf, current: EstimatorBatchState, positions_histories, spins_histories, events, times) -> EstimatorBatchState:
+    """``fuse_measurements`` of B estimators at once (one ``BallEkf.update_arrays``): the same
+    filters, environment by environment. positions_histories, spins_histories: B
+    MeasurementHistory each; events: B tuples of ContactEvent; times (B,) s. ``current`` itself
+    when no environment has anything new."""
+    size = current.filters.size
+    if not (len(positions_histories) == len(spins_histories) == len(events) == size):
+        raise ValueError(f"fuse_measurements_batch: expected {size} position and spin histories and event tuples, got "
+                         f"{len(positions_histories)}, {len(spins_histories)} and {len(events)}")
+    times = np.broadcast_to(np.asarray(times, dtype=float), (size,))
+    new = [
+        _new_measurements(int(current.last_position_sequence[b]), int(current.last_spin_sequence[b]), int(current.contacts_seen[b]),
+                          positions_histories[b], spins_histories[b], events[b], float(times[b]))
+        for b in range(size)
+    ]
+    changed = np.array([item[3] for item in new], dtype=bool)
+    if not changed.any():
+        return current
+    observations = ekf.observations([item[0] for item in new], [item[1] for item in new], [item[2] for item in new])
+    filters = ekf.update_arrays(current.filters, observations)
+    sequences = [current.last_position_sequence.copy(), current.last_spin_sequence.copy(), current.contacts_seen.copy()]
+    for b in np.flatnonzero(changed):
+        sequences[0][b] = positions_histories[b].last_sequence
+        sequences[1][b] = spins_histories[b].last_sequence
+        sequences[2][b] = len(events[b])
+    return EstimatorBatchState(filters, *sequences)
 
 
 def estimate_outputs(estimate) -> tuple[np.ndarray, np.ndarray]:

@@ -10,13 +10,14 @@ from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.perception.ball_ekf import BallEkf
 from ace_drake.perception.params import EstimatorParams
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.systems.ball_estimator import EstimatorState, estimate_outputs, fuse_measurements
+from ace_drake.systems.ball_estimator import EstimatorBatchState, fuse_measurements_batch
 
 
 class SegmentBallEstimator(LeafSystem):
     """The continuous-time ``BallEstimator`` for B environments: at each tick every environment's
-    filter fuses what its sensors released since the last tick (``ball_estimator.fuse_measurements``,
-    the reference's rule; the filter processes observations in capture order whatever batches
+    filter fuses what its sensors released since the last tick (``ball_estimator.fuse_measurements_batch``,
+    the reference's rule for all B at once, equal environment by environment to
+    ``fuse_measurements``; the filter processes observations in capture order whatever batches
     they come in, so fusing once per tick gives the reference's estimate at the tick).
 
     Input ports:
@@ -28,7 +29,7 @@ class SegmentBallEstimator(LeafSystem):
         ball_state_estimate (abstract float (B, 9)): [p, v, w] predicted to the tick's start.
         estimate_status (abstract float (B, 3)): [valid, spin valid, age of newest measurement (s)].
     State:
-        abstract tuple of B EstimatorState.
+        abstract EstimatorBatchState (the B filters as arrays, ``perception.ball_ekf.EkfBatch``).
     Events:
         periodic unrestricted update every T (offset 0): stores the fused filters.
     """
@@ -40,14 +41,14 @@ class SegmentBallEstimator(LeafSystem):
         self.ekf = BallEkf(params, physics)
         self.batch = int(batch)
         self.timing = timing
-        self._state_index = self.DeclareAbstractState(AbstractValue.Make((EstimatorState(),) * self.batch))
+        self._state_index = self.DeclareAbstractState(AbstractValue.Make(EstimatorBatchState.initial(self.ekf, self.batch)))
         self.position_measurements_port = self.DeclareAbstractInputPort("position_measurements", AbstractValue.Make(()))
         self.spin_measurements_port = self.DeclareAbstractInputPort("spin_measurements", AbstractValue.Make(()))
         self.contact_events_port = self.DeclareAbstractInputPort("contact_events", AbstractValue.Make(()))
         self.episode_ticks_port = self.DeclareAbstractInputPort("episode_ticks", AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
         self._fused_cache = self.DeclareCacheEntry(
             "the filters with everything released by the tick's start",
-            ValueProducer(allocate=lambda: AbstractValue.Make(()), calc=self._CalcFused),
+            ValueProducer(allocate=lambda: AbstractValue.Make(EstimatorBatchState.initial(self.ekf, self.batch)), calc=self._CalcFused),
             {self.abstract_state_ticket(self._state_index), self.all_input_ports_ticket()},
         )
         self._outputs_cache = self.DeclareCacheEntry(
@@ -67,13 +68,12 @@ class SegmentBallEstimator(LeafSystem):
 
     def StartEpisodes(self, context, rows) -> None:
         """Clears the filters of environments ``rows``."""
-        states = list(context.get_abstract_state(self._state_index).get_value())
-        for row in np.asarray(rows, dtype=int):
-            states[row] = EstimatorState()
-        context.SetAbstractState(self._state_index, tuple(states))
+        states = context.get_abstract_state(self._state_index).get_value()
+        context.SetAbstractState(self._state_index, states.cleared(rows))
 
-    def estimator_states(self, context) -> tuple[EstimatorState, ...]:
-        """The B filters at the tick's start, with everything released by then fused."""
+    def estimator_states(self, context) -> EstimatorBatchState:
+        """The B filters at the tick's start, with everything released by then fused
+        (``.row(b)`` is environment b's EstimatorState)."""
         return self._fused_cache.Eval(context)
 
     def _CalcFused(self, context, value):
@@ -81,16 +81,15 @@ class SegmentBallEstimator(LeafSystem):
         positions, spins = self.position_measurements_port.Eval(context), self.spin_measurements_port.Eval(context)
         events = self.contact_events_port.Eval(context)
         now = self.timing.tick_time(self.episode_ticks_port.Eval(context))
-        value.set_value(tuple(
-            fuse_measurements(self.ekf, current[row], positions[row], spins[row], events[row], float(now[row])) for row in range(self.batch)
-        ))
+        value.set_value(fuse_measurements_batch(self.ekf, current, positions, spins, events, now))
 
     def _CalcOutputs(self, context, value):
-        now = self.timing.tick_time(self.episode_ticks_port.Eval(context))
-        estimates, status = np.zeros((self.batch, 9)), np.zeros((self.batch, 3))
-        for row, fused in enumerate(self.estimator_states(context)):
-            estimates[row], status[row] = estimate_outputs(self.ekf.estimate(fused.filter, float(now[row])))
-        value.set_value((estimates, status))
+        now = np.asarray(self.timing.tick_time(self.episode_ticks_port.Eval(context)), dtype=float)
+        means, _, status = self.ekf.estimate_batch(self.estimator_states(context).filters, now)
+        valid = status[:, 0] == 1.0
+        # as ``ball_estimator.estimate_outputs``: [valid, spin valid, age of the newest measurement used]
+        outputs = np.where(valid[:, None], np.column_stack([status[:, :2], now - status[:, 2]]), np.array([0.0, 0.0, -1.0]))
+        value.set_value((np.where(valid[:, None], means, 0.0), outputs))
 
     def Update(self, context, state):
         state.get_mutable_abstract_state(self._state_index).set_value(self.estimator_states(context))
