@@ -120,7 +120,8 @@ def test_tutorial_05_rally_returns_the_ball_and_writes_its_files(tmp_path):
     batch = re.search(r"5\. 16 shots, 8 at a time on the segment-stepped diagram: (\{.*\});", run.stdout)
     assert batch, run.stdout
     outcomes = eval(batch.group(1))  # a dict literal printed by the tutorial
-    assert sum(outcomes.values()) == 16 and outcomes.get("returned", 0) >= 10
+    playable = 16 - outcomes.get("invalid", 0)
+    assert sum(outcomes.values()) == 16 and playable >= 5 and outcomes.get("returned", 0) >= 0.8 * playable
 
 
 def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):

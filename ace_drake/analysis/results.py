@@ -97,7 +97,10 @@ def evaluation_row(controller: str, evaluation: dict | None, source: str) -> Row
         command = EVALUATE_COMMAND.format(controller=controller)
         return Row(what, NOT_MEASURED, f"`{command} > {source}` measures it on the recorded human shots", _source(source))
     figure = return_rate_text(evaluation["return_rate"])
-    measured_on = f"{_shots_text(evaluation)}, seed {evaluation['seed']}" + (f", {evaluation['date']}" if evaluation.get("date") else "")
+    stepping = evaluation.get("stepping", "continuous")
+    batch = f", {evaluation['batch']} at a time" if evaluation.get("batch", 1) > 1 else ""
+    measured_on = (f"{_shots_text(evaluation)}, seed {evaluation['seed']}, the {stepping} diagram{batch}"
+                   + (f", {evaluation['date']}" if evaluation.get("date") else ""))
     return Row(what, figure, measured_on, _source(source))
 
 
