@@ -43,7 +43,7 @@ def test_an_ended_episode_restarts_in_the_next_step(distribution):
     dut = RecordEpisodeStatistics(RallyVectorEnv(2, PARAMS, distribution))
     rng = np.random.default_rng(0)
     dut.reset(seed=3)
-    ended = None
+    ended = episodes_before = None
     for _ in range(80):
         _, rewards, terminated, truncated, infos = dut.step(rng.uniform(-1.0, 1.0, (2, 16)))
         assert not truncated.any()

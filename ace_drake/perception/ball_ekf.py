@@ -246,7 +246,7 @@ class EkfState:
         """The filter after every observation so far."""
         if self.batch is None:
             return FilterCore()
-        b, index = self.row, self.batch.index[self.row]
+        index = self.batch.index[self.row]
         return self._core(int(index[kernels.X_CORE0] + index[kernels.X_N] - index[kernels.X_FIRST]))
 
     @property
