@@ -67,7 +67,9 @@ def emit_json(payload: dict) -> None:
 
 def cmd_rally(args) -> int:
     """The main job: rallies of the best shipped controller against the launcher opponent."""
-    result = work("rally")(args.controller, args.rallies, args.sensors, args.seed, args.params, args.html, progress=log)
+    if args.batch < 1:
+        raise ConfigError(f"rally: --batch must be >= 1, got {args.batch}")
+    result = work("rally")(args.controller, args.rallies, args.sensors, args.seed, args.params, args.html, batch=args.batch, progress=log)
     rows, returned, playable = result["rallies"], result["returned"], result["played"]
     if args.json:
         emit_json({"command": "rally", "controller": args.controller, "returned": returned, "played": playable, "rallies": rows, "html": args.html})
@@ -373,7 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     rally = commands.add_parser("rally", help="the main job: rallies of the best shipped controller against the launcher; Meshcat replay")
     add_rally_options(rally, DEFAULT_CONTROLLER)
     rally.add_argument("--rallies", type=int, default=5, help="how many rallies (default: %(default)s)")
-    rally.add_argument("--html", default="out/rally.html", help="Meshcat replay to write ('' for none)")
+    rally.add_argument("--html", default="out/rally.html", help="Meshcat replay to write (on the continuous-time diagram, one rally after another); '' for none: the rallies then play on the segment-stepped diagram, --batch at a time")
+    rally.add_argument("--batch", type=int, default=8, help="without --html: rallies played at once (default: %(default)s)")
     rally.set_defaults(run=cmd_rally)
 
     evaluate = commands.add_parser("evaluate", help="return-rate evaluation of a controller (paper Fig. 3c-g)")

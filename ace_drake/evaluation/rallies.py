@@ -17,9 +17,9 @@ from pydrake.geometry import Meshcat
 
 from ace_drake.contracts import Outcome
 from ace_drake.control.params import RallyParams
-from ace_drake.diagrams import build_rally_diagram
+from ace_drake.diagrams import build_rally_diagram, build_segment_rally_diagram
 from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller, make_controller, rally_params
-from ace_drake.evaluation.runner import Episode, RallyRunner
+from ace_drake.evaluation.runner import Episode, RallyRunner, SegmentRallyRunner
 from ace_drake.play.opponent import Launcher
 from ace_drake.play.params import ShotParams
 from ace_drake.play.shots import make_distribution
@@ -89,17 +89,55 @@ def rally_rows(played: list[tuple[Episode, bool]]) -> list[dict]:
     return rows
 
 
+def play_rally_batch(controllers, params: RallyParams, shots: ShotParams, count: int, seed: int = 0, batch: int = 8,
+                     progress: Callable[[str], None] | None = None) -> list[tuple[Episode, bool]]:
+    """``play_rallies`` on the segment-stepped diagram (``params.stepping`` "segment"), ``batch``
+    rallies at a time (``SegmentRallyRunner``), with the same shots and seeds; ``controllers``: one
+    controller, or ``batch`` of them when it remembers its episode (a ``reset()``). No replay: the
+    Meshcat drawing is the continuous-time diagram's."""
+    controllers = list(controllers) if isinstance(controllers, (list, tuple)) else [controllers]
+    controllers = [hit_state_controller(c, params) for c in controllers]
+    params = diagram_params_for(controllers[0], params)
+    if count < 1 or batch < 1:
+        raise ValueError(f"play_rally_batch: count and batch must be >= 1, got {count}, {batch}")
+    rng = np.random.default_rng(seed)
+    launcher = Launcher(make_distribution(shots, params.physics))
+    drawn = [launcher.shot(rng) for _ in range(count)]
+    states = np.array([shot for shot, _ in drawn])
+    serve = np.array([kind == "serve" for _, kind in drawn])
+    policy = controllers if len(controllers) > 1 else controllers[0]
+    runner = SegmentRallyRunner(build_segment_rally_diagram(params, policy, batch), params)
+    done = [0]
+
+    def report(ended: int) -> None:
+        done[0] += ended
+        if progress is not None:
+            progress(f"rally: {done[0]}/{count} played")
+
+    episodes = runner.run_many(states, serve, seed * 1_000_003 + np.arange(count), progress=report)
+    return list(zip(episodes, serve.tolist()))
+
+
 def run_rallies(controller: str, rallies: int = 5, sensors: str = "cameras", seed: int = 0, ball_params=None, html=None,
-                progress: Callable[[str], None] = print) -> dict:
+                batch: int = 8, progress: Callable[[str], None] = print) -> dict:
     """``ace-drake rally``: ``rallies`` rallies of the controller named ``controller``
-    (``make_controller``) against the launcher, with the rally diagram of ``rally_params``, and
-    with ``html`` (a path) a self-contained Meshcat replay written there. Returns ``returned`` (of
-    the playable shots), ``played`` (the playable shots) and ``rallies`` (``rally_rows``)."""
-    params = rally_params(ball_params, sensors, seed)
-    player = make_controller(controller, params)
-    meshcat = Meshcat() if html else None
-    progress(f"rally: {rallies} rallies of '{controller}' against the launcher ({sensors} sensors, seed {seed})")
-    rows = rally_rows(play_rallies(player, params, ShotParams(seed=seed), rallies, seed, meshcat, progress=progress))
+    (``make_controller``) against the launcher, with the rally diagram of ``rally_params``. With
+    ``html`` (a path) on the continuous-time diagram, one after another, drawn into a
+    self-contained Meshcat replay written there; without, on the segment-stepped diagram,
+    ``batch`` at a time. Returns ``returned`` (of the playable shots), ``played`` (the playable
+    shots) and ``rallies`` (``rally_rows``)."""
+    stepping = "continuous" if html else "segment"
+    params = rally_params(ball_params, sensors, seed, stepping)
+    progress(f"rally: {rallies} rallies of '{controller}' against the launcher ({sensors} sensors, seed {seed}, the {stepping} diagram)")
+    if html:
+        meshcat = Meshcat()
+        played = play_rallies(make_controller(controller, params), params, ShotParams(seed=seed), rallies, seed, meshcat, progress=progress)
+    else:
+        batch = max(1, min(batch, rallies))
+        first = make_controller(controller, params)
+        players = [first] + [make_controller(controller, params) for _ in range(batch - 1)] if callable(getattr(first, "reset", None)) else first
+        played = play_rally_batch(players, params, ShotParams(seed=seed), rallies, seed, batch, progress)
+    rows = rally_rows(played)
     if html:
         path = Path(html)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -107,4 +145,3 @@ def run_rallies(controller: str, rallies: int = 5, sensors: str = "cameras", see
         progress(f"wrote Meshcat replay {path} ({path.stat().st_size / 1e6:.1f} MB); open it in any browser")
     return {"returned": sum(row["outcome"] == "returned" for row in rows),
             "played": sum(row["outcome"] != "invalid" for row in rows), "rallies": rows}
-
