@@ -42,6 +42,23 @@ def test_rally_plays_rallies_and_writes_a_replay(capsys, tmp_path):
     assert html.stat().st_size > 100_000 and "meshcat" in html.read_text()[:200_000].lower()
 
 
+def test_rally_without_a_replay_plays_in_batches_on_the_segment_diagram(capsys):
+    result = run_json(capsys, "rally", "--controller", "still", "--rallies", "3", "--batch", "2", "--sensors", "statistical", "--json", "--html", "")
+    assert len(result["rallies"]) == 3 and result["returned"] == 0
+    assert all(row["outcome"] in ("missed", "invalid") for row in result["rallies"])
+    assert main(["rally", "--html", "", "--batch", "0"]) == 2
+
+
+def test_evaluate_in_batches_and_on_the_reference_diagram_play_the_same_shots(capsys):
+    batched = run_json(capsys, "evaluate", "--controller", "still", "--episodes", "5", "--batch", "2", "--sensors", "statistical", "--json")
+    reference = run_json(capsys, "evaluate", "--controller", "still", "--episodes", "5", "--stepping", "continuous", "--sensors", "statistical", "--json")
+    assert batched["stepping"] == "segment" and batched["batch"] == 2 and reference["stepping"] == "continuous" and reference["batch"] == 1
+    assert batched["episodes"] == reference["episodes"] == 5
+    # The still robot misses every playable shot on both diagrams, and the shots' playability is physics alone.
+    assert batched["invalid_shots"] == reference["invalid_shots"] and batched["return_rate"]["returned"] == 0
+    assert main(["evaluate", "--controller", "still", "--episodes", "1", "--batch", "0"]) == 2
+
+
 def test_evaluate_counts_every_episode_with_its_interval(capsys):
     result = run_json(capsys, "evaluate", "--controller", "still", "--episodes", "3", "--sensors", "statistical", "--json")
     rate = result["return_rate"]
