@@ -60,7 +60,7 @@ def test_a_stored_evaluation_fills_the_returner_row(tmp_path):
     write_json(tmp_path / "docs/results/returner.json", evaluation)
     row = results.result_rows(tmp_path)[0]
     assert row == results.Row("`returner`: the default controller", "75.0% (3 of 4 playable; 95% CI 30.1-95.4%)",
-                              "10 recorded human shots of matches.csv, cameras, seed 0, 2026-01-03", "`docs/results/returner.json`")
+                              "10 recorded human shots of matches.csv, cameras, seed 0, the continuous diagram, 2026-01-03", "`docs/results/returner.json`")
 
 
 def test_replace_block_keeps_the_text_around_the_markers():

@@ -235,7 +235,9 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     assert state.phase == "done" and state.env_steps >= 60 and second.learner.updates > first.learner.updates
     # Again in the same run directory without the later stage's checkpoint: the finished earlier
     # stage is reused, not trained again.
-    (tmp_path / "run" / "checkpoint.pt").unlink()
+    # (Both of its files: with two checkpoints written, the previous one would be resumed instead.)
+    for name in ("checkpoint.pt", "checkpoint.prev.pt"):
+        (tmp_path / "run" / name).unlink(missing_ok=True)
     lines.clear()
     again = Trainer(config, tmp_path / "run", progress=lines.append)
     assert any("has finished" in line for line in lines) and again.state.initialized_at == first.state.env_steps
