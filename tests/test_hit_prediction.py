@@ -148,3 +148,5 @@ def test_predict_batch_and_bounce_behind_batch_are_the_single_ball_results(predi
     assert {ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR} <= kinds and past_the_table > 0
     assert np.isfinite(bounces).sum() > 10
     assert predictor.predict_batch(np.zeros((0, 9))) == []
+    one = predictor.predict_batch(estimates[5:6])[0]  # B = 1
+    np.testing.assert_array_equal(one.states, predictor.predict(estimates[5]).states)

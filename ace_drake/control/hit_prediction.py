@@ -214,7 +214,8 @@ class HitPredictor:
         keep[b] NaN for None. Args: estimates (B, 9) [p m, v m/s, w rad/s] (rows that are not
         valid may hold anything, NaN included); valid (B,) bool; keep (B,) s after the
         observation. The prediction (``predict_batch``) and the bounce behind
-        (``bounce_behind_batch``) run vectorised over the rows; ``candidates`` runs per row."""
+        (``bounce_behind_batch``) run vectorised over the rows; ``candidates`` runs per row (a
+        single predicting row goes through ``features``)."""
         estimates = np.asarray(estimates, dtype=float)
         if estimates.ndim != 2 or estimates.shape[1] != 9:
             raise ValueError(f"HitPredictor.features_batch: estimates must be (B, 9), got {estimates.shape}")
@@ -225,6 +226,10 @@ class HitPredictor:
         features = np.zeros((count, HIT_PREDICTION_SIZE))
         rows = np.flatnonzero(valid & ~(estimates[:, 3] >= 0.0))  # preferred_hit's test: NaN v_x is coming
         if rows.size == 0:
+            return features
+        if rows.size == 1:  # one ball: ``features`` itself is cheaper than the batched bookkeeping
+            row = rows[0]
+            features[row] = self.features(estimates[row], True, float(keep[row]) if np.isfinite(keep[row]) else None)
             return features
         bounces = self.bounce_behind_batch(estimates[rows])
         predictions = self.predict_batch(estimates[rows])
