@@ -80,3 +80,73 @@ def test_a_kept_hit_comes_first_while_it_is_a_candidate(predictor):
     # A kept time that is no candidate (between boundaries, or past the ball's reach) changes nothing.
     for keep in (time + 0.5 * predictor.segment, 5.0, None):
         assert predictor.preferred_hit(estimate, keep=keep)[0] == time
+
+
+def _estimates_along_flights():
+    """Estimates of incoming balls before and after their bounce, balls going away, balls that
+    hit the net or land long or wide (no bounce on the robot's half), one that drops off the
+    table's end, and ones still on the human's side: true states of ``simulate`` flights."""
+    shots = np.array([
+        INCOMING_BALL,
+        [1.4, -0.3, 0.3, -7.0, 0.6, 1.5, -30.0, 60.0, 5.0],     # a topspin return, crossing
+        [1.2, 0.2, 0.2, -5.0, -0.2, 2.5, 0.0, -150.0, 0.0],    # backspin, high
+        [1.3, 0.0, 0.05, -6.0, 0.0, 0.3, 0.0, 0.0, 0.0],       # into the net
+        [1.0, 0.0, 0.4, -12.0, 0.0, 1.0, 0.0, 0.0, 0.0],       # long (past the robot's end)
+        [1.2, 0.1, 0.3, -5.0, -4.0, 1.5, 0.0, 0.0, 0.0],       # wide
+        [1.3, 0.1, 0.25, -6.5, 0.1, 1.8, 0.0, 0.0, 40.0],      # bounces near the robot's end line
+    ])
+    flights = simulate(shots, PARAMS, 1.0, dt=0.008)
+    rows = [flights.states[k, i] for i in range(len(shots)) for k in range(0, flights.times.size, 3)]
+    away = INCOMING_BALL * np.r_[1, 1, 1, -1, 1, 1, 1, 1, 1]
+    return np.array(rows + [away, np.array([-1.0, 0.0, 0.1, -3.0, 0.0, -1.0, 0.0, 0.0, 0.0])])
+
+
+def test_features_batch_is_features_of_each_row(predictor):
+    estimates = _estimates_along_flights()
+    count = len(estimates)
+    rng = np.random.default_rng(0)
+    valid = rng.random(count) < 0.85
+    estimates[~valid & (rng.random(count) < 0.5)] = np.nan  # invalid rows may hold anything
+    # Kept hits: each row's preferred hit, the next boundary, a time between boundaries, or none.
+    keep = np.full(count, np.nan)
+    preferred = np.array([predictor.features(e, True)[1] if v else np.nan for e, v in zip(estimates, valid)])
+    choice = rng.integers(0, 4, count)
+    keep[choice == 1] = preferred[choice == 1]
+    keep[choice == 2] = preferred[choice == 2] + predictor.segment
+    keep[choice == 3] = preferred[choice == 3] + 0.5 * predictor.segment
+    reference = np.array([predictor.features(e, v, None if np.isnan(k) else k) for e, v, k in zip(estimates, valid, keep)])
+    batch = predictor.features_batch(estimates, valid, keep)
+    np.testing.assert_array_equal(batch, reference)  # bit for bit
+    # The cases are all there: hits, kept hits that differ from the preferred, no hit.
+    assert 20 < reference[:, 0].sum() < count - 20
+    assert np.any((choice == 2) & (reference[:, 0] > 0) & (np.abs(reference[:, 1] - preferred) > 1e-3))
+    # B = 1 and the empty batch.
+    for b in np.flatnonzero(valid)[:5]:
+        np.testing.assert_array_equal(predictor.features_batch(estimates[b : b + 1], valid[b : b + 1], keep[b : b + 1])[0], reference[b])
+    assert predictor.features_batch(np.zeros((0, 9)), np.zeros(0, bool), np.zeros(0)).shape == (0, HIT_PREDICTION_SIZE)
+    with pytest.raises(ValueError, match=r"\(B, 9\)"):
+        predictor.features_batch(np.zeros(9), np.ones(1, bool), np.zeros(1))
+
+
+def test_predict_batch_and_bounce_behind_batch_are_the_single_ball_results(predictor):
+    estimates = _estimates_along_flights()
+    predictions = predictor.predict_batch(estimates)
+    bounces = predictor.bounce_behind_batch(estimates)
+    kinds, past_the_table = set(), 0
+    for estimate, batched, bounce in zip(estimates, predictions, bounces):
+        single = predictor.predict(estimate)
+        np.testing.assert_array_equal(batched.times, single.times)
+        np.testing.assert_array_equal(batched.states, single.states)
+        assert [(t, k) for t, k, _ in batched.contacts] == [(t, k) for t, k, _ in single.contacts]
+        for (_, _, a), (_, _, b) in zip(batched.contacts, single.contacts):
+            np.testing.assert_array_equal(a, b)
+        kinds |= {k for _, k, _ in single.contacts}
+        robot_bounce = any(k == ContactKind.TABLE and pre[0] < 0.0 for _, k, pre in single.contacts)
+        past_the_table += not robot_bounce and any(k == ContactKind.FLOOR for _, k, _ in single.contacts)
+        behind = predictor.bounce_behind(estimate)
+        assert (np.isnan(bounce) and behind is None) or bounce == behind
+    assert {ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR} <= kinds and past_the_table > 0
+    assert np.isfinite(bounces).sum() > 10
+    assert predictor.predict_batch(np.zeros((0, 9))) == []
+    one = predictor.predict_batch(estimates[5:6])[0]  # B = 1
+    np.testing.assert_array_equal(one.states, predictor.predict(estimates[5]).states)

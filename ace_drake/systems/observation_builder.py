@@ -21,14 +21,16 @@ DEFAULT_SKILL = (0.0, 1.0, 0.0)  # y_desired 0 m (the centre line), w_p = 1, w_s
 
 
 def assemble_observation(layout: ObservationLayout, predictor: HitPredictor | None, now: float, positions, spins, robot_state, end_effector,
-                         skill, estimate, status, kept_hit: float = np.nan) -> np.ndarray:
+                         skill, estimate, status, kept_hit: float = np.nan, hit_prediction: np.ndarray | None = None) -> np.ndarray:
     """The observation vector (layout.size,) at time ``now`` (s) from the sensors' histories, the
     robot state and end effector where the next segment starts, the skill and the estimator's
     outputs; the ``hit_prediction`` part from ``predictor`` (zeros without one), keeping the hit at
-    time ``kept_hit`` (s; NaN for none) while it is still a candidate. The ObservationBuilder's
-    rule, shared by the segment-stepped builder."""
-    hit = None
-    if predictor is not None:
+    time ``kept_hit`` (s; NaN for none) while it is still a candidate, or ``hit_prediction``
+    (HIT_PREDICTION_SIZE,) when given (computed for many rows at once by
+    ``hit_prediction_parts``). The ObservationBuilder's rule, shared by the segment-stepped
+    builder."""
+    hit = hit_prediction
+    if hit is None and predictor is not None:
         keep = kept_hit - now if np.isfinite(kept_hit) else None
         hit = predictor.features(estimate, valid=status[0] > 0.5, keep=keep)
     return layout.assemble(
@@ -41,6 +43,19 @@ def assemble_observation(layout: ObservationLayout, predictor: HitPredictor | No
         estimate_status=status,
         hit_prediction=hit,
     )
+
+
+def hit_prediction_parts(predictor: HitPredictor, now, estimates, statuses, kept_hits) -> np.ndarray:
+    """``assemble_observation``'s ``hit_prediction`` parts of B rows at once, (B,
+    HIT_PREDICTION_SIZE): row b is the part ``assemble_observation`` computes from now[b] (s),
+    estimates[b] (9,), statuses[b] (3,) and kept_hits[b] (s, NaN for none), bit for bit
+    (``HitPredictor.features_batch``)."""
+    now, kept_hits = np.asarray(now, dtype=float), np.asarray(kept_hits, dtype=float)
+    statuses = np.asarray(statuses, dtype=float).reshape(len(now), -1)
+    keep = np.full(now.shape, np.nan)
+    finite = np.isfinite(kept_hits)
+    keep[finite] = kept_hits[finite] - now[finite]
+    return predictor.features_batch(np.asarray(estimates, dtype=float).reshape(len(now), -1), statuses[:, 0] > 0.5, keep)
 
 
 class ObservationBuilder(LeafSystem):

@@ -9,7 +9,7 @@ from pydrake.systems.framework import LeafSystem
 from ace_drake.contracts import SKILL_SIZE, ObservationLayout
 from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.control.segment_timing import SegmentTiming
-from ace_drake.systems.observation_builder import DEFAULT_SKILL, assemble_observation
+from ace_drake.systems.observation_builder import DEFAULT_SKILL, assemble_observation, hit_prediction_parts
 
 
 class SegmentObservationBuilder(LeafSystem):
@@ -85,10 +85,14 @@ class SegmentObservationBuilder(LeafSystem):
         estimate, status = self.ball_state_estimate_port.Eval(context), self.estimate_status_port.Eval(context)
         skills, kept = self.skills(context), context.get_abstract_state(self._memory_index).get_value()
         observation = np.empty((self.batch, self.layout.size))
+        hits = [None] * self.batch
+        if self.predictor is not None:  # every row's hit_prediction part in one call
+            kept_hits = kept if self.hit_memory else np.full(self.batch, np.nan)
+            hits = hit_prediction_parts(self.predictor, np.asarray(now, dtype=float), estimate, status, kept_hits)
         for row in range(self.batch):
             observation[row] = assemble_observation(
                 self.layout, self.predictor, float(now[row]), positions[row], spins[row], robot[row], effector[row],
-                skills[row], estimate[row], status[row], kept[row] if self.hit_memory else np.nan,
+                skills[row], estimate[row], status[row], kept[row] if self.hit_memory else np.nan, hits[row],
             )
         output.set_value(observation)
 
