@@ -1,5 +1,6 @@
 """The tutorials run from start to end and write their files."""
 
+import ast
 import re
 import subprocess
 import sys
@@ -119,7 +120,7 @@ def test_tutorial_05_rally_returns_the_ball_and_writes_its_files(tmp_path):
     # Part 5: a batch of rallies on the segment-stepped diagram, most of them returned.
     batch = re.search(r"5\. 16 shots, 8 at a time on the segment-stepped diagram: (\{.*\});", run.stdout)
     assert batch, run.stdout
-    outcomes = eval(batch.group(1))  # a dict literal printed by the tutorial
+    outcomes = ast.literal_eval(batch.group(1))  # a dict literal printed by the tutorial
     playable = 16 - outcomes.get("invalid", 0)
     assert sum(outcomes.values()) == 16 and playable >= 5 and outcomes.get("returned", 0) >= 0.8 * playable
 

@@ -94,3 +94,22 @@ def test_bad_actions_are_refused(distribution):
         dut.step(np.zeros(16))
     with pytest.raises(ValueError, match="num_envs"):
         RallyVectorEnv(0, PARAMS, distribution)
+
+
+def test_a_vector_worker_returns_whole_episodes(distribution):
+    """The batched rollout worker steps its environments until episodes end and returns each
+    ended one whole: its last transition terminal with the only non-zero reward, its next
+    observations the following observations, none of the autoreset steps recorded."""
+    from ace_drake.training.rollout import VectorRolloutWorker
+
+    dut = VectorRolloutWorker(3, PARAMS, distribution=distribution, seed=2)
+    episodes = dut.collect(4, "ou") + dut.collect(1, "policy")
+    assert len(episodes) >= 5 and {e.mode for e in episodes} == {"ou", "policy"}
+    for episode in episodes:
+        t = episode.transitions
+        assert t["done"][-1] == 1.0 and not t["done"][:-1].any() and t["reward"][-1] != 0.0 and not t["reward"][:-1].any()
+        np.testing.assert_array_equal(t["obs"][1:], t["next_obs"][:-1])
+        assert episode.end in ("out_of_play", "hit", "passed", "collision", "time_limit")
+        assert episode.summary.closest_approach is not None and episode.summary.closest_approach >= 0.0
+    with pytest.raises(ValueError, match="mode"):
+        dut.collect(1, "demonstrator")

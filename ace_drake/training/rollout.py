@@ -147,6 +147,18 @@ def load_episodes(path) -> list[Episode]:
     return episodes
 
 
+def closest_approach(previous, relative: np.ndarray):
+    """The near-miss measure (module docstring): (closest approach so far (m), ``relative`` now),
+    from the previous pair (None at the episode's start) and the ball's position relative to the
+    blade centre now (3,), m."""
+    if previous is None:
+        return float(np.linalg.norm(relative)), relative
+    closest, before = previous
+    step = relative - before
+    s = np.clip(-before @ step / max(step @ step, 1e-12), 0.0, 1.0)
+    return min(closest, float(np.linalg.norm(before + s * step))), relative
+
+
 class RolloutWorker:
     """One environment playing whole episodes (module docstring). ``set_actor`` installs fresh
     actor weights (a ``SacLearner.actor`` state dict); ``collect(episodes, mode)`` plays them.
@@ -299,13 +311,7 @@ class RolloutWorker:
 
     def _blade_distance(self, previous):
         """(closest approach so far (m), relative position now): module docstring."""
-        relative = self.env.ball_from_blade()
-        if previous is None:
-            return float(np.linalg.norm(relative)), relative
-        closest, before = previous
-        step = relative - before
-        s = np.clip(-before @ step / max(step @ step, 1e-12), 0.0, 1.0)
-        return min(closest, float(np.linalg.norm(before + s * step))), relative
+        return closest_approach(previous, self.env.ball_from_blade())
 
 
 VECTOR_MODES = ("policy", "ou")
@@ -348,7 +354,7 @@ class VectorRolloutWorker:
         self._obs, self._info = self.env.reset(seed=int(env_seed) % 2**31)
         self._rows = [self._empty_rows() for _ in range(batch)]
         self._started = [time.perf_counter()] * batch
-        self._closest = [self._blade_distance(None, row) for row in range(batch)]
+        self._closest = [closest_approach(None, relative) for relative in self.env.ball_from_blade()]
         self._fresh = np.ones(batch, dtype=bool)  # the environment's episode has not stepped yet
         self._restarting = np.zeros(batch, dtype=bool)  # its last step ended an episode: the next one restarts it
         self.episodes = 0
@@ -374,14 +380,15 @@ class VectorRolloutWorker:
                 actions = np.array([noise.sample(self.rng) for noise in self.noises])
             obs, rewards, terminated, _, info = self.env.step(actions)
             self._fresh[:] = False
+            relative = self.env.ball_from_blade()  # every environment's at once (the kinematics of all B)
             for row in range(self.batch):
                 if self._restarting[row]:
                     # NEXT_STEP autoreset: this step started the row's next episode; its action was ignored
                     self._rows[row], self._started[row] = self._empty_rows(), time.perf_counter()
-                    self._closest[row] = self._blade_distance(None, row)
+                    self._closest[row] = closest_approach(None, relative[row])
                     self._fresh[row] = True
                     continue
-                self._closest[row] = self._blade_distance(self._closest[row], row)
+                self._closest[row] = closest_approach(self._closest[row], relative[row])
                 for key, value in (("obs", self._obs[row]), ("privileged", self._info["privileged"][row]), ("action", actions[row]),
                                    ("reward", rewards[row]), ("next_obs", obs[row]), ("next_privileged", info["privileged"][row]),
                                    ("done", float(terminated[row]))):
@@ -400,12 +407,3 @@ class VectorRolloutWorker:
     def _empty_rows() -> dict:
         return {key: [] for key in TRANSITION_KEYS}
 
-    def _blade_distance(self, previous, row: int):
-        """(closest approach so far (m), relative position now) of environment ``row``."""
-        relative = self.env.ball_from_blade()[row]
-        if previous is None:
-            return float(np.linalg.norm(relative)), relative
-        closest, before = previous
-        step = relative - before
-        s = np.clip(-before @ step / max(step @ step, 1e-12), 0.0, 1.0)
-        return min(closest, float(np.linalg.norm(before + s * step))), relative
