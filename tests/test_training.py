@@ -35,7 +35,7 @@ from ace_drake.training.export import (
     plot_learning_curve,
 )
 from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
-from ace_drake.training.rollout import ExplorationParams, OrnsteinUhlenbeck, RolloutWorker, load_episodes, save_episodes
+from ace_drake.training.rollout import ExplorationParams, OrnsteinUhlenbeck, RolloutWorker, VectorRolloutWorker, load_episodes, save_episodes
 from ace_drake.training.stages import EARLIER_STAGE_DIR
 from ace_drake.training.workers import WorkerPool
 
@@ -317,6 +317,26 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
     assert isinstance(controllers.make_controller("policy:tiny", RallyParams()), torch.nn.Module)
     with pytest.raises(ConfigError, match="no shipped policy"):
         controllers.make_controller("policy:nope", RallyParams())
+
+
+def test_a_batched_run_collects_on_vector_workers_and_evaluates_on_the_segment_diagram(tmp_path):
+    # batch 3: the worker is a VectorRolloutWorker of 3 environments; a task is episodes_per_task
+    # episodes per environment; the evaluations are batched on the segment-stepped diagram.
+    config = _config(batch=3, demonstrations=0, pretrain_updates=0, ou_episodes=4, env_steps=150, evaluation_episodes=4)
+    assert config.task_episodes == 3
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    assert isinstance(trainer._workers()._workers[0], VectorRolloutWorker) and trainer._workers()._workers[0].batch == 3
+    state = trainer.run()
+    assert state.phase == "done" and state.env_steps >= 150 and state.ou_episodes == 4 and trainer.learner.updates > 0
+    assert state.evaluations and state.evaluations[-1][2]["played"] + state.evaluations[-1][2].get("invalid", 0) <= 4
+
+
+def test_batched_workers_refuse_the_modes_they_do_not_play():
+    for overrides in ({"demonstrations": 1}, {"learn_mode": "dagger"}, {"sac": dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))}):
+        with pytest.raises(ConfigError, match="batched workers play the paper's modes only"):
+            _config(batch=2, **{"demonstrations": 0, **overrides})
+    with pytest.raises(ConfigError, match="batch must be >= 0"):
+        _config(batch=-1)
 
 
 def test_the_evaluation_after_pretraining_counts_as_the_periodic_one(tmp_path):

@@ -63,6 +63,9 @@ from ace_drake.training.stages import earlier_stage_checkpoint, with_earlier_sta
 from ace_drake.training.workers import WorkerPool
 
 
+EVALUATION_BATCH = 32  # episodes at a time of a batched run's evaluations (segment-stepped diagram)
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """A training run (module docstring). Steps are environment steps (32 ms policy steps) of
@@ -74,7 +77,12 @@ class TrainConfig:
     workers: int = 2
     backend: str = "ray"  # "ray" or "local" (one in-process worker, for debugging)
     address: str = ""  # a Ray cluster's address; "" starts a local cluster
-    episodes_per_task: int = 4
+    episodes_per_task: int = 4  # per worker task; with batch, per environment of the worker's batch
+    # Environments per rollout worker: 0 plays one RallyEnv (the continuous-time reference
+    # diagram) per worker; B >= 1 a RallyVectorEnv of B environments on the segment-stepped
+    # diagram (issue 29; the paper's modes, policy and OU, with the eq. (12) action), and the
+    # evaluations run on the segment-stepped diagram too, EVALUATION_BATCH episodes at a time.
+    batch: int = 0
     demonstrations: int = 0  # returner episodes before learning (this project's; the paper: 0)
     demonstration_files: tuple[str, ...] = ()  # rollout.save_episodes files to use instead
     ou_episodes: int = 100  # OU exploration before learning starts (paper; count not public)
@@ -123,7 +131,7 @@ class TrainConfig:
                      "evaluate_every", "evaluation_episodes", "torch_threads"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every"):
+        for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
@@ -137,6 +145,10 @@ class TrainConfig:
             raise ConfigError(f"TrainConfig.backend must be 'ray' or 'local', got {self.backend!r}")
         if self.backend == "local" and self.workers != 1:
             raise ConfigError("TrainConfig: the local backend runs one worker (workers: 1)")
+        if self.batch and (self.demonstrations or self.learn_mode != "policy" or self.sac.action != "terminal"):
+            raise ConfigError("TrainConfig.batch: batched workers play the paper's modes only (policy and OU, the eq. (12) action 'terminal'); "
+                              f"got demonstrations {self.demonstrations}, learn_mode {self.learn_mode!r}, sac.action {self.sac.action!r} "
+                              "(returner demonstrations can come from demonstration_files)")
         if self.evaluation_sensors not in ("cameras", "statistical"):
             raise ConfigError(f"TrainConfig.evaluation_sensors must be 'cameras' or 'statistical', got {self.evaluation_sensors!r}")
         if self.evaluation_players and not self.evaluation_data:
@@ -155,6 +167,11 @@ class TrainConfig:
         for path in self.demonstration_files:
             if not Path(path).is_file():
                 raise ConfigError(f"TrainConfig.demonstration_files: no such file {path}")
+
+    @property
+    def task_episodes(self) -> int:
+        """Episodes per worker task: ``episodes_per_task``, times B with batched workers."""
+        return self.episodes_per_task * max(self.batch, 1)
 
 
 def load_train_config(path) -> TrainConfig:
@@ -239,6 +256,8 @@ class Trainer(Checkpointing):
             c = self.config
             args = {"env_params": c.env, "sac": c.sac, "play": c.play, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
                     "returner": c.returner}
+            if c.batch:
+                args["batch"] = c.batch
             self._pool = WorkerPool(c.workers, args, c.backend, c.address or None)
             self._pool.publish(self.learner.actor.state_dict())
         return self._pool
@@ -263,15 +282,15 @@ class Trainer(Checkpointing):
             return
         pool = self._workers()
         for index in range(pool.count):
-            pool.submit(index, self.config.episodes_per_task, mode)
+            pool.submit(index, self.config.task_episodes, mode)
         while getattr(self.state, counter) < total:
             index, episodes = pool.wait()
             for episode in episodes:
                 if getattr(self.state, counter) < total:
                     self._ingest(episode)
                     setattr(self.state, counter, getattr(self.state, counter) + 1)
-            if getattr(self.state, counter) + pool.in_flight * self.config.episodes_per_task < total:
-                pool.submit(index, self.config.episodes_per_task, mode)
+            if getattr(self.state, counter) + pool.in_flight * self.config.task_episodes < total:
+                pool.submit(index, self.config.task_episodes, mode)
             self._periodic(evaluate=False)
         while pool.in_flight:  # finished tasks beyond the total are dropped
             pool.wait()
@@ -299,7 +318,7 @@ class Trainer(Checkpointing):
         pool = self._workers()
         pool.publish(self.learner.actor.state_dict())
         for index in range(pool.count):
-            pool.submit(index, c.episodes_per_task, c.learn_mode)
+            pool.submit(index, c.task_episodes, c.learn_mode)
         learn_start, updates_start = self.state.learn_start
         while self.state.env_steps < c.env_steps:
             result = pool.wait(timeout=0.0 if self.config.backend == "ray" else None)
@@ -329,7 +348,7 @@ class Trainer(Checkpointing):
         index, episodes = result
         for episode in episodes:
             self._ingest(episode)
-        pool.submit(index, self.config.episodes_per_task, self.config.learn_mode)
+        pool.submit(index, self.config.task_episodes, self.config.learn_mode)
 
     def _ingest(self, episode: Episode) -> None:
         summary = episode.summary
@@ -388,9 +407,9 @@ class Trainer(Checkpointing):
         if s.env_steps >= s.next_evaluation:  # the next periodic one is due evaluate_every from here
             s.next_evaluation += c.evaluate_every * (1 + (s.env_steps - s.next_evaluation) // c.evaluate_every)
         shots, serve = evaluation_shots(c)
-        params = RallyParams(perception=PerceptionParams(positions=c.evaluation_sensors))
+        params = RallyParams(perception=PerceptionParams(positions=c.evaluation_sensors), stepping="segment" if c.batch else "continuous")
         start = time.perf_counter()
-        figures = evaluate(self.learner.policy(), params, shots, serve, seed=c.seed)
+        figures = evaluate(self.learner.policy(), params, shots, serve, seed=c.seed, batch=EVALUATION_BATCH if c.batch else 1)
         rate = figures["return_rate"]
         summary = {"rate": rate["rate"], "ci95": rate["ci95"], "played": rate["played"], "returned": rate["returned"],
                    "not_returned_by_reason": figures["not_returned_by_reason"]}
