@@ -49,6 +49,20 @@ class Measurement:
         object.__setattr__(self, "value", value)
         object.__setattr__(self, "covariance", covariance)
 
+    @classmethod
+    def from_model(cls, sequence: int, capture_time: float, release_time: float, value: np.ndarray, covariance: np.ndarray) -> Measurement:
+        """A Measurement built without ``__post_init__``'s copies and checks, for a sensor model's
+        own output (``sensor_models.release_due_batch``), which meets them by construction:
+        ``value`` (3,) and ``covariance`` (3, 3) finite float arrays that nothing else holds
+        writable (they are made read-only here, not copied), capture_time <= release_time (s).
+        Anything else (a measurement built by hand, a triangulation) goes through the checks."""
+        measurement = object.__new__(cls)
+        value.flags.writeable = False
+        covariance.flags.writeable = False
+        # the fields straight into the instance (frozen: no __setattr__)
+        measurement.__dict__.update(sequence=sequence, capture_time=capture_time, release_time=release_time, value=value, covariance=covariance)
+        return measurement
+
     def __deepcopy__(self, memo) -> Measurement:
         return self  # immutable: Drake's abstract-state copies need not duplicate it
 
@@ -85,6 +99,12 @@ class MeasurementHistory:
         if measurement.sequence <= self.last_sequence:
             raise ValueError(f"MeasurementHistory: sequence {measurement.sequence} does not follow {self.last_sequence}")
         return MeasurementHistory((*self.measurements, measurement)[-self.capacity :], self.capacity)
+
+    def extended(self, measurements: tuple[Measurement, ...]) -> MeasurementHistory:
+        """A new history with ``measurements`` released last, in that order, numbered on from
+        ``last_sequence`` by their producer (``sensor_models.release_due``); the oldest dropped
+        beyond capacity."""
+        return MeasurementHistory((*self.measurements, *measurements)[-self.capacity :], self.capacity)
 
     def as_array(self, count: int, now: float) -> np.ndarray:
         """The latest ``count`` measurements as an array (count, 4) of [value (3,), age (s)] with

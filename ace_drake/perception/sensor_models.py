@@ -69,8 +69,119 @@ def release_due(
     for item in pending[:count]:
         sequence += 1
         released.append(Measurement(sequence, item.capture_time, item.release_time, item.value, item.covariance))
-    measurements = (*history.measurements, *released)[-history.capacity :]
-    return MeasurementHistory(measurements, history.capacity), pending[count:]
+    return history.extended(tuple(released)), pending[count:]
+
+
+@dataclasses.dataclass(frozen=True)
+class PendingBatch:
+    """The pending measurements of B sensors (one per environment) in flat arrays: entry i was
+    sampled by sensor ``row[i]``, and the entries are in order of row, then release time, then
+    capture time (``insert_pending``'s order within a row; ties keep the order of insertion).
+    Immutable: the arrays are read-only.
+
+    row (n,) int; capture_time, release_time (n,), s; value (n, 3); covariance (n, 3, 3).
+    """
+
+    row: np.ndarray
+    capture_time: np.ndarray
+    release_time: np.ndarray
+    value: np.ndarray
+    covariance: np.ndarray
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            getattr(self, field.name).flags.writeable = False
+
+    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
+        return self
+
+    @classmethod
+    def empty(cls) -> PendingBatch:
+        """No pending measurement."""
+        return cls(np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+
+    @classmethod
+    def from_samples(cls, row, capture_time, release_time, value, covariance, kept) -> PendingBatch:
+        """The ``kept`` (n,) samples of a sensor model's output for the sensors ``row`` (n,),
+        put in order; the others are dropped. A sensor's samples must come in capture order
+        (as ``sample_*_measurements`` make their PendingMeasurements). covariance: (n, 3, 3),
+        or (3, 3) for all."""
+        kept = np.asarray(kept, dtype=bool)
+        covariance = np.broadcast_to(np.asarray(covariance, dtype=float), (kept.size, 3, 3))
+        row, capture_time, release_time = np.asarray(row, dtype=np.int64)[kept], np.asarray(capture_time, dtype=float)[kept], np.asarray(release_time, dtype=float)[kept]
+        order = np.lexsort((capture_time, release_time, row))  # stable: ties keep the capture order
+        return cls(row[order], capture_time[order], release_time[order], np.asarray(value, dtype=float)[kept][order], covariance[kept][order])
+
+    @classmethod
+    def from_rows(cls, rows) -> PendingBatch:
+        """From each sensor's tuple of PendingMeasurements (in ``insert_pending``'s order)."""
+        items = [(b, item) for b, pending in enumerate(rows) for item in pending]
+        if not items:
+            return cls.empty()
+        return cls(
+            np.array([b for b, _ in items], dtype=np.int64), np.array([item.capture_time for _, item in items], dtype=float),
+            np.array([item.release_time for _, item in items], dtype=float), np.array([item.value for _, item in items], dtype=float),
+            np.array([item.covariance for _, item in items], dtype=float),
+        )
+
+    def row_pending(self, b: int) -> tuple[PendingMeasurement, ...]:
+        """Sensor ``b``'s pending measurements, as ``insert_pending`` orders them."""
+        return tuple(
+            PendingMeasurement(float(self.capture_time[i]), float(self.release_time[i]), self.value[i], self.covariance[i]) for i in np.flatnonzero(self.row == b)
+        )
+
+    def without_rows(self, rows) -> PendingBatch:
+        """A copy without sensors ``rows``' pending measurements (new episodes)."""
+        keep = ~np.isin(self.row, np.asarray(rows, dtype=np.int64))
+        return PendingBatch(self.row[keep], self.capture_time[keep], self.release_time[keep], self.value[keep], self.covariance[keep])
+
+
+def insert_pending_batch(pending: PendingBatch, new: PendingBatch) -> PendingBatch:
+    """``insert_pending`` for every sensor of a batch: ``pending`` and ``new`` in order (row,
+    release time, capture time; ties: ``pending`` first)."""
+    if new.row.size == 0:
+        return pending
+    if pending.row.size == 0:
+        return new
+    row, capture_time, release_time = (np.concatenate([getattr(pending, name), getattr(new, name)]) for name in ("row", "capture_time", "release_time"))
+    order = np.lexsort((capture_time, release_time, row))  # stable
+    return PendingBatch(
+        row[order], capture_time[order], release_time[order],
+        np.concatenate([pending.value, new.value])[order], np.concatenate([pending.covariance, new.covariance])[order],
+    )
+
+
+def due_mask(pending: PendingBatch, now: np.ndarray) -> np.ndarray:
+    """Whether each pending measurement (n,) is released at or before its sensor's ``now`` (B,), s."""
+    return pending.release_time <= np.asarray(now, dtype=float)[pending.row]
+
+
+def release_due_batch(
+    histories: tuple[MeasurementHistory, ...], pending: PendingBatch, now: np.ndarray
+) -> tuple[tuple[MeasurementHistory, ...], PendingBatch]:
+    """``release_due`` for every sensor of a batch: sensor b's pending measurements released at
+    or before ``now[b]`` (s) numbered on from ``histories[b].last_sequence`` in release order and
+    appended to it. Returns (the B histories, the rest of ``pending``); a history with nothing
+    released is the same object. The Measurements come from the sensor models, so they take
+    ``Measurement.from_model`` (no per-measurement checks)."""
+    due = due_mask(pending, now)
+    if not due.any():
+        return histories, pending
+    # Fancy indexing copies: the released values belong to their Measurements alone.
+    rows, values, covariances = pending.row[due], pending.value[due], pending.covariance[due]
+    capture_times, release_times = pending.capture_time[due].tolist(), pending.release_time[due].tolist()
+    # A sensor's entries are in release order, so its due ones come first and in order.
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    stops = np.r_[starts[1:], rows.size]
+    updated = list(histories)
+    for b, start, stop in zip(rows[starts].tolist(), starts.tolist(), stops.tolist()):
+        history = histories[b]
+        first = history.last_sequence + 1 - start
+        updated[b] = history.extended(tuple(
+            Measurement.from_model(first + i, capture_times[i], release_times[i], values[i], covariances[i]) for i in range(start, stop)
+        ))
+    rest = ~due
+    return tuple(updated), PendingBatch(pending.row[rest], pending.capture_time[rest], pending.release_time[rest], pending.value[rest], pending.covariance[rest])
 
 
 # ---------------------------------------------------------------------------------- positions
@@ -86,15 +197,44 @@ def sample_position_measurements(
     """
     p_W = np.asarray(p_W, dtype=float).reshape(-1, 3)
     capture_times = np.asarray(capture_times, dtype=float).reshape(-1)
-    count = p_W.shape[0]
-    kept = rng.random(count) >= params.dropout_probability
-    latencies = rng.uniform(params.latency_min, params.latency_max, count)
-    values = p_W + params.noise_std * rng.standard_normal((count, 3))
-    covariance = np.eye(3) * params.noise_std**2
+    kept, release_times, values, covariance = position_measurements(p_W, capture_times, draw_position_variates(p_W.shape[0], params, rng), params)
     return tuple(
-        PendingMeasurement(float(capture_times[i]), float(capture_times[i] + latencies[i]), values[i], covariance)
+        PendingMeasurement(float(capture_times[i]), float(release_times[i]), values[i], covariance)
         for i in np.flatnonzero(kept)
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class PositionVariates:
+    """The random variates of n position samples: ``dropout`` (n,) and ``latency`` (n,) uniforms,
+    ``noise`` (n, 3) standard normals (``draw_position_variates``)."""
+
+    dropout: np.ndarray
+    latency: np.ndarray
+    noise: np.ndarray
+
+    @classmethod
+    def concatenate(cls, parts) -> PositionVariates:
+        """The variates of several sample sets, one after the other."""
+        return cls(*(np.concatenate([getattr(part, name) for part in parts]) for name in ("dropout", "latency", "noise")))
+
+
+def draw_position_variates(count: int, params: PositionSensorParams, rng: np.random.Generator) -> PositionVariates:
+    """The variates of ``count`` position samples. Draws, in this order: n uniforms (dropout), n
+    uniforms on [latency_min, latency_max] s (latency), 3n standard normals (noise)."""
+    return PositionVariates(rng.random(count), rng.uniform(params.latency_min, params.latency_max, count), rng.standard_normal((count, 3)))
+
+
+def position_measurements(
+    p_W: np.ndarray, capture_times: np.ndarray, variates: PositionVariates, params: PositionSensorParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The position model (``sample_position_measurements``) of n samples, true positions ``p_W``
+    (n, 3), m, at ``capture_times`` (n,), s, with their ``variates``, sample by sample (any n:
+    one sensor's samples or a batch's). Returns (kept (n,) bool, release times (n,) s, values
+    (n, 3) m, covariance (3, 3) m^2)."""
+    kept = variates.dropout >= params.dropout_probability
+    values = p_W + params.noise_std * variates.noise
+    return kept, capture_times + variates.latency, values, np.eye(3) * params.noise_std**2
 
 
 # ---------------------------------------------------------------------------------- spin
@@ -143,10 +283,17 @@ def racket_tracking_loss(capture_times: np.ndarray, racket_contact_times: np.nda
     racket contact time t_c (k,) (paper: "additional dropout applied directly after racket
     contact to reflect tracking loss of GCS")."""
     capture_times = np.asarray(capture_times, dtype=float).reshape(-1)
-    racket_contact_times = np.asarray(racket_contact_times, dtype=float).reshape(-1)
-    if racket_contact_times.size == 0:
+    racket_contact_times = np.asarray(racket_contact_times, dtype=float).reshape(1, -1)
+    return racket_tracking_loss_batch(np.zeros(capture_times.size, dtype=np.int64), capture_times, racket_contact_times, params)
+
+
+def racket_tracking_loss_batch(rows: np.ndarray, capture_times: np.ndarray, racket_contact_times: np.ndarray, params: SpinSensorParams) -> np.ndarray:
+    """``racket_tracking_loss`` of captures (n,), s, by the sensors ``rows`` (n,) of a batch
+    whose racket contact times are ``racket_contact_times`` (B, k), s, each row padded with NaN."""
+    capture_times = np.asarray(capture_times, dtype=float).reshape(-1)
+    if racket_contact_times.shape[1] == 0:
         return np.zeros(capture_times.shape, dtype=bool)
-    since = capture_times[:, None] - racket_contact_times[None, :]
+    since = capture_times[:, None] - racket_contact_times[rows]
     return np.any((since >= 0.0) & (since <= params.racket_dropout_duration), axis=1)
 
 
@@ -256,22 +403,67 @@ def sample_spin_measurements(
     count = w_W.shape[0]
     if count == 0:
         return ()
-    kept = rng.random(count) >= params.dropout_probability
-    lost = np.asarray(tracking_loss, dtype=bool) & (rng.random(count) < params.racket_dropout_probability)
+    variates = draw_spin_variates(count, params, rng)
+    kept, release_times, values, covariances = spin_measurements(w_W, capture_times, bias_magnitude, bias_rotation_vector, tracking_loss, variates, params)
+    return tuple(
+        PendingMeasurement(float(capture_times[i]), float(release_times[i]), values[i], covariances[i])
+        for i in np.flatnonzero(kept)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class SpinVariates:
+    """The random variates of n spin samples (``draw_spin_variates``): uniforms ``dropout``,
+    ``tracking_loss`` (n,) and ``latency`` (n,) on [latency_min, latency_max] s; standard normals
+    ``magnitude`` (n,), ``axis`` (n, 3) and ``fallback_axis`` (n, 3)."""
+
+    dropout: np.ndarray
+    tracking_loss: np.ndarray
+    latency: np.ndarray
+    magnitude: np.ndarray
+    axis: np.ndarray
+    fallback_axis: np.ndarray
+
+    @classmethod
+    def concatenate(cls, parts) -> SpinVariates:
+        """The variates of several sample sets, one after the other."""
+        return cls(*(np.concatenate([getattr(part, field.name) for part in parts]) for field in dataclasses.fields(cls)))
+
+
+def draw_spin_variates(count: int, params: SpinSensorParams, rng: np.random.Generator) -> SpinVariates:
+    """The variates of ``count`` spin samples. Draws, in this order: n uniforms (dropout), n
+    uniforms (tracking loss), n uniforms (latency), n normals (magnitude noise), 3n normals (axis
+    noise), 3n normals (axis for a zero spin)."""
+    return SpinVariates(
+        rng.random(count), rng.random(count), rng.uniform(params.latency_min, params.latency_max, count),
+        rng.standard_normal(count), rng.standard_normal((count, 3)), rng.standard_normal((count, 3)),
+    )
+
+
+def spin_measurements(
+    w_W: np.ndarray,
+    capture_times: np.ndarray,
+    bias_magnitude: np.ndarray,
+    bias_rotation_vector: np.ndarray,
+    tracking_loss: np.ndarray,
+    variates: SpinVariates,
+    params: SpinSensorParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The spin model (``sample_spin_measurements``) of n samples with their ``variates``, sample
+    by sample (any n: one sensor's samples or a batch's). Arguments as
+    ``sample_spin_measurements``'. Returns (kept (n,) bool, release times (n,) s, values (n, 3)
+    rad/s, covariances (n, 3, 3) (rad/s)^2)."""
+    w_W = np.asarray(w_W, dtype=float).reshape(-1, 3)
+    kept = variates.dropout >= params.dropout_probability
+    lost = np.asarray(tracking_loss, dtype=bool) & (variates.tracking_loss < params.racket_dropout_probability)
     kept &= ~lost
-    latencies = rng.uniform(params.latency_min, params.latency_max, count)
-    magnitude_noise = params.magnitude_noise_std * rng.standard_normal(count)
-    axis_noise = params.axis_noise_std * rng.standard_normal((count, 3))
-    fallback_axis = rng.standard_normal((count, 3))
-    fallback_axis /= np.linalg.norm(fallback_axis, axis=1, keepdims=True)
+    magnitude_noise = params.magnitude_noise_std * variates.magnitude
+    axis_noise = params.axis_noise_std * variates.axis
+    fallback_axis = variates.fallback_axis / np.linalg.norm(variates.fallback_axis, axis=1, keepdims=True)
     # The measured axis: the bias's rotation, then this sample's noise.
     bias_rotation = np.asarray(bias_rotation_vector, dtype=float).reshape(-1, 3)
     values = perturb_spin(w_W, np.asarray(bias_magnitude, dtype=float) + magnitude_noise, (bias_rotation, axis_noise), fallback_axis)
-    covariances = spin_precision_covariance(values, params)
-    return tuple(
-        PendingMeasurement(float(capture_times[i]), float(capture_times[i] + latencies[i]), values[i], covariances[i])
-        for i in np.flatnonzero(kept)
-    )
+    return kept, np.asarray(capture_times, dtype=float) + variates.latency, values, spin_precision_covariance(values, params)
 
 
 def spin_at_times(
@@ -285,10 +477,21 @@ def spin_at_times(
     Returns (spins, contact counts (n,): the index of the sample's contact interval).
     """
     times = np.asarray(times, dtype=float).reshape(-1)
-    contact_times = np.asarray(contact_times, dtype=float).reshape(-1)
-    counts = np.searchsorted(contact_times, times, side="right")
-    spins = np.broadcast_to(np.asarray(w_now, dtype=float), (times.size, 3)).copy()
-    later = counts < contact_times.size
+    contact_times = np.asarray(contact_times, dtype=float).reshape(1, -1)
+    spins_before = np.asarray(spins_before_contact, dtype=float).reshape(1, -1, 3)
+    return spin_at_times_batch(np.zeros(times.size, dtype=np.int64), times, np.asarray(w_now, dtype=float).reshape(1, 3), contact_times, spins_before)
+
+
+def spin_at_times_batch(
+    rows: np.ndarray, times: np.ndarray, w_now: np.ndarray, contact_times: np.ndarray, spins_before_contact: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``spin_at_times`` of past ``times`` (n,), s, of the balls ``rows`` (n,) of a batch: their
+    spins now ``w_now`` (B, 3), rad/s, contact times ``contact_times`` (B, k), s, ascending,
+    each row padded with inf, and the spins just before them ``spins_before_contact`` (B, k, 3)."""
+    times = np.asarray(times, dtype=float).reshape(-1)
+    counts = np.sum(contact_times[rows] <= times[:, None], axis=1)  # searchsorted(..., side="right") per row
+    spins = np.asarray(w_now, dtype=float)[rows]
+    later = counts < np.sum(np.isfinite(contact_times), axis=1)[rows]
     if np.any(later):
-        spins[later] = np.asarray(spins_before_contact, dtype=float).reshape(-1, 3)[counts[later]]
+        spins[later] = spins_before_contact[rows[later], counts[later]]
     return spins, counts

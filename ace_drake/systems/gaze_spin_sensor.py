@@ -12,17 +12,23 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import SpinSensorParams
 from ace_drake.perception.sensor_models import (
+    PendingBatch,
     SpinBias,
+    SpinVariates,
     draw_spin_bias,
+    draw_spin_variates,
     first_spin_capture_time,
     racket_tracking_loss,
+    racket_tracking_loss_batch,
     sample_spin_measurements,
     spin_at_times,
+    spin_at_times_batch,
     spin_capture_times,
+    spin_measurements,
 )
 from ace_drake.physics.propagate import ContactKind
 from ace_drake.systems.random_seed import declare_seed_port, episode_seed
-from ace_drake.systems.statistical_position_sensor import SensorQueue
+from ace_drake.systems.statistical_position_sensor import SensorQueue, SensorQueueBatch
 
 SPIN_STREAM = 2  # random streams under the seed (the position sensor uses 1)
 BIAS_STREAM = 3
@@ -46,30 +52,42 @@ class SpinSensorState:
         return self
 
 
+def first_capture_time(params: SpinSensorParams, seed: int, now: float) -> float:
+    """A new episode's first sample time (s), one random interval after ``now`` (s), drawn from
+    [seed, START_STREAM]."""
+    return first_spin_capture_time(now, params, np.random.default_rng([seed, START_STREAM]))
+
+
 def start_spin_sensor(params: SpinSensorParams, empty: SpinSensorState, seed: int, now: float) -> SpinSensorState:
     """A new episode's state at time ``now`` (s): ``empty``, its first sample one random interval
-    later (drawn from [seed, START_STREAM])."""
-    rng = np.random.default_rng([seed, START_STREAM])
-    return dataclasses.replace(empty, next_capture_time=first_spin_capture_time(now, params, rng))
+    later (``first_capture_time``)."""
+    return dataclasses.replace(empty, next_capture_time=first_capture_time(params, seed, now))
+
+
+def poll_rng(params: SpinSensorParams, seed: int, now: float) -> np.random.Generator:
+    """The generator of the poll at ``now`` (s): [seed, SPIN_STREAM, poll index]."""
+    return np.random.default_rng([seed, SPIN_STREAM, round(now / params.poll_period)])
+
+
+def bias_of_interval(params: SpinSensorParams, seed: int, index: int) -> SpinBias:
+    """The accuracy bias of contact interval ``index`` (paper: "accuracy is sampled once per
+    contact event"), drawn from [seed, BIAS_STREAM, index]."""
+    return draw_spin_bias(params, np.random.default_rng([seed, BIAS_STREAM, index]))
 
 
 def poll_spin_sensor(params: SpinSensorParams, current: SpinSensorState, seed: int, now: float, w_now: np.ndarray, events) -> SpinSensorState:
     """One poll at ``now`` (s; a multiple of ``poll_period``): samples every capture time reached
     since the last poll, with the ball's spin ``w_now`` (3,) rad/s and its contact ``events`` up to
     now, and releases what is due (the GazeSpinSensor's rule; the segment-stepped sensor runs the
-    same polls). Draws from [seed, SPIN_STREAM, poll index] and [seed, BIAS_STREAM, interval]."""
-    rng = np.random.default_rng([seed, SPIN_STREAM, round(now / params.poll_period)])
+    same polls, ``poll_spin_sensors``). Draws from ``poll_rng`` and ``bias_of_interval``."""
+    rng = poll_rng(params, seed, now)
     captures, next_capture_time = spin_capture_times(current.next_capture_time, now, params, rng)
     sampled, biases = (), current.biases
     if captures.size:
         contact_times = np.array([event.time for event in events])
         spins_before = np.array([event.state_pre[6:9] for event in events]).reshape(-1, 3)
         w_WB, intervals = spin_at_times(captures, w_now, contact_times, spins_before)
-        # paper: "accuracy is sampled once per contact event"
-        biases = biases + tuple(
-            draw_spin_bias(params, np.random.default_rng([seed, BIAS_STREAM, index]))
-            for index in range(len(biases), int(intervals.max()) + 1)
-        )
+        biases = biases + tuple(bias_of_interval(params, seed, index) for index in range(len(biases), int(intervals.max()) + 1))
         racket_times = [event.time for event in events if event.kind == ContactKind.RACKET]
         sampled = sample_spin_measurements(
             w_WB,
@@ -81,6 +99,112 @@ def poll_spin_sensor(params: SpinSensorParams, current: SpinSensorState, seed: i
             rng,
         )
     return SpinSensorState(current.queue.sampled(sampled, now), next_capture_time, biases)
+
+
+@dataclasses.dataclass(frozen=True)
+class SpinSensorBatchState:
+    """The SpinSensorStates of B sensors (one per environment) in arrays.
+
+    queue: their queues; next_capture_time (B,): s, each one's next sample (NaN before its
+    episode starts); bias_magnitude (B, k), rad/s, and bias_rotation_vector (B, k, 3), rad: the
+    biases of the first ``bias_count`` (B,) contact intervals of each (the rest padding).
+    """
+
+    queue: SensorQueueBatch
+    next_capture_time: np.ndarray
+    bias_magnitude: np.ndarray
+    bias_rotation_vector: np.ndarray
+    bias_count: np.ndarray
+
+    @classmethod
+    def empty(cls, batch: int, capacity: int) -> SpinSensorBatchState:
+        """B sensors before their episodes, histories of ``capacity``."""
+        return cls(SensorQueueBatch.empty(batch, capacity), np.full(batch, np.nan), np.zeros((batch, 0)), np.zeros((batch, 0, 3)), np.zeros(batch, dtype=np.int64))
+
+    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
+        return self
+
+    def row(self, b: int) -> SpinSensorState:
+        """Sensor ``b``'s state as the continuous-time sensor keeps it."""
+        biases = tuple(SpinBias(float(self.bias_magnitude[b, i]), self.bias_rotation_vector[b, i]) for i in range(int(self.bias_count[b])))
+        return SpinSensorState(self.queue.row(b), float(self.next_capture_time[b]), biases)
+
+    def started(self, params: SpinSensorParams, rows, seeds, now: float, empty: MeasurementHistory) -> SpinSensorBatchState:
+        """Sensors ``rows`` starting episodes at ``now`` (s) with ``seeds`` (k,) (``start_spin_sensor``)."""
+        rows = np.asarray(rows, dtype=int).reshape(-1)
+        next_capture_time, bias_count = self.next_capture_time.copy(), self.bias_count.copy()
+        for b, seed in zip(rows, np.asarray(seeds, dtype=np.int64).reshape(-1)):
+            next_capture_time[b] = first_capture_time(params, int(seed), now)
+        bias_count[rows] = 0
+        return SpinSensorBatchState(self.queue.restarted(rows, empty), next_capture_time, self.bias_magnitude, self.bias_rotation_vector, bias_count)
+
+
+def _contact_arrays(events, rows: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The contacts of the balls ``rows`` as padded arrays: (times (B, k), s, inf-padded; spins
+    just before (B, k, 3), rad/s; racket contact times (B, k), s, NaN-padded)."""
+    width = max((len(events[b]) for b in rows), default=0)
+    contact_times, spins_before, racket_times = np.full((batch, width), np.inf), np.zeros((batch, width, 3)), np.full((batch, width), np.nan)
+    for b in rows:
+        if events[b]:
+            count = len(events[b])
+            contact_times[b, :count] = [event.time for event in events[b]]
+            spins_before[b, :count] = [event.state_pre[6:9] for event in events[b]]
+            racket = [event.time for event in events[b] if event.kind == ContactKind.RACKET]
+            racket_times[b, : len(racket)] = racket
+    return contact_times, spins_before, racket_times
+
+
+def _with_biases(params: SpinSensorParams, current: SpinSensorBatchState, seeds: np.ndarray, needed: np.ndarray) -> SpinSensorBatchState:
+    """``current`` with the biases of the first ``needed`` (B,) contact intervals of every sensor
+    (``bias_of_interval``: each drawn once, the first time a sample of its interval is taken)."""
+    missing = np.flatnonzero(needed > current.bias_count)
+    if missing.size == 0:
+        return current
+    width = max(current.bias_magnitude.shape[1], int(needed.max()))
+    magnitude = np.zeros((needed.size, width))
+    rotation = np.zeros((needed.size, width, 3))
+    magnitude[:, : current.bias_magnitude.shape[1]] = current.bias_magnitude
+    rotation[:, : current.bias_magnitude.shape[1]] = current.bias_rotation_vector
+    bias_count = current.bias_count.copy()
+    for b in missing:
+        for index in range(int(current.bias_count[b]), int(needed[b])):
+            bias = bias_of_interval(params, int(seeds[b]), index)
+            magnitude[b, index], rotation[b, index] = bias.magnitude, bias.rotation_vector
+        bias_count[b] = needed[b]
+    return dataclasses.replace(current, bias_magnitude=magnitude, bias_rotation_vector=rotation, bias_count=bias_count)
+
+
+def poll_spin_sensors(
+    params: SpinSensorParams, current: SpinSensorBatchState, seeds: np.ndarray, now: np.ndarray, w_now: np.ndarray, events
+) -> SpinSensorBatchState:
+    """``poll_spin_sensor`` of B sensors, sensor b at ``now[b]`` (s) with its ball's spin
+    ``w_now[b]`` (B, 3), rad/s, and contact events ``events[b]``: the same draws from the same
+    streams, sensor b's state that of ``poll_spin_sensor`` on ``current.row(b)``. The variates are
+    drawn sensor by sensor (only those with a capture due), the model computed for all at once."""
+    now = np.asarray(now, dtype=float)
+    next_capture_time = current.next_capture_time.copy()
+    polling = np.flatnonzero(next_capture_time <= now)  # NaN (not started): no capture
+    captures, variates = [], []
+    for b in polling:
+        rng = poll_rng(params, int(seeds[b]), float(now[b]))
+        times, next_capture_time[b] = spin_capture_times(next_capture_time[b], float(now[b]), params, rng)
+        captures.append(times)
+        variates.append(draw_spin_variates(times.size, params, rng))
+    if polling.size == 0:
+        return dataclasses.replace(current, queue=current.queue.sampled(PendingBatch.empty(), now))
+    rows = np.repeat(polling, [times.size for times in captures])
+    capture_times = np.concatenate(captures)
+    contact_times, spins_before, racket_times = _contact_arrays(events, polling, now.size)
+    w_WB, intervals = spin_at_times_batch(rows, capture_times, np.asarray(w_now, dtype=float), contact_times, spins_before)
+    needed = np.zeros(now.size, dtype=np.int64)
+    np.maximum.at(needed, rows, intervals + 1)
+    with_biases = _with_biases(params, current, seeds, needed)
+    kept, release_times, values, covariances = spin_measurements(
+        w_WB, capture_times, with_biases.bias_magnitude[rows, intervals], with_biases.bias_rotation_vector[rows, intervals],
+        racket_tracking_loss_batch(rows, capture_times, racket_times, params), SpinVariates.concatenate(variates), params,
+    )
+    sampled = PendingBatch.from_samples(rows, capture_times, release_times, values, covariances, kept)
+    return dataclasses.replace(with_biases, queue=current.queue.sampled(sampled, now), next_capture_time=next_capture_time)
 
 
 class GazeSpinSensor(LeafSystem):

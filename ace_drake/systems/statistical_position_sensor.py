@@ -10,7 +10,16 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import PositionSensorParams
-from ace_drake.perception.sensor_models import PendingMeasurement, insert_pending, release_due, sample_position_measurements
+from ace_drake.perception.sensor_models import (
+    PendingBatch,
+    PendingMeasurement,
+    due_mask,
+    insert_pending,
+    insert_pending_batch,
+    release_due,
+    release_due_batch,
+    sample_position_measurements,
+)
 from ace_drake.systems.random_seed import declare_seed_port, episode_seed
 
 POSITION_STREAM = 1  # random stream of this sensor under its seed (the spin sensor has its own)
@@ -44,6 +53,52 @@ class SensorQueue:
         if not new:
             return SensorQueue(*self.released(now))
         return SensorQueue(*release_due(self.history, insert_pending(self.pending, new), now))
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorQueueBatch:
+    """The SensorQueues of B sensors (one per environment) in one: their released ``histories``
+    and all their ``pending`` measurements in flat arrays, released by array operations
+    (``sensor_models.release_due_batch``). Immutable (it memoises ``released``)."""
+
+    histories: tuple[MeasurementHistory, ...]
+    pending: PendingBatch
+    _released: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
+
+    @classmethod
+    def empty(cls, batch: int, capacity: int) -> SensorQueueBatch:
+        """B empty queues whose histories keep ``capacity`` measurements."""
+        return cls((MeasurementHistory(capacity=capacity),) * batch, PendingBatch.empty())
+
+    def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
+        return self
+
+    def row(self, b: int) -> SensorQueue:
+        """Sensor ``b``'s queue as the continuous-time sensor keeps it."""
+        return SensorQueue(self.histories[b], self.pending.row_pending(b))
+
+    def released(self, now: np.ndarray) -> tuple[tuple[MeasurementHistory, ...], PendingBatch]:
+        """``SensorQueue.released`` of every sensor, sensor b at ``now[b]`` (s). Memoised per
+        set released, as SensorQueue's."""
+        due = due_mask(self.pending, now)
+        key = due.tobytes()
+        if key not in self._released:
+            self._released[key] = release_due_batch(self.histories, self.pending, now)
+        return self._released[key]
+
+    def sampled(self, new: PendingBatch, now: np.ndarray) -> SensorQueueBatch:
+        """``SensorQueue.sampled`` of every sensor: ``new`` measurements sampled and what is due
+        at ``now`` (B,), s, released."""
+        if new.row.size == 0:
+            return SensorQueueBatch(*self.released(now))
+        return SensorQueueBatch(*release_due_batch(self.histories, insert_pending_batch(self.pending, new), now))
+
+    def restarted(self, rows, empty: MeasurementHistory) -> SensorQueueBatch:
+        """Sensors ``rows`` back to ``empty`` histories with nothing pending (new episodes)."""
+        histories = list(self.histories)
+        for b in np.asarray(rows, dtype=int).reshape(-1):
+            histories[b] = empty
+        return SensorQueueBatch(tuple(histories), self.pending.without_rows(rows))
 
 
 def trigger_position_sensor(params: PositionSensorParams, queue: SensorQueue, seed: int, now: float, p_WB: np.ndarray) -> SensorQueue:

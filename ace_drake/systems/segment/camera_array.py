@@ -7,7 +7,7 @@ import numpy as np
 from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.perception.camera_segment import CameraSegment
 from ace_drake.perception.params import PositionSensorParams
-from ace_drake.perception.sensor_models import PendingMeasurement
+from ace_drake.perception.sensor_models import PendingBatch
 from ace_drake.systems.segment.position_sensor import SegmentPositionSensor
 
 
@@ -31,23 +31,27 @@ class SegmentCameraArray(SegmentPositionSensor):
     def _trigger_period(self) -> float:
         return self.cameras.period
 
-    def _sample(self, flight, ticks: np.ndarray, first: np.ndarray, seeds: np.ndarray) -> list[tuple]:
-        sampled: list[tuple] = [()] * self.batch
+    def _sample(self, flight, ticks: np.ndarray, first: np.ndarray, seeds: np.ndarray) -> PendingBatch:
+        triggers, valid = self._trigger_grid(first)
         groups: dict[tuple, list[int]] = {}
         for row in range(self.batch):
-            groups.setdefault(tuple(self._triggers(first[row]) - first[row]), []).append(row)
+            groups.setdefault(tuple((triggers[row, valid[row]] - first[row]).tolist()), []).append(row)
+        parts = []
         for offsets, rows in groups.items():
             if not offsets:
                 continue
             rows = np.array(rows)
             indices = np.asarray(offsets)
-            triggers = first[rows, None] + indices[None, :]  # episode samples (k, m)
+            row_triggers = first[rows, None] + indices[None, :]  # episode samples (k, m)
             measured = self.cameras.measure(
-                flight.samples[rows][:, indices, :3], self.timing.seconds(triggers), seeds[rows].astype(np.uint64), triggers // self._trigger + 1
+                flight.samples[rows][:, indices, :3], self.timing.seconds(row_triggers), seeds[rows].astype(np.uint64), row_triggers // self._trigger + 1
             )
-            for k, row in enumerate(rows):
-                sampled[row] = tuple(
-                    PendingMeasurement(float(measured.capture_time[k, i]), float(measured.release_time[k, i]), measured.value[k, i], measured.covariance[k, i])
-                    for i in np.flatnonzero(measured.valid[k])
-                )
-        return sampled
+            parts.append((np.repeat(rows, indices.size), measured))
+        if not parts:
+            return PendingBatch.empty()
+        return PendingBatch.from_samples(
+            *(np.concatenate(items) for items in zip(*(
+                (sample_rows, m.capture_time.reshape(-1), m.release_time.reshape(-1), m.value.reshape(-1, 3), m.covariance.reshape(-1, 3, 3), m.valid.reshape(-1))
+                for sample_rows, m in parts
+            )))
+        )

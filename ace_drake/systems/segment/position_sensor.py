@@ -9,8 +9,8 @@ from pydrake.systems.framework import LeafSystem
 from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import PositionSensorParams
-from ace_drake.perception.sensor_models import sample_position_measurements
-from ace_drake.systems.statistical_position_sensor import POSITION_STREAM, SensorQueue
+from ace_drake.perception.sensor_models import PendingBatch, PositionVariates, draw_position_variates, position_measurements
+from ace_drake.systems.statistical_position_sensor import POSITION_STREAM, SensorQueueBatch
 
 
 def trigger_samples(period: float, timing: SegmentTiming, name: str) -> int:
@@ -36,7 +36,7 @@ class SegmentPositionSensor(LeafSystem):
         position_measurements (abstract tuple of B MeasurementHistory): positions p_WB (m) with
             covariance, everything released at or before the tick's start (state only).
     State:
-        abstract tuple of B SensorQueue; abstract int64 (B,): each episode's seed.
+        abstract SensorQueueBatch (the B queues); abstract int64 (B,): each episode's seed.
     Events:
         periodic unrestricted update every T (offset 0): the tick's triggers, their measurements
         queued until their release.
@@ -49,8 +49,8 @@ class SegmentPositionSensor(LeafSystem):
         self.batch = int(batch)
         self.timing = timing
         self._trigger = trigger_samples(self._trigger_period(), timing, type(self).__name__)
-        self._empty = SensorQueue(MeasurementHistory(capacity=params.history_capacity))
-        self._queue_index = self.DeclareAbstractState(AbstractValue.Make((self._empty,) * self.batch))
+        self._empty = MeasurementHistory(capacity=params.history_capacity)
+        self._queue_index = self.DeclareAbstractState(AbstractValue.Make(SensorQueueBatch.empty(self.batch, params.history_capacity)))
         self._seed_index = self.DeclareAbstractState(AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
         self.ball_flight_port = self.DeclareAbstractInputPort("ball_flight", AbstractValue.Make(None))
         self.episode_ticks_port = self.DeclareAbstractInputPort("episode_ticks", AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
@@ -65,16 +65,18 @@ class SegmentPositionSensor(LeafSystem):
 
     def StartEpisodes(self, context, rows, seeds) -> None:
         """Empties the queues of environments ``rows`` and sets their episode seeds (k,)."""
-        queues, all_seeds = list(self._queues(context)), self._seeds(context).copy()
-        for row, seed in zip(np.asarray(rows, dtype=int), np.asarray(seeds, dtype=np.int64)):
-            queues[row] = self._empty
-            all_seeds[row] = seed
-        context.SetAbstractState(self._queue_index, tuple(queues))
+        all_seeds = self._seeds(context).copy()
+        all_seeds[np.asarray(rows, dtype=int)] = np.asarray(seeds, dtype=np.int64)
+        context.SetAbstractState(self._queue_index, self.queues(context).restarted(rows, self._empty))
         context.SetAbstractState(self._seed_index, all_seeds)
+
+    def queues(self, context) -> SensorQueueBatch:
+        """The B queues in this system's ``context`` (``.row(b)`` is environment b's SensorQueue)."""
+        return context.get_abstract_state(self._queue_index).get_value()
 
     def CalcPositionMeasurements(self, context, output):
         now = self.timing.tick_time(self.episode_ticks_port.Eval(context))
-        output.set_value(tuple(queue.released(float(now[row]))[0] for row, queue in enumerate(self._queues(context))))
+        output.set_value(self.queues(context).released(now)[0])
 
     def Trigger(self, context, state):
         flight = self.ball_flight_port.Eval(context)
@@ -82,8 +84,7 @@ class SegmentPositionSensor(LeafSystem):
         first = self.timing.first_sample(ticks)
         sampled = self._sample(flight, ticks, first, self._seeds(context))
         end = self.timing.seconds(first + self.timing.samples)
-        queues = tuple(queue.sampled(sampled[row], float(end[row])) for row, queue in enumerate(self._queues(context)))
-        state.get_mutable_abstract_state(self._queue_index).set_value(queues)
+        state.get_mutable_abstract_state(self._queue_index).set_value(self.queues(context).sampled(sampled, end))
 
     def _triggers(self, first: int) -> np.ndarray:
         """The episode samples of the triggers in the tick starting at episode sample ``first``
@@ -91,17 +92,31 @@ class SegmentPositionSensor(LeafSystem):
         start = max(int(first), 0)
         return np.arange(-(-start // self._trigger) * self._trigger, int(first) + self.timing.samples, self._trigger)
 
-    def _sample(self, flight, ticks: np.ndarray, first: np.ndarray, seeds: np.ndarray) -> list[tuple]:
-        """Each environment's PendingMeasurements of the tick's triggers."""
-        sampled = []
-        for row in range(self.batch):
-            triggers = self._triggers(first[row])
-            rng = np.random.default_rng([int(seeds[row]), POSITION_STREAM, int(ticks[row])])
-            sampled.append(sample_position_measurements(flight.samples[row, triggers - first[row], :3], self.timing.seconds(triggers), self.params, rng))
-        return sampled
+    def _trigger_grid(self, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_triggers`` of every environment at once: (the episode samples (B, m) of the m
+        possible triggers of a tick, whether each is one (B, m))."""
+        start = np.maximum(first, 0)
+        count = -(-self.timing.samples // self._trigger) + 1
+        triggers = (-(-start // self._trigger) * self._trigger)[:, None] + self._trigger * np.arange(count)
+        return triggers, triggers < (first + self.timing.samples)[:, None]
 
-    def _queues(self, context) -> tuple[SensorQueue, ...]:
-        return context.get_abstract_state(self._queue_index).get_value()
+    def _sample(self, flight, ticks: np.ndarray, first: np.ndarray, seeds: np.ndarray) -> PendingBatch:
+        """Every environment's PendingMeasurements of the tick's triggers: the model's variates
+        drawn environment by environment (each from its stream), the model of all at once."""
+        triggers, valid = self._trigger_grid(first)
+        counts = valid.sum(axis=1)
+        rows = np.flatnonzero(counts)
+        if rows.size == 0:
+            return PendingBatch.empty()
+        variates = PositionVariates.concatenate([
+            draw_position_variates(int(counts[b]), self.params, np.random.default_rng([int(seeds[b]), POSITION_STREAM, int(ticks[b])])) for b in rows
+        ])
+        sample_rows, columns = np.nonzero(valid)  # row by row, in trigger order
+        sample_triggers = triggers[sample_rows, columns]
+        capture_times = self.timing.seconds(sample_triggers)
+        p_W = flight.samples[sample_rows, sample_triggers - first[sample_rows], :3]
+        kept, release_times, values, covariance = position_measurements(p_W, capture_times, variates, self.params)
+        return PendingBatch.from_samples(sample_rows, capture_times, release_times, values, covariance, kept)
 
     def _seeds(self, context) -> np.ndarray:
         return context.get_abstract_state(self._seed_index).get_value()

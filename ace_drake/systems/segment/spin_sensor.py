@@ -9,13 +9,13 @@ from pydrake.systems.framework import LeafSystem
 from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import SpinSensorParams
-from ace_drake.systems.gaze_spin_sensor import SpinSensorState, poll_spin_sensor, start_spin_sensor
-from ace_drake.systems.statistical_position_sensor import SensorQueue
+from ace_drake.systems.gaze_spin_sensor import SpinSensorBatchState, poll_spin_sensors
 
 
 class SegmentSpinSensor(LeafSystem):
     """The continuous-time ``GazeSpinSensor`` for B environments: one poll per tick, at its end,
-    samples every capture time of the tick (``gaze_spin_sensor.poll_spin_sensor``: variable rate,
+    samples every capture time of the tick (``gaze_spin_sensor.poll_spin_sensors``, the
+    reference's ``poll_spin_sensor`` for every environment at once: variable rate,
     latency, dropout, racket tracking loss, precision noise and per-contact bias). Spin is
     constant in flight, so sampling a capture after its time gives the reference's value; what a
     tick releases is queued until its release time, so the output is the reference's model. The
@@ -29,7 +29,7 @@ class SegmentSpinSensor(LeafSystem):
         spin_measurements (abstract tuple of B MeasurementHistory): spins w_WB (rad/s) with the
             precision noise's covariance, everything released at or before the tick's start.
     State:
-        abstract tuple of B SpinSensorState; abstract int64 (B,): each episode's seed.
+        abstract SpinSensorBatchState (the B sensors' states); abstract int64 (B,): each episode's seed.
     Events:
         periodic unrestricted update every T (offset 0): the tick's poll.
     """
@@ -40,8 +40,8 @@ class SegmentSpinSensor(LeafSystem):
         self.params = params
         self.batch = int(batch)
         self.timing = timing
-        self._empty = SpinSensorState(SensorQueue(MeasurementHistory(capacity=params.history_capacity)))
-        self._state_index = self.DeclareAbstractState(AbstractValue.Make((self._empty,) * self.batch))
+        self._empty = MeasurementHistory(capacity=params.history_capacity)
+        self._state_index = self.DeclareAbstractState(AbstractValue.Make(SpinSensorBatchState.empty(self.batch, params.history_capacity)))
         self._seed_index = self.DeclareAbstractState(AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
         self.ball_flight_port = self.DeclareAbstractInputPort("ball_flight", AbstractValue.Make(None))
         self.episode_ticks_port = self.DeclareAbstractInputPort("episode_ticks", AbstractValue.Make(np.zeros(self.batch, dtype=np.int64)))
@@ -54,25 +54,23 @@ class SegmentSpinSensor(LeafSystem):
     def StartEpisodes(self, context, rows, seeds) -> None:
         """Starts environments ``rows`` at episode time 0 with their seeds (k,): empty history,
         the first capture one random interval after 0."""
-        states, all_seeds = list(self._states(context)), context.get_abstract_state(self._seed_index).get_value().copy()
-        for row, seed in zip(np.asarray(rows, dtype=int), np.asarray(seeds, dtype=np.int64)):
-            states[row] = start_spin_sensor(self.params, self._empty, int(seed), 0.0)
-            all_seeds[row] = seed
-        context.SetAbstractState(self._state_index, tuple(states))
+        all_seeds = context.get_abstract_state(self._seed_index).get_value().copy()
+        all_seeds[np.asarray(rows, dtype=int)] = np.asarray(seeds, dtype=np.int64)
+        context.SetAbstractState(self._state_index, self.sensor_states(context).started(self.params, rows, seeds, 0.0, self._empty))
         context.SetAbstractState(self._seed_index, all_seeds)
+
+    def sensor_states(self, context) -> SpinSensorBatchState:
+        """The B sensors' states in this system's ``context`` (``.row(b)`` is environment b's
+        SpinSensorState)."""
+        return context.get_abstract_state(self._state_index).get_value()
 
     def CalcSpinMeasurements(self, context, output):
         now = self.timing.tick_time(self.episode_ticks_port.Eval(context))
-        output.set_value(tuple(state.queue.released(float(now[row]))[0] for row, state in enumerate(self._states(context))))
+        output.set_value(self.sensor_states(context).queue.released(now)[0])
 
     def Poll(self, context, state):
         flight = self.ball_flight_port.Eval(context)
         end = self.timing.seconds(self.timing.first_sample(self.episode_ticks_port.Eval(context)) + self.timing.samples)
         seeds = context.get_abstract_state(self._seed_index).get_value()
-        states = list(self._states(context))
-        for row in range(self.batch):
-            states[row] = poll_spin_sensor(self.params, states[row], int(seeds[row]), float(end[row]), flight.samples[row, -1, 6:9], flight.events[row])
-        state.get_mutable_abstract_state(self._state_index).set_value(tuple(states))
-
-    def _states(self, context) -> tuple[SpinSensorState, ...]:
-        return context.get_abstract_state(self._state_index).get_value()
+        updated = poll_spin_sensors(self.params, self.sensor_states(context), seeds, end, flight.samples[:, -1, 6:9], flight.events)
+        state.get_mutable_abstract_state(self._state_index).set_value(updated)
