@@ -666,6 +666,8 @@ def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills
     if q is None:
         q = np.tile(supervisor.stack.reset_pose, (rows.size, 1))
     q = np.asarray(q, dtype=float).reshape(rows.size, -1)
+    estimator, estimator_context = sub("ball_estimator")
+    estimator.StartEpisodes(estimator_context, rows)  # first: it stores the other rows' cached fusion
     clock, clock_context = sub("episode_clock")
     clock.StartEpisodes(clock_context, rows)
     ball, ball_context = sub("ball")
@@ -675,8 +677,6 @@ def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills
             continue
         system, system_context = sub(name)
         system.StartEpisodes(system_context, rows, system_seeds(seeds, SEED_STREAMS[name]))
-    estimator, estimator_context = sub("ball_estimator")
-    estimator.StartEpisodes(estimator_context, rows)
     observation, observation_context = sub("observation_builder")
     observation.SetSkills(observation_context, rows, np.tile(DEFAULT_SKILL, (rows.size, 1)) if skills is None else skills)
     supervisor.StartEpisodes(supervisor_context, rows, q, v, a)

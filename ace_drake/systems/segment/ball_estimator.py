@@ -67,8 +67,18 @@ class SegmentBallEstimator(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(timing.duration, 0.0, self.Update)
 
     def StartEpisodes(self, context, rows) -> None:
-        """Clears the filters of environments ``rows``."""
-        states = context.get_abstract_state(self._state_index).get_value()
+        """Clears the filters of environments ``rows``. The other environments' filters are
+        stored as fused now (``estimator_states``; at a tick's start it is the cached fusion that
+        the tick's observation read), so that the tick's update, whose inputs the new episodes
+        change, finds nothing new in them and does not fuse their measurements a second time
+        (the filter is the same either way: fusing is idempotent, and environments are
+        independent). Call it before the other systems start their episodes, while the cached
+        fusion is still valid."""
+        rows = np.asarray(rows, dtype=int).reshape(-1)
+        if np.unique(rows).size == self.batch:
+            states = context.get_abstract_state(self._state_index).get_value()  # every filter starts over
+        else:
+            states = self.estimator_states(context)
         context.SetAbstractState(self._state_index, states.cleared(rows))
 
     def estimator_states(self, context) -> EstimatorBatchState:
