@@ -219,3 +219,53 @@ def test_no_point_strays_further_from_its_chord_than_its_deviation(dut):
             assert deviation <= bound * (1 + 1e-6) + 1e-12
             worst = max(worst, deviation / bound)
     assert worst > 0.05  # and the bound is not absurdly loose
+
+
+def test_block_hulls_and_geometry_boxes_equal_their_references(dut):
+    """The kernels' fast paths bit for bit: the block hulls against NumPy's min and max over each
+    block's samples (ties of +0 and -0, infinities), the boxed side's boxes without its poses
+    against those with them."""
+    from ace_drake.robot.bounds import _block_hulls, _geometry_boxes
+
+    rng = np.random.default_rng(8)
+    bounds = dut._bounds
+    for n, block in ((1, 16), (5, 4), (40, 16), (301, 16), (33, 1)):
+        q = random_configurations(dut, n + 1, rng, outside=0.0).T.copy()
+        bend = rng.uniform(0, 1e-4, (8, n))
+        X = bounds.kinematics.pose_rows(q)
+        for geometries in (bounds._covered, bounds._boxed):
+            used = rng.random(len(geometries[0])) < 0.8
+            kept = _geometry_boxes(X, bend, geometries, used, True)
+            scratch = _geometry_boxes(X, bend, geometries, used, False)
+            assert scratch[0].shape == (1, 12, n + 1)
+            for g in np.flatnonzero(used):
+                assert np.array_equal(kept[1][g], scratch[1][g]) and np.array_equal(kept[2][g], scratch[2][g])
+            box, deviation = kept[1].copy(), kept[2]
+            box[~used] = 0.0
+            box[used, :, :, :2] = np.where(rng.random((used.sum(), 2, 3, 2)) < 0.5, 0.0, -0.0)
+            if n > 3:
+                box[used, 1, 0, 3] = np.inf
+            hull, most = _block_hulls(box, deviation, used, block)
+            for b in range(hull.shape[0]):
+                first, last = b * block, min((b + 1) * block, n)
+                for g in np.flatnonzero(used):
+                    assert np.array_equal(hull[b, g, 0], box[g, 0, :, first : last + 1].min(axis=1))
+                    assert np.array_equal(hull[b, g, 1], box[g, 1, :, first : last + 1].max(axis=1))
+                    assert most[b, g] == deviation[g, first:last].max(initial=0.0)
+
+
+def test_sphere_covers_are_computed_once_and_handed_out_as_copies():
+    from ace_drake.robot.bounds import _sphere_cover
+
+    for shape in (Sphere(0.03), Capsule(0.02, 0.3), Cylinder(0.075, 0.007)):
+        centres, radii = sphere_cover(shape)
+        expected = _sphere_cover(shape, 0.003, 48)
+        assert np.array_equal(centres, expected[0]) and np.array_equal(radii, expected[1])
+        centres[:] = 1.0
+        radii[:] = 0.0
+        again = sphere_cover(shape)
+        assert np.array_equal(again[0], expected[0]) and np.array_equal(again[1], expected[1])
+        other = sphere_cover(shape, excess=0.01, max_spheres=8)
+        assert np.array_equal(other[0], _sphere_cover(shape, 0.01, 8)[0])
+    with pytest.raises(ValueError, match="unsupported shape"):
+        sphere_cover(Box(1.0, 1.0, 1.0))

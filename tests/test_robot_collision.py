@@ -13,10 +13,13 @@ from ace_drake.analysis.control_bench import ACTION_KINDS, make_stack, random_ac
 from ace_drake.control.params import ControlParams
 from ace_drake.control.stack import random_invariant_state
 from ace_drake.robot.collision import (
+    BLOCK_SAMPLES,
     DISTANCE_ERROR,
     PROOF_TOLERANCE,
     CollisionReport,
     TrajectoryCollisionChecker,
+    _joint_ranges,
+    _motion_bounds,
     interpolate,
     joint_acceleration_bounds,
     joint_speed_bounds,
@@ -534,3 +537,87 @@ def test_a_query_budget_bounds_the_work(dut):
     assert dut.check(trajectory, max_queries=full.queries) == full
     with pytest.raises(ValueError, match="max_queries"):
         dut.check(trajectory, max_queries=0)
+
+
+# ---------------------------------------------------------------------------------- fast paths
+def reference_broad_phase(dut, q, sag, bend):
+    """``TrajectoryCollisionChecker._broad_phase`` as it was before its fast paths (the joints'
+    ranges by NumPy, every interval's box up front, the pairs and rows assembled in lists)."""
+    n = sag.shape[1]
+    lower, upper = np.minimum(q[:, :-1], q[:, 1:]) - sag, np.maximum(q[:, :-1], q[:, 1:]) + sag
+    low, high = lower.min(axis=1).tolist(), upper.max(axis=1).tolist()
+    inside = [lo >= box_lo and hi <= box_hi for lo, hi, box_lo, box_hi in zip(low, high, dut.box_lower.tolist(), dut.box_upper.tolist())]
+    gates = [gate for gate in dut._gates if all(inside[j] for j in gate.joints.tolist())]
+    gated = {gate.pair for gate in gates}
+    pairs, rows = [], []
+    for gate in gates:
+        if gate.bad and gate.box_touches(low, high):
+            row = gate.touched(lower, upper)
+            if row.any():
+                pairs.append(gate.pair)
+                rows.append(row)
+    bounded = np.array([p for p in np.flatnonzero(dut._bounds.bounded).tolist() if p not in gated], dtype=int)
+    swept_open, smallest, X_WB = dut._bounds.open_intervals(q, bend, BLOCK_SAMPLES, bounded, dut.margin)
+    failing = np.flatnonzero(swept_open.any(axis=1))
+    pairs += bounded[failing].tolist()
+    rows += list(swept_open[failing])
+    for p in np.flatnonzero(~dut._bounds.bounded).tolist():
+        if p not in gated:
+            pairs.append(p)
+            rows.append(np.ones(n, dtype=bool))
+    return np.array(pairs, dtype=int), np.array(rows, dtype=bool).reshape(len(pairs), n), min(dut.influence, smallest), X_WB
+
+
+def test_broad_phase_equals_its_reference_bit_for_bit(dut):
+    rng = np.random.default_rng(11)
+    plans = list(random_trajectories(dut, 150, rng)) + list(typical_segments_with_resets(dut, 40, rng))
+    # Some leave the gates' box (the gates of the joints that do are skipped), some stand still.
+    plans += [JointTrajectory(p.period, p.q + [0, 0, 0, 0, 0, 0, 1.5, 0], p.v, p.a) for p in plans[:20]]
+    plans += [JointTrajectory.stationary(p.q[0], PERIOD) for p in plans[:5]]
+    kinds = set()
+    for plan in plans:
+        q, v, a = (np.asarray(x, dtype=float) for x in (plan.q, plan.v, plan.a))
+        if q.shape[0] == 1:
+            q, v, a = q[[0, 0]], np.zeros((2, 8)), np.zeros((2, 8))
+        _, sag, bend = _motion_bounds(q, v, a, plan.period, dut._upstream)
+        q_columns = np.ascontiguousarray(q.T)
+        fast, slow = dut._broad_phase(q_columns, sag, bend), reference_broad_phase(dut, q_columns, sag, bend)
+        for x, y in zip(fast, slow):
+            assert np.array_equal(x, y) and np.asarray(x).dtype == np.asarray(y).dtype and np.shape(x) == np.shape(y)
+        kinds.add((len(fast[0]) > 0, any(p in {g.pair for g in dut._bad_gates} for p in fast[0].tolist())))
+    assert kinds == {(False, False), (True, False), (True, True)}  # all clear, open pairs, a gate's rows
+
+
+def test_joint_ranges_equal_numpy_reductions():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 17, 300):
+        for special in (None, np.nan, np.inf, 0.0):
+            q = rng.normal(0, 1, (8, n + 1))
+            q[:, ::3] = np.round(q[:, ::3], 1)  # ties between consecutive samples
+            q[2, :2] = [-0.0, 0.0]
+            sag = rng.uniform(0, 1e-4, (8, n))
+            if special is not None:
+                sag[rng.integers(8), rng.integers(n)] = special
+                sag[5] = special
+            low, high = _joint_ranges(q, sag)
+            expected_low = (np.minimum(q[:, :-1], q[:, 1:]) - sag).min(axis=1)
+            expected_high = (np.maximum(q[:, :-1], q[:, 1:]) + sag).max(axis=1)
+            assert np.array_equal(low, expected_low, equal_nan=True) and np.array_equal(high, expected_high, equal_nan=True)
+
+
+def test_a_second_checker_of_the_model_reuses_the_gates_and_decides_the_same(dut):
+    again = TrajectoryCollisionChecker(margin=MARGIN, influence=ControlParams().collision_influence)
+    assert [gate.pair for gate in again._gates] == [gate.pair for gate in dut._gates] and again.certified == dut.certified
+    # The shared maps are the ones a fresh construction would build.
+    fresh = [gate for p in range(len(dut._pairs)) if (gate := dut._gate(p)) is not None]
+    assert len(fresh) == len(dut._gates)
+    for built, shared in zip(fresh, again._gates):
+        assert built.pair == shared.pair and built.bad == shared.bad
+        for field in ("joints", "origin", "width", "counts"):
+            assert np.array_equal(getattr(built, field), getattr(shared, field))
+        assert not shared.counts.flags.writeable
+    for plan in random_trajectories(dut, 30, np.random.default_rng(4)):
+        assert again.check(plan) == dut.check(plan)
+    assert all(a is b for a, b in zip(again._gates, dut._gates))  # shared, not rebuilt
+    other = TrajectoryCollisionChecker(margin=2 * MARGIN, influence=ControlParams().collision_influence)  # another margin: its own maps
+    assert not any(a is b for a, b in zip(other._gates, dut._gates))

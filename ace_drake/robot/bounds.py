@@ -293,6 +293,28 @@ def sphere_cover(shape, excess: float = COVER_EXCESS, max_spheres: int = COVER_S
     beyond the flat faces by its radius less half a layer and beyond the rim by up to its radius
     less its centre's distance from it; 45 spheres reach 1.3 cm beyond the racket's blade."""
     if isinstance(shape, Sphere):
+        key = ("sphere", shape.radius())
+    elif isinstance(shape, Capsule):
+        key = ("capsule", shape.radius(), shape.length())
+    elif isinstance(shape, Cylinder):
+        key = ("cylinder", shape.radius(), shape.length())
+    else:
+        raise ValueError(f"sphere_cover: unsupported shape {type(shape).__name__}; expected Sphere, Capsule or Cylinder")
+    # A pure function of the shape's dimensions: computed once per process (a cylinder's search
+    # takes ~0.1 s); callers get their own copies.
+    cache_key = (*key, float(excess), int(max_spheres))
+    if cache_key not in _COVERS:
+        _COVERS[cache_key] = _sphere_cover(shape, excess, max_spheres)
+    centres, radii = _COVERS[cache_key]
+    return centres.copy(), radii.copy()
+
+
+_COVERS: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # sphere_cover's results by shape and parameters
+
+
+def _sphere_cover(shape, excess: float, max_spheres: int) -> tuple[np.ndarray, np.ndarray]:
+    """``sphere_cover``, computed."""
+    if isinstance(shape, Sphere):
         return np.zeros((1, 3)), np.array([shape.radius()])
     if isinstance(shape, Capsule):
         r, length = shape.radius(), shape.length()
@@ -371,6 +393,7 @@ class SweptBounds:
             np.concatenate([self.covers[g][1] for g in covered]),
         )
         self._boxed = self._geometries(plant, inspector, boxed, [np.asarray(lever_arms(g), dtype=float) for g in boxed])
+        self._pair_arrays = {}  # pairs (dtype, shape, bytes) -> their geometries and which are used (open_intervals)
 
     def _geometries(self, plant, inspector, ids: list, arms: list) -> tuple:
         """The kernel's arrays for geometries ``ids``: body, X_BG (3 x 4), Shape's half, radius and
@@ -410,9 +433,16 @@ class SweptBounds:
         the body poses at the samples (``KinematicTree.pose_rows``). q (num_positions, n + 1),
         n >= 1: the samples, one per column; bend (num_positions, n): per joint and interval,
         h^2 / 8 (A_j + V_j (V_j + 4 U_j)) (module doc); block: intervals per block."""
-        covered, boxed = self._pair_covered[pairs], self._pair_boxed[pairs]
-        covered_used, boxed_used = np.zeros(len(self._covered[0]), dtype=bool), np.zeros(len(self._boxed[0]), dtype=bool)
-        covered_used[covered] = boxed_used[boxed] = True
+        pairs = np.asarray(pairs)
+        key = (pairs.dtype.str, pairs.shape, pairs.tobytes())  # the checker asks for one set of pairs nearly always
+        if key not in self._pair_arrays:
+            if len(self._pair_arrays) >= 64:
+                self._pair_arrays.clear()
+            covered, boxed = self._pair_covered[pairs], self._pair_boxed[pairs]
+            covered_used, boxed_used = np.zeros(len(self._covered[0]), dtype=bool), np.zeros(len(self._boxed[0]), dtype=bool)
+            covered_used[covered] = boxed_used[boxed] = True
+            self._pair_arrays[key] = covered, boxed, covered_used, boxed_used
+        covered, boxed, covered_used, boxed_used = self._pair_arrays[key]
         return _open_intervals(
             np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(bend, dtype=float), int(block), float(threshold),
             self.kinematics.arrays, self._covered, covered_used, self._spheres, self._boxed, boxed_used, covered, boxed,
@@ -429,8 +459,8 @@ def _open_intervals(q, bend, block, threshold, tree, covered, covered_used, sphe
     n = samples - 1
     X = np.empty((tree[5].shape[0], 12, samples))
     _body_poses(q, tree, X)
-    covered_pose, covered_box, covered_bend = _geometry_boxes(X, bend, covered, covered_used)
-    _, boxed_box, boxed_bend = _geometry_boxes(X, bend, boxed, boxed_used)
+    covered_pose, covered_box, covered_bend = _geometry_boxes(X, bend, covered, covered_used, True)
+    _, boxed_box, boxed_bend = _geometry_boxes(X, bend, boxed, boxed_used, False)
     covered_hull, covered_most = _block_hulls(covered_box, covered_bend, covered_used, block)
     boxed_hull, boxed_most = _block_hulls(boxed_box, boxed_bend, boxed_used, block)
     sphere_start, sphere_centre, sphere_radius = spheres
@@ -470,20 +500,22 @@ def _open_intervals(q, bend, block, threshold, tree, covered, covered_used, sphe
 
 
 @numba.njit(cache=True)
-def _geometry_boxes(X, bend, geometries, used):
+def _geometry_boxes(X, bend, geometries, used, keep_poses):
     """From the body poses X (num_bodies, 12, n + 1): each used geometry's poses X_WG (G, 12,
-    n + 1), world boxes (G, 2, 3, n + 1) (low and high corners by sample) and deviation from the
-    chords per interval (G, n), m (module doc)."""
+    n + 1) (if ``keep_poses``, else only a scratch pose (1, 12, n + 1)), world boxes (G, 2, 3,
+    n + 1) (low and high corners by sample) and deviation from the chords per interval (G, n), m
+    (module doc)."""
     body, X_BG, half, radius, rounding, arms, moving = geometries
     count, samples = used.shape[0], X.shape[2]
-    pose, box, deviation = np.empty((count, 12, samples)), np.empty((count, 2, 3, samples)), np.zeros((count, samples - 1))
+    pose, box, deviation = np.empty((count if keep_poses else 1, 12, samples)), np.empty((count, 2, 3, samples)), np.zeros((count, samples - 1))
     for g in range(count):
         if not used[g]:
             continue
+        slot = g if keep_poses else 0
         computed = samples if moving[g] else 1  # what no joint moves: its first pose, copied
-        _compose_fixed(X[body[g]], X_BG[g], pose[g], computed)
+        _compose_fixed(X[body[g]], X_BG[g], pose[slot], computed)
         for r in range(3):  # the support along world axis r: row r of R_WG, in G
-            u0, u1, u2, p = pose[g, 4 * r], pose[g, 4 * r + 1], pose[g, 4 * r + 2], pose[g, 4 * r + 3]
+            u0, u1, u2, p = pose[slot, 4 * r], pose[slot, 4 * r + 1], pose[slot, 4 * r + 2], pose[slot, 4 * r + 3]
             low, high = box[g, 0, r], box[g, 1, r]
             for s in range(computed):
                 extent = abs(u0[s]) * half[g, 0] + abs(u1[s]) * half[g, 1] + abs(u2[s]) * half[g, 2] + rounding[g]
@@ -494,8 +526,9 @@ def _geometry_boxes(X, bend, geometries, used):
                     low[s] -= extent
                     high[s] += extent
         if not moving[g]:
-            for e in range(12):
-                pose[g, e, :] = pose[g, e, 0]
+            if keep_poses:
+                for e in range(12):
+                    pose[g, e, :] = pose[g, e, 0]
             for side in range(2):
                 for r in range(3):
                     box[g, side, r, :] = box[g, side, r, 0]
@@ -517,14 +550,17 @@ def _block_hulls(box, deviation, used, block):
     for g in range(count):
         if not used[g]:
             continue
+        low0, low1, low2, high0, high1, high2 = box[g, 0, 0], box[g, 0, 1], box[g, 0, 2], box[g, 1, 0], box[g, 1, 1], box[g, 1, 2]
         for b in range(blocks):
             first, last = b * block, min((b + 1) * block, n)
-            for r in range(3):
-                low, high = box[g, 0, r], box[g, 1, r]
-                smallest, largest = low[first], high[first]
-                for s in range(first + 1, last + 1):
-                    smallest, largest = min(smallest, low[s]), max(largest, high[s])
-                hull[b, g, 0, r], hull[b, g, 1, r] = smallest, largest
+            # The six extremes side by side (each over the samples in order): independent
+            # chains of min and max run in parallel where one at a time waits on each step.
+            x0, x1, x2, y0, y1, y2 = low0[first], low1[first], low2[first], high0[first], high1[first], high2[first]
+            for s in range(first + 1, last + 1):
+                x0, x1, x2 = min(x0, low0[s]), min(x1, low1[s]), min(x2, low2[s])
+                y0, y1, y2 = max(y0, high0[s]), max(y1, high1[s]), max(y2, high2[s])
+            hull[b, g, 0, 0], hull[b, g, 0, 1], hull[b, g, 0, 2] = x0, x1, x2
+            hull[b, g, 1, 0], hull[b, g, 1, 1], hull[b, g, 1, 2] = y0, y1, y2
             largest = 0.0
             for k in range(first, last):
                 largest = max(largest, deviation[g, k])

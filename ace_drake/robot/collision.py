@@ -152,6 +152,9 @@ GATE_RESOLUTION = (0.0002, 0.002)
 _RIM_SAMPLES = 720  # points per cylinder rim when bounding its distance from an axis or point
 
 
+_GATES: dict[tuple, tuple] = {}  # TrajectoryCollisionChecker's gates by model and margin (read-only once built)
+
+
 @dataclasses.dataclass(frozen=True)
 class CollisionReport:
     """The outcome of ``TrajectoryCollisionChecker.check``.
@@ -243,7 +246,13 @@ class TrajectoryCollisionChecker:
         # box they may come within margin (nowhere: certified clear).
         self.box_lower = self.plant.GetPositionLowerLimits() - GATE_PAD
         self.box_upper = self.plant.GetPositionUpperLimits() + GATE_PAD
-        self._gates = [gate for p in range(len(self._pairs)) if (gate := self._gate(p)) is not None]
+        # The maps are a pure function of the model (its scenario and files) and the margin, and
+        # take ~1 s to build: built once per process for each.
+        models_dir = Path(models_dir)
+        gate_key = (repr(self.scenario), *((models_dir / name).read_bytes() for name in (self.scenario.court_model, self.scenario.robot_model)), self.margin)
+        if gate_key not in _GATES:
+            _GATES[gate_key] = tuple(gate for p in range(len(self._pairs)) if (gate := self._gate(p)) is not None)
+        self._gates = list(_GATES[gate_key])
         self.certified = tuple(self._pairs[gate.pair].name for gate in self._gates if not gate.bad)
         self._bounds = SweptBounds(self.plant, self.inspector, [(pair.id_A, pair.id_B) for pair in self._pairs], self._kinematics.lever_arms)
         # For the broad phase: the pairs of each stage when the plan stays inside the gates' box.
@@ -253,6 +262,7 @@ class TrajectoryCollisionChecker:
         self._bounded = np.flatnonzero(self._bounds.bounded)
         self._bounded_ungated = np.array([p for p in self._bounded if p not in self._gated_pairs], dtype=int)
         self._unbounded = np.flatnonzero(~self._bounds.bounded).tolist()
+        self._unbounded_gated = all(p in self._gated_pairs for p in self._unbounded)
         self._upstream = self._kinematics.upstream_matrix()
         self._warm_up()
 
@@ -260,8 +270,9 @@ class TrajectoryCollisionChecker:
         """Runs each compiled kernel once on the ready pose, so that loading (or, the first time,
         compiling) it is part of the construction and not of a control step."""
         q = np.tile(np.asarray(self.scenario.ready_pose, dtype=float), (2, 1))
-        _, _, bend = _motion_bounds(q, np.zeros_like(q), np.zeros_like(q), 0.001, self._upstream)
+        _, sag, bend = _motion_bounds(q, np.zeros_like(q), np.zeros_like(q), 0.001, self._upstream)
         q_columns = np.ascontiguousarray(q.T)
+        _joint_ranges(q_columns, sag)
         self._bounds.open_intervals(q_columns, bend, BLOCK_SAMPLES, self._bounded, math.inf)  # every level
         X_WB = self._bounds.kinematics.pose_rows(q_columns)
         pair = next((pair for pair in self._pairs if pair.geometry is not None), None)
@@ -320,9 +331,8 @@ class TrajectoryCollisionChecker:
         samples (``KinematicTree.pose_rows``)."""
         n = sag.shape[1]
         # On interval k each joint stays within sag_k of its chord: within [lower_k, upper_k]
-        # (8, n), and all of the motion within [low, high].
-        lower, upper = np.minimum(q[:, :-1], q[:, 1:]) - sag, np.maximum(q[:, :-1], q[:, 1:]) + sag
-        low, high = lower.min(axis=1).tolist(), upper.max(axis=1).tolist()
+        # (8, n) (computed only if a gate needs them), and all of the motion within [low, high].
+        low, high = (bound.tolist() for bound in _joint_ranges(q, sag))
         inside = [lo >= box_lo and hi <= box_hi for lo, hi, box_lo, box_hi in zip(low, high, self._box_lower, self._box_upper)]
         pairs, rows = [], []  # the open pairs and their open intervals
         if all(inside):
@@ -330,8 +340,11 @@ class TrajectoryCollisionChecker:
         else:  # only the gates whose joints stay inside their map decide
             gates = [gate for gate in self._gates if all(inside[j] for j in gate.joints.tolist())]
             gated = {gate.pair for gate in gates}
+        lower = upper = None
         for gate in gates:
             if gate.bad and gate.box_touches(low, high):
+                if lower is None:
+                    lower, upper = np.minimum(q[:, :-1], q[:, 1:]) - sag, np.maximum(q[:, :-1], q[:, 1:]) + sag
                 row = gate.touched(lower, upper)
                 if row.any():
                     pairs.append(gate.pair)
@@ -340,6 +353,8 @@ class TrajectoryCollisionChecker:
         swept_open, smallest, X_WB = self._bounds.open_intervals(q, bend, BLOCK_SAMPLES, bounded, self.margin)
         min_distance = min(self.influence, smallest)
         failing = np.flatnonzero(swept_open.any(axis=1))
+        if not pairs and gated is self._gated_pairs and self._unbounded_gated:  # the common case: the swept boxes' pairs only
+            return bounded[failing], swept_open[failing], min_distance, X_WB
         pairs += bounded[failing].tolist()
         rows += list(swept_open[failing])
         for p in self._unbounded:  # pairs only the exact stage can check
@@ -630,6 +645,10 @@ class _Gate:
     counts: np.ndarray
     bad: int
 
+    def __post_init__(self):
+        for array in (self.joints, self.origin, self.width, self.counts):  # shared by the checkers of one model
+            array.setflags(write=False)
+
     @staticmethod
     def from_boxes(pair: int, joints: np.ndarray, lower: np.ndarray, upper: np.ndarray, boxes: list) -> "_Gate":
         """The gate of the bad ``boxes`` [(lower, upper)] (cells of the bisection of the box
@@ -752,6 +771,28 @@ def _motion_bounds(q, v, a, period, upstream):
                 above += upstream[i, j] * speed[i]
             bend[j, k] = sag[j, k] + scale * speed[j] * (speed[j] + 4.0 * above)
     return cumulative, sag, bend
+
+
+@numba.njit(cache=True)
+def _joint_ranges(q, sag):
+    """The range [low, high] (8,) each of every joint over a motion: the smallest of
+    min(q_k, q_k+1) - sag_k and the largest of max(q_k, q_k+1) + sag_k over its intervals k, for
+    samples q (8, n + 1) and the joints' deviations from their chords sag (8, n). NaN if any
+    term is NaN (as NumPy's min and max reductions)."""
+    joints, n = sag.shape
+    low, high = np.empty(joints), np.empty(joints)
+    for j in range(joints):
+        smallest, largest = np.inf, -np.inf
+        for k in range(n):
+            a, b = q[j, k], q[j, k + 1]
+            below = (a if a < b else b) - sag[j, k]  # q is finite (checked): min and max are exact
+            above = (b if a < b else a) + sag[j, k]
+            if below < smallest or below != below:
+                smallest = below if smallest == smallest else smallest
+            if above > largest or above != above:
+                largest = above if largest == largest else largest
+        low[j], high[j] = smallest, largest
+    return low, high
 
 
 def _trajectory_arrays(trajectory: JointTrajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
