@@ -13,7 +13,6 @@ from ace_drake.perception.sensor_models import (
     insert_pending_batch,
     racket_tracking_loss,
     racket_tracking_loss_batch,
-    release_due,
     release_due_batch,
     spin_at_times,
     spin_at_times_batch,

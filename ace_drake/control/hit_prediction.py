@@ -26,7 +26,7 @@ import numpy as np
 from ace_drake.contracts import HIT_PREDICTION_SIZE
 from ace_drake.control.joint_model import ramp_tracking_lag
 from ace_drake.control.params import ControlParams, ReturnerParams
-from ace_drake.physics.flight import _flight_constants, _rk4_one, rk4_step
+from ace_drake.physics.flight import flight_constants, rk4_one, rk4_step
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import (
     GAP_SCREEN_MARGIN,
@@ -474,7 +474,7 @@ def _simulate_rows(initial_state: np.ndarray, durations: np.ndarray, dts: np.nda
         elapsed[rows], rounds[rows] = 0.0, 0
 
     begin(np.flatnonzero(~finished))
-    flight = _flight_constants(physics.aero)
+    flight = flight_constants(physics.aero)
     table_height = physics.table.surface_height
     screened = np.full(n_balls, -1, dtype=np.int64)  # the step at which the free-flight kernel last stopped for a ball
     while not finished.all():
@@ -560,7 +560,7 @@ def _free_steps(x, t, step, steps, dts, durations, active, enabled, rows, times,
         while step[row] < steps[row]:
             h = min(dts[row], durations[row] - t[row])
             if active[row] and h > 0.0:
-                _rk4_one(x[row], h, drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, x1)
+                rk4_one(x[row], h, drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, x1)
                 if enabled[row, 0] and not x1[2] - radius > margin:
                     break
                 if enabled[row, 1] and not abs(x1[0]) - radius > margin:

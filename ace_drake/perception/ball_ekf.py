@@ -76,7 +76,7 @@ from ace_drake.perception import ekf_kernels as kernels
 from ace_drake.perception.ekf_kernels import CONTACT, FREE_HORIZON_MAX, FREE_SPEED_MARGIN, MAX_START_SPINS, POSITION, SPIN  # noqa: F401
 from ace_drake.perception.measurements import Measurement
 from ace_drake.perception.params import EstimatorParams
-from ace_drake.physics.flight import _flight_constants
+from ace_drake.physics.flight import flight_constants
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import simulate
 
@@ -348,7 +348,7 @@ class BallEkf:
             math.nan if p.spin_observation_variance is None else p.spin_observation_variance,
             ph.aero.ball_radius, ph.table.length, ph.table.width, ph.table.surface_height, ph.net.height, ph.net.overhang,
         ]
-        config[kernels.F_FLIGHT:] = _flight_constants(ph.aero)
+        config[kernels.F_FLIGHT:] = flight_constants(ph.aero)
         self._config = config
 
     # ------------------------------------------------------------------------------ one environment

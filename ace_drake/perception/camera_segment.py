@@ -37,7 +37,7 @@ import numpy as np
 from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, project_points, segments_blocked, table_occluder, visibility
 from ace_drake.perception.measurements import Measurement
 from ace_drake.perception.params import CameraParams
-from ace_drake.perception.triangulation import GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, _inverse_or_inf
+from ace_drake.perception.triangulation import GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, inverse_or_inf
 
 TIME_TOLERANCE = 1e-9  # s; as ApsCameraArray: trigger times are products of the period in floating point
 
@@ -262,7 +262,7 @@ def triangulate_frames(
             rows = pending[consistent]
             accepted_jacobians = np.where(used[consistent][:, :, None, None], jacobians[consistent], 0.0)
             information = np.einsum("nvki,nvkj->nij", accepted_jacobians, accepted_jacobians)
-            accepted_covariance = pixel_noise_sigma**2 * _inverse_or_inf(information)
+            accepted_covariance = pixel_noise_sigma**2 * inverse_or_inf(information)
             depths = np.where(used[consistent], stack.depths(refined[consistent]), np.inf)
             good = np.all(depths > 0, axis=1) & np.all(np.isfinite(accepted_covariance), axis=(1, 2))
             rows, good_index = rows[good], np.flatnonzero(good)

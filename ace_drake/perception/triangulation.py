@@ -138,7 +138,7 @@ def position_covariance_from_jacobians(jacobians: np.ndarray, pixel_noise_sigma:
     leading dimensions; infinite where the views do not determine the position."""
     jacobians = np.asarray(jacobians, dtype=float)
     information = np.einsum("...vki,...vkj->...ij", jacobians, jacobians)
-    return pixel_noise_sigma**2 * _inverse_or_inf(information)
+    return pixel_noise_sigma**2 * inverse_or_inf(information)
 
 
 def position_covariance(
@@ -157,10 +157,10 @@ def position_covariance(
             continue
         _, jacobian = camera.project_with_jacobian(p_W[mask])
         information[mask] += np.einsum("nki,nkj->nij", jacobian, jacobian)
-    return pixel_noise_sigma**2 * _inverse_or_inf(information)
+    return pixel_noise_sigma**2 * inverse_or_inf(information)
 
 
-def _inverse_or_inf(information: np.ndarray) -> np.ndarray:
+def inverse_or_inf(information: np.ndarray) -> np.ndarray:
     """Inverse of symmetric positive semi-definite matrices (..., 3, 3); inf where singular."""
     result = np.full(information.shape, np.inf)
     eigenvalues = np.linalg.eigvalsh(information)

@@ -67,10 +67,10 @@ def one_ball_flight_acceleration(v_W: tuple[float, float, float], w_W: tuple[flo
 
     For callers that evaluate one ball at a time, such as the BallPlant's derivatives (thousands of
     calls per simulated second): NumPy's per-call overhead on 3-vectors makes the batched function
-    about six times slower there. The arithmetic is ``_acceleration``'s, which the compiled
+    about six times slower there. The arithmetic is ``ball_acceleration``'s, which the compiled
     ``rk4_step`` shares. Args: v_W (m/s) and w_W (rad/s) as 3 floats each.
     """
-    return _acceleration(*v_W, *w_W, *_flight_constants(aero))
+    return ball_acceleration(*v_W, *w_W, *flight_constants(aero))
 
 
 def state_derivative(state: np.ndarray, aero: AeroParams) -> np.ndarray:
@@ -87,7 +87,7 @@ def rk4_step(state: np.ndarray, dt: float | np.ndarray, aero: AeroParams) -> np.
     Args: state (..., 9); dt seconds, a scalar or an array broadcastable to state[..., :1]
     (per-ball steps, used by event location). Returns the state after dt.
 
-    Compiled: the ball-by-ball loop of ``_rk4_rows`` does the operations of ``rk4_step_numpy`` in
+    Compiled: the ball-by-ball loop of ``rk4_rows`` does the operations of ``rk4_step_numpy`` in
     the same order (IEEE arithmetic and square roots only, no fused multiply-adds), so the two are
     equal bit for bit (tests/test_physics.py); ~6 us a call for one ball (mostly the call itself)
     against ~150 us for NumPy's, which is how the predictors call it.
@@ -104,7 +104,7 @@ def rk4_step(state: np.ndarray, dt: float | np.ndarray, aero: AeroParams) -> np.
             steps = np.broadcast_to(steps, state.shape[:-1])
         steps = np.ascontiguousarray(steps.reshape(-1))
     out = np.empty_like(rows)
-    _rk4_rows(rows, steps, *_flight_constants(aero), out)
+    rk4_rows(rows, steps, *flight_constants(aero), out)
     return out.reshape(state.shape)
 
 
@@ -120,8 +120,8 @@ def rk4_step_numpy(state: np.ndarray, dt: float | np.ndarray, aero: AeroParams) 
     return state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
-def _flight_constants(aero: AeroParams) -> tuple[float, ...]:
-    """The constants of ``_acceleration`` for ``aero``, each computed in ``flight_acceleration``'s
+def flight_constants(aero: AeroParams) -> tuple[float, ...]:
+    """The constants of ``ball_acceleration`` for ``aero``, each computed in ``flight_acceleration``'s
     order: (drag scale -(3 / 8r) c_d rho_a / rho_b (1/m), rho_a / rho_b, the Magnus slope, r (m),
     offset and cap, the weight term (1 - rho_a / rho_b) |g| (m/s^2))."""
     density_ratio = aero.air_density / aero.ball_density
@@ -131,7 +131,7 @@ def _flight_constants(aero: AeroParams) -> tuple[float, ...]:
 
 
 @numba.njit(cache=True)
-def _acceleration(vx, vy, vz, wx, wy, wz, drag_scale, density_ratio, slope, radius, offset, cap, weight):
+def ball_acceleration(vx, vy, vz, wx, wy, wz, drag_scale, density_ratio, slope, radius, offset, cap, weight):
     """Eq. (1) divided by the mass for one ball (m/s^2, 3 floats), in ``flight_acceleration``'s
     order of operations (the cap of ``magnus_coefficient`` and its limit at zero spin)."""
     speed = math.sqrt(vx * vx + vy * vy + vz * vz)
@@ -152,12 +152,12 @@ def _acceleration(vx, vy, vz, wx, wy, wz, drag_scale, density_ratio, slope, radi
 def _derivative(x, drag_scale, density_ratio, slope, radius, offset, cap, weight, k):
     """``state_derivative`` of one ball x (9,) into k (9,)."""
     k[0], k[1], k[2] = x[3], x[4], x[5]
-    k[3], k[4], k[5] = _acceleration(x[3], x[4], x[5], x[6], x[7], x[8], drag_scale, density_ratio, slope, radius, offset, cap, weight)
+    k[3], k[4], k[5] = ball_acceleration(x[3], x[4], x[5], x[6], x[7], x[8], drag_scale, density_ratio, slope, radius, offset, cap, weight)
     k[6], k[7], k[8] = 0.0, 0.0, 0.0
 
 
 @numba.njit(cache=True)
-def _rk4_one(x, h, drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, out):
+def rk4_one(x, h, drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, out):
     """One RK4 step of one ball x (9,) by h into out (9,), with scratch k1..k4, trial (9,)."""
     half = 0.5 * h
     _derivative(x, drag_scale, density_ratio, slope, radius, offset, cap, weight, k1)
@@ -176,11 +176,11 @@ def _rk4_one(x, h, drag_scale, density_ratio, slope, radius, offset, cap, weight
 
 
 @numba.njit(cache=True)
-def _rk4_rows(states, steps, drag_scale, density_ratio, slope, radius, offset, cap, weight, out):
+def rk4_rows(states, steps, drag_scale, density_ratio, slope, radius, offset, cap, weight, out):
     """``rk4_step`` of every row of states (M, 9) by its step (M,) into out (M, 9)."""
     k1, k2, k3, k4, trial = np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9)
     for i in range(states.shape[0]):
-        _rk4_one(states[i], steps[i], drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, out[i])
+        rk4_one(states[i], steps[i], drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, out[i])
 
 
 @numba.njit(cache=True)
@@ -190,7 +190,7 @@ def _rk4_trajectory_rows(states, steps, drag_scale, density_ratio, slope, radius
     for i in range(states.shape[0]):
         out[i, 0] = states[i]
         for k in range(steps.shape[0]):
-            _rk4_one(out[i, k], steps[k], drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, out[i, k + 1])
+            rk4_one(out[i, k], steps[k], drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, out[i, k + 1])
 
 
 def rk4_trajectory(state: np.ndarray, steps: np.ndarray, aero: AeroParams) -> np.ndarray:
@@ -202,7 +202,7 @@ def rk4_trajectory(state: np.ndarray, steps: np.ndarray, aero: AeroParams) -> np
     if state.ndim != 2 or state.shape[1] != 9 or steps.ndim != 1:
         raise ValueError(f"rk4_trajectory: state must be (M, 9) and steps (n,), got {state.shape} and {steps.shape}")
     out = np.empty((state.shape[0], steps.size + 1, 9))
-    _rk4_trajectory_rows(state, steps, *_flight_constants(aero), out)
+    _rk4_trajectory_rows(state, steps, *flight_constants(aero), out)
     return out
 
 

@@ -183,7 +183,7 @@ def _body_poses(q, tree, X):
             B0, B1, B2 = terms[j, 0, e], terms[j, 1, e], terms[j, 2, e]
             for s in range(samples):
                 local[e, s] = B0 + c1[s] * B1 + c2[s] * B2
-        _compose(X[parent[j]], local, X[child[j]])
+        compose_pose(X[parent[j]], local, X[child[j]])
 
 
 @numba.njit(cache=True)
@@ -207,7 +207,7 @@ def sin_cos(x):
 
 
 @numba.njit(cache=True)
-def _compose(X_AB, X_BC, X_AC):
+def compose_pose(X_AB, X_BC, X_AC):
     """X_AC = X_AB X_BC, in place, for 3 x 4 poses stored as 12 rows (row-major entries) by
     samples."""
     for r in range(3):
@@ -222,7 +222,7 @@ def _compose(X_AB, X_BC, X_AC):
 
 @numba.njit(cache=True)
 def _compose_fixed(X_AB, X_BC, X_AC, count):
-    """``_compose`` with a constant X_BC (3, 4), for the first ``count`` samples."""
+    """``compose_pose`` with a constant X_BC (3, 4), for the first ``count`` samples."""
     for r in range(3):
         a0, a1, a2, a3 = X_AB[4 * r], X_AB[4 * r + 1], X_AB[4 * r + 2], X_AB[4 * r + 3]
         for c in range(4):

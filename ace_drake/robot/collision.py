@@ -135,7 +135,7 @@ from pydrake.planning import RobotDiagramBuilder, SceneGraphCollisionChecker
 
 from ace_drake.config import MODELS_DIR
 from ace_drake.robot.bounds import Shape, SweptBounds
-from ace_drake.robot.model import _joint_vector, add_robot_to_plant, check_joint_order, load_scenario
+from ace_drake.robot.model import joint_vector, add_robot_to_plant, check_joint_order, load_scenario
 from ace_drake.robot.params import JOINT_NAMES, RobotScenario
 from ace_drake.robot.trajectory import JointTrajectory
 
@@ -283,7 +283,7 @@ class TrajectoryCollisionChecker:
     def clearance(self, q: np.ndarray) -> float:
         """The smallest signed distance (m) between the robot's collision geometry and the court
         or its own other (non-filtered) geometry at configuration q, capped at ``influence``."""
-        distances = self._distances(_joint_vector(q, "q"))
+        distances = self._distances(joint_vector(q, "q"))
         return min(self.influence, min((d for _, d in distances), default=self.influence))
 
     def check_config(self, q: np.ndarray) -> bool:
@@ -293,7 +293,7 @@ class TrajectoryCollisionChecker:
     def pair_distances(self, q: np.ndarray) -> list[tuple[str, float]]:
         """The checked geometry pairs within ``influence`` at q, as (name, signed distance m),
         closest first."""
-        distances = self._distances(_joint_vector(q, "q"))
+        distances = self._distances(joint_vector(q, "q"))
         return sorted(((self._pairs[p].name, d) for p, d in distances), key=lambda item: item[1])
 
     def pair_rates(self) -> dict[str, np.ndarray]:

@@ -35,7 +35,7 @@ import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import BodyIndex
 
-from ace_drake.robot.bounds import KinematicTree, _compose, sin_cos
+from ace_drake.robot.bounds import KinematicTree, compose_pose, sin_cos
 from ace_drake.robot.model import RACKET_FRAME, ROBOT_MODEL_NAME, add_robot_to_plant, check_joint_order, load_scenario
 from ace_drake.robot.params import JOINT_NAMES, RobotScenario
 
@@ -216,7 +216,7 @@ def _racket_chain(q, v, with_velocity, terms, revolute, axes, origins, position_
     samples with the samples innermost (poses as 12 rows of [R | p] entries, as
     ``robot.bounds``), which the compiler vectorises."""
     samples = q.shape[1]
-    block = max(1, min(_BLOCK, samples))  # _compose works on whole blocks
+    block = max(1, min(_BLOCK, samples))  # compose_pose works on whole blocks
     X = np.zeros((12, block))
     X_next = np.zeros((12, block))
     local = np.zeros((12, block))
@@ -269,7 +269,7 @@ def _racket_chain(q, v, with_velocity, terms, revolute, axes, origins, position_
                 B0, B1, B2 = terms[j, 0, e], terms[j, 1, e], terms[j, 2, e]
                 for s in range(count):
                     local[e, s] = B0 + c1[s] * B1 + c2[s] * B2
-            _compose(X, local, X_next)
+            compose_pose(X, local, X_next)
             X, X_next = X_next, X
         for s in range(count):
             for r in range(3):

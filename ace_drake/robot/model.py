@@ -155,8 +155,8 @@ class RobotModel:
 
     # ------------------------------------------------------------------------------ kinematics
     def _set(self, q: np.ndarray, v: np.ndarray | None = None) -> None:
-        self.plant.SetPositions(self.plant_context, _joint_vector(q, "q"))
-        self.plant.SetVelocities(self.plant_context, np.zeros(8) if v is None else _joint_vector(v, "v"))
+        self.plant.SetPositions(self.plant_context, joint_vector(q, "q"))
+        self.plant.SetVelocities(self.plant_context, np.zeros(8) if v is None else joint_vector(v, "v"))
 
     def racket_pose(self, q: np.ndarray) -> RigidTransform:
         """X_WR: the racket frame (blade centre, z along the forehand normal) in world."""
@@ -257,7 +257,7 @@ class RobotModel:
     def _seeds(self, p_W: np.ndarray, q_seed: np.ndarray | None) -> list[np.ndarray]:
         """The given seed, or seeds behind p_W with the handle down, then rolled to either side."""
         if q_seed is not None:
-            return [_joint_vector(q_seed, "q_seed")]
+            return [joint_vector(q_seed, "q_seed")]
         return [self.seed_for(p_W, handle_roll) for handle_roll in (0.0, 1.5, -1.5)]
 
     def _solve_ik(self, constrain: Callable[[InverseKinematics], None], seeds: list[np.ndarray], clearance: float | None) -> IkResult:
@@ -301,7 +301,9 @@ class IkResult:
     attempts: int
 
 
-def _joint_vector(value, name: str) -> np.ndarray:
+def joint_vector(value, name: str) -> np.ndarray:
+    """``value`` as a float array of one entry per joint (rad or m, in JOINT_NAMES' order);
+    a ValueError naming ``name`` if it has another shape or a non-finite entry."""
     value = np.asarray(value, dtype=float)
     if value.shape != (len(JOINT_NAMES),) or not np.all(np.isfinite(value)):
         raise ValueError(f"{name}: expected {len(JOINT_NAMES)} finite joint values ({', '.join(JOINT_NAMES)}), got {value}")
