@@ -79,7 +79,7 @@ def test_readme_and_benchmarks_page_show_what_their_sources_hold():
 
 def copy_sources(root: Path) -> None:
     """The generated documents and every file their tables read, copied under ``root``."""
-    for name in ("README.md", "docs/benchmarks.md", "models/ball_physics_fitted.json", "docs/benchmarks/sim.json",
+    for name in ("README.md", "docs/benchmarks.md", "models/ball_physics_fitted.json", "docs/benchmarks/sim.json", "docs/benchmarks/train.json",
                  *(f"models/policies/{policy}.json" for policy in results.SHIPPED_POLICIES)):
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(REPO_ROOT / name, root / name)
@@ -101,3 +101,14 @@ def test_check_fails_on_a_stale_readme_and_passes_once_regenerated(tmp_path, mon
     assert cli.main(["results"]) == 0
     assert "| `models/policies/rally_sac.json` |" in capsys.readouterr().out
     assert cli.main(["results", "--check"]) == 0
+
+
+def test_collection_rows_name_the_best_batch_and_nothing_without_a_measurement():
+    from ace_drake.analysis.results import collection_rows
+
+    train = {"env_steps_per_s": {"1": 70.0, "2": 140.0}, "vector_env_steps_per_s": {"16": 900.0, "64": 1400.0, "256": 1300.0},
+             "updates_per_s": {"1": 50.0, "2": 61.0}, "batch_size": 256, "seconds_per_collection": 60, "date": "2026-12-04"}
+    rows = collection_rows(train, "docs/benchmarks/train.json")
+    assert rows[0].figure == "1400 steps per second (B = 64 each); RallyEnv: 140"
+    assert rows[1].figure.startswith("61 per second")
+    assert collection_rows(None, "x") == [] and collection_rows({**train, "vector_env_steps_per_s": {}}, "x") == []

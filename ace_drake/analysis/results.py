@@ -35,7 +35,7 @@ BENCHMARKS_BEGIN, BENCHMARKS_END = "<!-- benchmarks:begin -->", "<!-- benchmarks
 README = "README.md"
 BENCHMARKS_PAGE = "docs/benchmarks.md"
 EVALUATE_COMMAND = "ace-drake evaluate --controller {controller} --data ../shared/data/ace_match_events_elite.csv --json"
-BENCHMARK_COMMANDS = {"sim": "ace-drake bench sim --json", "train": "ace-drake bench train --json"}  # bench output carries no command of its own
+BENCHMARK_COMMANDS = {"sim": "ace-drake bench sim --json", "train": "ace-drake bench train --json"}  # what made a stored bench JSON that does not record its command
 NOT_MEASURED = "not measured"
 
 
@@ -147,6 +147,20 @@ def speed_rows(sim: dict | None, source: str) -> list[Row]:
     return rows
 
 
+def collection_rows(train: dict | None, source: str) -> list[Row]:
+    """Training collection with two Ray workers and the learner's updates/s (bench train); none
+    when it was not measured."""
+    if train is None or not train.get("vector_env_steps_per_s"):
+        return []
+    best = max(train["vector_env_steps_per_s"].items(), key=lambda item: item[1])
+    updates = max(train["updates_per_s"].values())
+    return [
+        Row("training collection, 2 Ray workers", f"{best[1]:.0f} steps per second (B = {best[0]} each); RallyEnv: {train['env_steps_per_s']['2']:.0f}",
+            f"the freshly initialised actor, statistical sensors, full control stack, {train['seconds_per_collection']:g} s, {train['date']}", _source(source)),
+        Row("learner (SAC) updates", f"{updates:.0f} per second (batch {train['batch_size']})", "on the collected episodes, the better of 1 and 2 torch threads", _source(source)),
+    ]
+
+
 def result_rows(root: Path) -> list[Row]:
     """Every row of the README's table, read from the files under ``root``."""
     rows = [evaluation_row(DEFAULT_CONTROLLER, read_json(root / "docs/results" / f"{DEFAULT_CONTROLLER}.json"),
@@ -160,6 +174,7 @@ def result_rows(root: Path) -> list[Row]:
         rows.append(policy_row(name, read_json(root / source), source))
     rows.append(ball_fit_row(read_json(root / "models/ball_physics_fitted.json"), "models/ball_physics_fitted.json"))
     rows.extend(speed_rows(read_json(root / "docs/benchmarks/sim.json"), "docs/benchmarks/sim.json"))
+    rows.extend(collection_rows(read_json(root / "docs/benchmarks/train.json"), "docs/benchmarks/train.json"))
     return rows
 
 
@@ -226,7 +241,7 @@ def render_benchmarks(root: Path) -> str:
     if train is not None:
         rows = [(f"RallyEnv, {workers} worker(s)", f"{rate:.0f}") for workers, rate in train["env_steps_per_s"].items()]
         rows += [(f"RallyVectorEnv B = {batch}, 2 workers", f"{rate:.0f}") for batch, rate in train.get("vector_env_steps_per_s", {}).items()]
-        parts.append(f"`docs/benchmarks/train.json` (`{BENCHMARK_COMMANDS['train']}`; Ray workers, {train['seconds_per_collection']:g} s of collection each):")
+        parts.append(f"`docs/benchmarks/train.json` (`{train.get('command', BENCHMARK_COMMANDS['train'])}`; Ray workers, {train['seconds_per_collection']:g} s of collection each):")
         parts.append(render_table(("collection", "environment steps/s"), rows))
         updates = ", ".join(f"{rate:.1f} with {threads} torch thread(s)" for threads, rate in train["updates_per_s"].items())
         ratio = train.get("ratio_env_steps_new_to_old")

@@ -44,9 +44,9 @@ def _collect(workers: int, seconds: float, episodes: int, seed: int, progress, b
         for index in range(workers):
             pool.submit(index, episodes, "policy")
         while pool.in_flight:
-            index, batch = pool.wait()
-            collected += batch
-            steps += sum(episode.steps for episode in batch)
+            index, episodes_done = pool.wait()
+            collected += episodes_done
+            steps += sum(episode.steps for episode in episodes_done)
             if time.perf_counter() - start < seconds:
                 pool.submit(index, episodes, "policy")
         wall = time.perf_counter() - start
