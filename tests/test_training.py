@@ -31,6 +31,7 @@ from ace_drake.training.export import (
     cloning_curve,
     evaluation_description,
     evaluation_series,
+    heldout_series,
     export,
     plot_learning_curve,
 )
@@ -191,8 +192,16 @@ def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
     assert (MODELS_DIR / "policies" / f"{name}.pt").is_file()
 
 
+# Runs in training: their config is kept so that a later session resumes them, and their policy
+# ships when the run ends (models/train_rally_paper.yaml: issue 30).
+IN_TRAINING = ("rally_paper",)
+
+
 def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
-    assert {path.name for path in MODELS_DIR.glob("train_*.yaml")} == {"train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES)}
+    assert {path.name for path in MODELS_DIR.glob("train_*.yaml")} == {
+        "train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES + IN_TRAINING)}
+    for name in IN_TRAINING:
+        assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
     assert {path.stem for path in (MODELS_DIR / "policies").glob("*.pt")} == set(KEPT_POLICIES)
 
 
@@ -711,3 +720,50 @@ def test_a_checkpoint_written_with_the_play_options_among_the_learners_resumes_w
     assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.resumptions == 1
     with pytest.raises(ConfigError, match="play"):
         Trainer(dataclasses.replace(config, play=PlayOptions(meet_ball=True)), tmp_path / "run", progress=lambda line: None)
+
+
+def test_heldout_players_need_match_data_and_must_be_players_the_run_never_saw(tmp_path):
+    data = tmp_path / "events.csv"
+    data.write_text("x\n")
+    with pytest.raises(ConfigError, match="heldout_players selects shots of evaluation_data"):
+        TrainConfig(heldout_players=("Elite D",))
+    shots = dataclasses.replace(RallyEnvParams().shots, source=str(data), players=("Elite A", "Elite D"))
+    with pytest.raises(ConfigError, match="neither trains nor chooses"):
+        TrainConfig(evaluation_data=str(data), heldout_players=("Elite D",), env=RallyEnvParams(shots=shots))
+    with pytest.raises(ConfigError, match="neither trains nor chooses"):
+        TrainConfig(evaluation_data=str(data), evaluation_players=("Elite D",), heldout_players=("Elite D",))
+    everyone = dataclasses.replace(shots, players=())  # a KDE of every player's shots: none is held out
+    with pytest.raises(ConfigError, match="neither trains nor chooses"):
+        TrainConfig(evaluation_data=str(data), heldout_players=("Elite D",), env=RallyEnvParams(shots=everyone))
+    TrainConfig(evaluation_data=str(data), evaluation_players=("Elite A",), heldout_players=("Elite D",),
+                env=RallyEnvParams(shots=dataclasses.replace(shots, players=("Elite A",))))
+
+
+def test_each_evaluation_also_plays_the_heldout_players_and_the_curve_draws_them(tmp_path, monkeypatch):
+    from ace_drake.training import loop
+
+    data = tmp_path / "events.csv"
+    data.write_text("x\n")
+    synthetic = loop.make_distribution(RallyEnvParams().shots).draw(np.random.default_rng(0), 6)
+    asked = []
+
+    def human(path, players):  # the evaluation's shots (2) and the held-out players' (3), without a data file
+        asked.append(tuple(players))
+        count = 3 if tuple(players) == ("Elite D",) else 2
+        return synthetic.states[:count], synthetic.serve[:count]
+
+    monkeypatch.setattr(loop, "human_shots", human)
+    config = _config(batch=2, demonstrations=0, pretrain_updates=0, ou_episodes=2, env_steps=40, evaluation_episodes=2,
+                     evaluation_data=str(data), evaluation_players=("Elite A",), heldout_players=("Elite D",))
+    state = Trainer(config, tmp_path / "run", progress=lambda line: None).run()
+    held = state.evaluations[-1][2]["heldout"]
+    assert held["players"] == ["Elite D"] and held["played"] + state.evaluations[-1][2].get("invalid", 0) <= 3
+    assert ("Elite A",) in asked and ("Elite D",) in asked
+    points, _, label = heldout_series(state)
+    assert [p[0] for p in points] == [e[0] for e in state.evaluations if e[2]["heldout"]["rate"] is not None]
+    assert "Elite D" in label or not points
+    entry = {"rate": 0.5, "ci95": [0.3, 0.7]}
+    drawn = Progress(evaluations=[(100, 1, {**entry, "heldout": {**entry, "players": ["Elite D"]}}), (200, 2, entry)])
+    assert [p[0] for p in heldout_series(drawn)[0]] == [100] and "Elite D" in heldout_series(drawn)[2]
+    plot_learning_curve(drawn, tmp_path / "curve.png", "run", "x", step_seconds=0.032)
+    assert (tmp_path / "curve.png").stat().st_size > 1000

@@ -17,6 +17,7 @@ from ace_drake.config import MODELS_DIR, ConfigError, to_dict
 from ace_drake.control.params import RallyParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.sac import SacLearner, save_policy
+from ace_drake.robot.model import load_scenario
 from ace_drake.play.shots import held_out_players, human_shots
 from ace_drake.training.checkpoint import CHECKPOINT, PREVIOUS_CHECKPOINT, Progress
 from ace_drake.training.loop import TrainConfig, Trainer, load_train_config
@@ -54,7 +55,8 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     started_at = s.initialized_at
     if started_at is None and c.initialize_from:
         started_at = s.learn_start[0]  # a run initialised before Progress.initialized_at existed: the same step
-    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c), started_at, rollouts)
+    step_seconds = c.env.rally.control.segment_samples * load_scenario(MODELS_DIR / c.env.rally.scenario).dynamics.command_period
+    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c), started_at, rollouts, step_seconds)
     return sidecar
 
 
@@ -165,6 +167,14 @@ def evaluation_series(state: Progress, description: str = "", started_at: int | 
             ([e for e in evaluated if e[0] > started_at], label)]
 
 
+def heldout_series(state: Progress) -> tuple[list, str, str]:
+    """The evaluations on the held-out players (``TrainConfig.heldout_players``): (points
+    [(env_steps, figures)], colour, label); no points when the run has none."""
+    points = [(e[0], e[2]["heldout"]) for e in state.evaluations if e[2].get("heldout", {}).get("rate") is not None]
+    players = ", ".join(points[0][1]["players"]) if points else ""
+    return points, "C2", f"held-out players ({players}), all their shots"
+
+
 def cloning_curve(state: Progress) -> list[tuple[int, dict]] | None:
     """A run that only clones (``pretrain_evaluate_every``): its evaluations as (learner updates,
     figures), when there are several and all came at one environment step count; else None."""
@@ -175,12 +185,14 @@ def cloning_curve(state: Progress) -> list[tuple[int, dict]] | None:
 
 
 def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None,
-                        rollouts: str = "stochastic actor") -> None:
+                        rollouts: str = "stochastic actor", step_seconds: float = 0.032) -> None:
     """Return rate against environment steps: the rollout policy's (last 100 episodes; how it
     acted: ``rollouts``) and the periodic evaluations' (with their 95 % intervals) on
     ``description``'s shots. A run started from another's checkpoint at ``started_at`` steps
     (``initialize_from``) draws the earlier run's evaluations, which may be of other shots, as a
-    separate series. A run that only clones (``cloning_curve``) is drawn against learner updates."""
+    separate series; evaluations on held-out players (``heldout_series``) as one more. The top axis
+    counts hours of simulated play (``step_seconds`` per environment step: one control segment). A
+    run that only clones (``cloning_curve``) is drawn against learner updates."""
     figure = Figure(figsize=(6, 3.5), dpi=100)  # no pyplot: no display, no global figure state
     axes = figure.subplots()
     cloning = cloning_curve(state) if started_at is None else None
@@ -195,7 +207,12 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
         series = evaluation_series(state, description, started_at)
         for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
             _draw_evaluations(axes, points, color, name)
+        heldout = heldout_series(state)
+        if heldout[0]:
+            _draw_evaluations(axes, *heldout)
         axes.set_xlabel("environment steps (32 ms)")
+        hours = axes.secondary_xaxis("top", functions=(lambda steps: steps * step_seconds / 3600.0, lambda h: h * 3600.0 / step_seconds))
+        hours.set_xlabel("hours of simulated play", fontsize=8)
     axes.set_ylabel("return rate")
     axes.set_ylim(0.0, 1.0)
     axes.set_title(title)

@@ -29,7 +29,8 @@ so a killed run loses only the work since then; ``train`` on the same directory 
 and the number of resumptions, so a resumed run is reproducible but not identical to an
 uninterrupted one). Every ``evaluate_every`` steps the deterministic actor is evaluated in the
 rally diagram (``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best
-evaluated actor is kept. Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
+evaluated actor is kept (and, with ``heldout_players``, also on all of those players' shots, for the
+curve only). Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
 the ``progress`` callable. ``export.export`` writes a policy artefact (``models/policies/<name>.pt``),
 its sidecar JSON and the learning curve PNG.
 
@@ -104,6 +105,10 @@ class TrainConfig:
     evaluation_data: str = ""  # a match-data CSV (its shot_p2 shots); "" the synthetic distribution
     evaluation_players: tuple[str, ...] = ()  # with evaluation_data: these players' shots only; () all
     evaluation_sensors: str = "statistical"  # the rally diagram's position sensor for evaluations
+    # With evaluation_data: players whose shots every periodic evaluation also plays, all of them,
+    # for the learning curve on players the run never saw; reported, never used to choose the
+    # exported actor (that is evaluation_players'). () none.
+    heldout_players: tuple[str, ...] = ()
     # Another run's checkpoint to start from, in the learn phase (its learner, replay tables and
     # demonstrations; e.g. a run stopped after its pretraining); "" starts afresh.
     initialize_from: str = ""
@@ -155,6 +160,14 @@ class TrainConfig:
             raise ConfigError("TrainConfig.evaluation_players selects shots of evaluation_data; give a match-data CSV")
         if self.evaluation_data and not Path(self.evaluation_data).is_file():
             raise ConfigError(f"TrainConfig.evaluation_data: no such file {self.evaluation_data}")
+        if self.heldout_players:
+            if not self.evaluation_data:
+                raise ConfigError("TrainConfig.heldout_players selects shots of evaluation_data; give a match-data CSV")
+            seen = set(self.heldout_players) & (set(self.evaluation_players) | set(self.env.shots.players))
+            if seen or (self.env.shots.source != "synthetic" and not self.env.shots.players):
+                raise ConfigError("TrainConfig.heldout_players must be players the run neither trains nor chooses its actor on "
+                                  f"(env.shots.players {list(self.env.shots.players) or 'all'}, evaluation_players "
+                                  f"{list(self.evaluation_players)}); got {list(self.heldout_players)}")
         if self.play.hit_memory != self.env.rally.hit_memory:
             raise ConfigError(f"TrainConfig: play.hit_memory ({self.play.hit_memory}) and env.rally.hit_memory ({self.env.rally.hit_memory}) "
                               "must agree: the actor reads the observation the env's diagram builds")
@@ -413,6 +426,15 @@ class Trainer(Checkpointing):
         rate = figures["return_rate"]
         summary = {"rate": rate["rate"], "ci95": rate["ci95"], "played": rate["played"], "returned": rate["returned"],
                    "not_returned_by_reason": figures["not_returned_by_reason"]}
+        if c.heldout_players:
+            shots, serve = human_shots(c.evaluation_data, c.heldout_players)
+            held = evaluate(self.learner.policy(), params, shots, serve, seed=c.seed, batch=EVALUATION_BATCH if c.batch else 1)["return_rate"]
+            summary["heldout"] = {"players": list(c.heldout_players), "rate": held["rate"], "ci95": held["ci95"],
+                                  "played": held["played"], "returned": held["returned"]}
+            if held["rate"] is not None:
+                self._writer.add_scalar("evaluation/heldout_return_rate", held["rate"], s.env_steps)
+            self.log(f"train: evaluation at {s.env_steps} steps on the held-out players ({', '.join(c.heldout_players)}): "
+                     f"returned {held['returned']} of {held['played']} ({(held['rate'] or 0):.1%})")
         s.evaluations.append((s.env_steps, self.learner.updates, summary))
         if rate["rate"] is not None:
             self._writer.add_scalar("evaluation/return_rate", rate["rate"], s.env_steps)
