@@ -30,6 +30,11 @@ WORK = {
     "physics-validate": "ace_drake.analysis.physics_validation:validate_file",
     "physics summary": "ace_drake.analysis.physics_validation:format_summary",
     "physics-fit": "ace_drake.analysis.physics_fit:fit_and_write",
+    "physics-fit-racket": "ace_drake.analysis.racket_fit:fit_racket_and_write",
+    "physics-validate racket": "ace_drake.analysis.racket_fit:validate_racket",
+    "racket figures": "ace_drake.analysis.racket_fit:format_racket_figures",
+    "physics-validate trajectories": "ace_drake.analysis.trajectory_validation:validate_trajectories_with_params",
+    "trajectory figures": "ace_drake.analysis.trajectory_validation:format_trajectory_figures",
     "sysid": "ace_drake.control.sysid:identify_and_write",
     "bench ball": "ace_drake.analysis.bench:bench_ball",
     "bench reach": "ace_drake.analysis.reach:bench_reach_on_file",
@@ -138,12 +143,52 @@ def _print_evaluation(figures: dict) -> None:
 
 
 def cmd_physics_validate(args) -> int:
-    """Replay recorded (shot or bounce) -> bounce pairs through the ball model; report errors."""
-    summary = work("physics-validate")(args.data, args.params, args.player or (), progress=log)
+    """The ball model against recorded data: (shot or bounce) -> bounce pairs of match events
+    (--data), measured racket contacts (--racket-contacts), measured trajectories (--trajectories);
+    any of them in one run, one JSON object (keys: the match-event figures at the top level,
+    ``racket``, ``trajectories``)."""
+    if not (args.data or args.racket_contacts or args.trajectories):
+        raise ConfigError("physics-validate: give --data, --racket-contacts or --trajectories (or several)")
+    if args.player and not args.data:
+        raise ConfigError("physics-validate: --player selects players of --data")
+    if args.residual and not args.racket_contacts:
+        raise ConfigError("physics-validate: --residual applies to --racket-contacts")
+    summary: dict = {"command": "physics-validate", "params": args.params or "paper"}
+    if args.data:
+        summary.update(work("physics-validate")(args.data, args.params, args.player or (), progress=log))
+    if args.racket_contacts:
+        summary.update(work("physics-validate racket")(args.racket_contacts, args.params, args.residual))
+    if args.trajectories:
+        summary.update(work("physics-validate trajectories")(args.trajectories, args.params, progress=log))
     if args.json:
         emit_json(summary)
-    else:
+        return 0
+    if args.data:
         print(work("physics summary")(summary, f"ball model: {summary['params']}; data: {args.data}"))
+    if args.racket_contacts:
+        racket = summary["racket"]
+        print(work("racket figures")({summary["racket_model"]: racket},
+                                     f"racket contacts: {summary['contacts']} of {args.racket_contacts}"
+                                     + (f" ({sum(summary['skipped_rows'].values())} rows skipped)" if summary["skipped_rows"] else "")))
+    if args.trajectories:
+        print(work("trajectory figures")(summary))
+    return 0
+
+
+def cmd_physics_fit_racket(args) -> int:
+    """Identify the racket contact model (eqs (7)-(8)) and its residual network on measured
+    contacts, split by game; report on the held-out games."""
+    games = tuple(name.strip() for name in args.holdout_games.split(",") if name.strip()) if args.holdout_games else ()
+    if games and args.holdout_fraction is not None:
+        raise ConfigError("physics-fit-racket: give --holdout-fraction or --holdout-games, not both")
+    sidecar = work("physics-fit-racket")(args.data, args.holdout_fraction, games, args.seed, args.params, args.out, args.residual_out,
+                                         epochs=args.epochs, progress=log)
+    if args.json:
+        emit_json({"command": "physics-fit-racket", "params_file": str(args.out), **sidecar})
+        return 0
+    for part in ("held_out", "training"):
+        print(work("racket figures")(sidecar["figures"][part], f"\n{part.replace('_', '-')} contacts ({sidecar['split'][part + '_contacts']})"))
+    print(f"\nkept the {sidecar['law']} law; wrote {args.out} and {args.residual_out} (with sidecars)")
     return 0
 
 
@@ -402,12 +447,27 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
 
-    validate = commands.add_parser("physics-validate", help="replay recorded events through the ball model")
-    validate.add_argument("--data", required=True, help="match-data CSV (format of ace_match_events_elite.csv)")
-    validate.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
-    validate.add_argument("--player", action="append", help="only these players (repeatable)")
+    validate = commands.add_parser("physics-validate", help="the ball model against recorded match events, racket contacts, trajectories")
+    validate.add_argument("--data", help="match-data CSV (format of ace_match_events_elite.csv): (shot or bounce) -> bounce pairs")
+    validate.add_argument("--racket-contacts", help="measured racket contacts (format of sony_racket_contacts.csv)")
+    validate.add_argument("--trajectories", help="measured trajectories: CSV trajectory,t,x,y,z,wx,wy,wz (m, s, rad/s)")
+    validate.add_argument("--params", help="ball-model parameter YAML (default: the paper's model), e.g. models/racket_fitted.yaml")
+    validate.add_argument("--residual", help="with --racket-contacts: a racket residual network (default: the one --params names, if any)")
+    validate.add_argument("--player", action="append", help="with --data: only these players (repeatable)")
     validate.add_argument("--json", action="store_true")
     validate.set_defaults(run=cmd_physics_validate)
+
+    fit_racket = commands.add_parser("physics-fit-racket", help="identify the racket contact model and its residual on measured contacts")
+    fit_racket.add_argument("--data", required=True, help="measured racket contacts (format of sony_racket_contacts.csv)")
+    fit_racket.add_argument("--holdout-fraction", type=float, help="hold out this fraction of the games, drawn with --seed (default 0.2)")
+    fit_racket.add_argument("--holdout-games", help="hold out these games, comma-separated (e.g. 'session_2/game_1,session_6/game_0')")
+    fit_racket.add_argument("--seed", type=int, default=0, help="the held-out games' draw and the residual network's training")
+    fit_racket.add_argument("--params", help="starting ball-model YAML (default: the paper's model)")
+    fit_racket.add_argument("--out", default=str(MODELS_DIR / "racket_fitted.yaml"), help="the fitted ball-model YAML (+ .json sidecar)")
+    fit_racket.add_argument("--residual-out", default=str(MODELS_DIR / "racket_residual.pt"), help="the residual network (+ .json sidecar)")
+    fit_racket.add_argument("--epochs", type=int, default=500, help="the residual network's training epochs at most")
+    fit_racket.add_argument("--json", action="store_true")
+    fit_racket.set_defaults(run=cmd_physics_fit_racket)
 
     fit = commands.add_parser("physics-fit", help="fit ball-model coefficients on some players")
     fit.add_argument("--data", required=True, help="match-data CSV")

@@ -42,6 +42,7 @@ from ace_drake.perception.cameras import load_cameras
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.contact import ResidualModel
 from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.physics.racket_residual import residual_model
 from ace_drake.robot.model import add_robot_to_plant, check_joint_order, load_scenario, racket_reach_box
 from ace_drake.robot.params import RobotScenario
 from ace_drake.systems.action_mapper import ActionMapper
@@ -132,9 +133,12 @@ def add_ball(
 ) -> BallPlant:
     """Adds the BallPlant as ``ball``; the shared first step of every builder. With the
     ``scenario`` of the robot whose racket it will meet, the ball knows the box the racket stays
-    in (``robot.model.racket_reach_box``), which spares the racket witness most pose reads."""
+    in (``robot.model.racket_reach_box``), which spares the racket witness most pose reads. The
+    racket contact's residual network is ``racket_residual`` or else the one ``params.racket``
+    selects (``racket_residual.residual_model``)."""
     reach = None if scenario is None else racket_reach_box(scenario)
-    return builder.AddNamedSystem("ball", BallPlant(params, perturb=perturb, seed=seed, racket_residual=racket_residual, racket_reach=reach))
+    residual = racket_residual if racket_residual is not None else residual_model(params.racket)
+    return builder.AddNamedSystem("ball", BallPlant(params, perturb=perturb, seed=seed, racket_residual=residual, racket_reach=reach))
 
 
 def build_ball_diagram(
@@ -567,7 +571,8 @@ def add_segment_rally(builder: DiagramBuilder, params: RallyParams, policy, batc
     predictor = HitPredictor.for_robot(scenario, params.control, params.physics) if params.hit_prediction else None
     add = builder.AddNamedSystem
     clock = add("episode_clock", EpisodeClock(batch, timing))
-    ball = add("ball", SegmentBallPlant(params.physics, batch, timing, perturb=params.perturb))
+    ball = add("ball", SegmentBallPlant(params.physics, batch, timing, perturb=params.perturb,
+                                         racket_residual=residual_model(params.physics.racket)))
     joints = add("joint_plant", SegmentJointPlant(scenario.dynamics, batch, timing))
     racket = add("robot_kinematics", SegmentRacketKinematics(kinematics))
     if params.perception.positions == "cameras":

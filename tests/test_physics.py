@@ -25,6 +25,10 @@ AERO = PARAMS.aero
 R = AERO.ball_radius
 DENSITY_RATIO = AERO.air_density / AERO.ball_density  # 1.204 / 81.2
 MIRROR_Y = np.diag([1.0, -1.0, 1.0])
+# Every combination of drag and Magnus models (AeroParams.drag_model, magnus_model).
+AERO_MODELS = [
+    AeroParams(drag_model=drag, magnus_model=magnus) for drag in ("constant", "spin_ratio") for magnus in ("ratio", "refined")
+]
 
 
 def mirror_state(state):
@@ -87,8 +91,9 @@ def test_magnus_coefficient_cap_and_zero_spin_limit():
     st.one_of(st.just([0.0, 0.0, 0.0]), st.lists(st.floats(-1000, 1000), min_size=3, max_size=3)),
 )
 def test_one_ball_acceleration_is_the_batched_one_bit_for_bit(v, w):
-    one = one_ball_flight_acceleration(tuple(v), tuple(w), AERO)
-    np.testing.assert_array_equal(one, flight_acceleration(np.array(v), np.array(w), AERO))
+    for aero in AERO_MODELS:
+        one = one_ball_flight_acceleration(tuple(v), tuple(w), aero)
+        np.testing.assert_array_equal(one, flight_acceleration(np.array(v), np.array(w), aero))
 
 
 @settings(max_examples=200, deadline=None)
@@ -100,30 +105,33 @@ def test_one_ball_acceleration_is_the_batched_one_bit_for_bit(v, w):
 )
 def test_compiled_rk4_step_is_the_numpy_step_bit_for_bit(p, v, w, dt):
     state = make_state(p, v, w)
-    np.testing.assert_array_equal(rk4_step(state, dt, AERO), rk4_step_numpy(state, dt, AERO))
+    for aero in AERO_MODELS:
+        np.testing.assert_array_equal(rk4_step(state, dt, aero), rk4_step_numpy(state, dt, aero))
 
 
 def test_compiled_rk4_step_keeps_shapes_and_per_ball_steps():
     rng = np.random.default_rng(3)
     states = np.concatenate([rng.normal(0, 1, (4, 5, 3)), rng.normal(0, 8, (4, 5, 3)), rng.normal(0, 300, (4, 5, 3))], axis=-1)
     steps = rng.uniform(-0.02, 0.02, (4, 5))
-    np.testing.assert_array_equal(rk4_step(states, steps, AERO), rk4_step_numpy(states, steps, AERO))
+    for aero in AERO_MODELS:
+        np.testing.assert_array_equal(rk4_step(states, steps, aero), rk4_step_numpy(states, steps, aero))
     np.testing.assert_array_equal(rk4_step(states[:, 0], steps[:1, 0], AERO), rk4_step_numpy(states[:, 0], steps[:1, 0], AERO))
     assert rk4_step(states[0, 0], 1e-3, AERO).shape == (9,)
     with pytest.raises(ValueError, match=r"\(\.\.\., 9\)"):
         rk4_step(np.zeros(8), 1e-3, AERO)
 
 
-def test_rk4_trajectory_is_repeated_rk4_steps_bit_for_bit():
+@pytest.mark.parametrize("aero", AERO_MODELS)
+def test_rk4_trajectory_is_repeated_rk4_steps_bit_for_bit(aero):
     rng = np.random.default_rng(4)
     states = np.concatenate([rng.normal(0, 1, (6, 3)), rng.normal(0, 8, (6, 3)), rng.normal(0, 300, (6, 3))], axis=-1)
     steps = np.r_[np.full(5, 1e-3), 3e-4]
-    trajectory = rk4_trajectory(states, steps, AERO)
+    trajectory = rk4_trajectory(states, steps, aero)
     assert trajectory.shape == (6, 7, 9)
     x = states
     np.testing.assert_array_equal(trajectory[:, 0], states)
     for k, h in enumerate(steps):
-        x = rk4_step(x, h, AERO)
+        x = rk4_step(x, h, aero)
         np.testing.assert_array_equal(trajectory[:, k + 1], x)
     with pytest.raises(ValueError, match="rk4_trajectory"):
         rk4_trajectory(states[0], steps, AERO)

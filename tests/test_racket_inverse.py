@@ -1,8 +1,11 @@
 """The racket contact run backwards (physics/racket_inverse.py): the inversion of eqs (7)-(8),
 checked by hand and through the forward model, and the return solve."""
 
+import dataclasses
+
 import numpy as np
 import pytest
+import torch
 
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
 from ace_drake.physics import racket_inverse
@@ -10,6 +13,7 @@ from ace_drake.physics.contact import racket_impact, racket_restitution
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind, simulate
 from ace_drake.physics.racket_inverse import contact_frame, invert_racket_contact, solve_return
+from ace_drake.physics.racket_residual import RacketResidualMLP, residual_model, save_residual
 
 PARAMS = BallPhysicsParams()
 RADIUS = PARAMS.aero.ball_radius
@@ -65,3 +69,43 @@ def test_a_diverging_return_solve_gives_up_instead_of_raising(monkeypatch):
     monkeypatch.setattr(racket_inverse, "simulate", lambda *args, **kwargs: flat)
     assert solve_return(APEX_BALL, np.array([0.8, 0.0]), 0.55, PARAMS) is None
 
+
+
+class _PlantedResidual:
+    """A smooth correction (N, 8) -> (N, 6) of the size the fitted network makes (~0.1 m/s, ~10 rad/s)."""
+
+    def __call__(self, features):
+        v = features[:, :3]
+        return np.c_[0.02 * v[:, 2:3] * np.ones((1, 3)) + 0.01 * v[:, :3], 0.5 * v[:, [1, 0, 2]]]
+
+
+def test_with_a_residual_the_inversion_is_solved_through_the_full_model():
+    rng = np.random.default_rng(5)
+    residual = _PlantedResidual()
+    for _ in range(10):
+        v_in = np.array([-7.0, 0.0, -1.0]) + rng.normal(size=3) * [2.0, 1.5, 1.5]
+        w_in = rng.normal(size=3) * 250.0
+        v_out = np.array([6.0, 0.0, 2.0]) + rng.normal(size=(4, 3)) * [1.5, 1.0, 1.0]
+        closed = invert_racket_contact(v_in, w_in, v_out, PARAMS.racket, RADIUS, 1.0)
+        normal, v_racket = invert_racket_contact(v_in, w_in, v_out, PARAMS.racket, RADIUS, 1.0, residual=residual)
+        made, _ = racket_impact(v_in, w_in, v_racket, contact_frame(normal), PARAMS.racket, RADIUS, residual=residual)
+        np.testing.assert_allclose(made, v_out, atol=1e-8)
+        missed, _ = racket_impact(v_in, w_in, closed[1], contact_frame(closed[0]), PARAMS.racket, RADIUS, residual=residual)
+        assert np.max(np.abs(missed - v_out)) > 1e-3  # the closed form alone would miss under the residual
+        np.testing.assert_allclose(np.linalg.norm(normal, axis=-1), 1.0)
+
+
+def test_solve_return_uses_the_residual_the_params_select(tmp_path):
+    network = RacketResidualMLP()
+    with torch.no_grad():
+        network.net[-1].bias.copy_(torch.tensor([0.3, -0.2, 0.4, 20.0, -15.0, 5.0]))  # a constant correction
+    save_residual(network, tmp_path / "residual.pt")
+    params = dataclasses.replace(PARAMS, racket=dataclasses.replace(PARAMS.racket, residual=str(tmp_path / "residual.pt")))
+    shot = solve_return(APEX_BALL, np.array([1.0, 0.2]), 0.45, params)
+    assert shot is not None
+    v_out, w_out = racket_impact(APEX_BALL[3:6], APEX_BALL[6:9], shot.racket_velocity, contact_frame(shot.normal), params.racket, RADIUS,
+                                 residual=residual_model(params.racket))
+    np.testing.assert_allclose(v_out, shot.v_out, atol=1e-7)
+    np.testing.assert_allclose(w_out, shot.w_out, atol=1e-5)
+    plain = solve_return(APEX_BALL, np.array([1.0, 0.2]), 0.45, PARAMS)
+    assert np.linalg.norm(plain.racket_velocity - shot.racket_velocity) > 0.05

@@ -79,7 +79,8 @@ def test_readme_and_benchmarks_page_show_what_their_sources_hold():
 
 def copy_sources(root: Path) -> None:
     """The generated documents and every file their tables read, copied under ``root``."""
-    for name in ("README.md", "docs/benchmarks.md", "models/ball_physics_fitted.json", "docs/benchmarks/sim.json", "docs/benchmarks/train.json",
+    for name in ("README.md", "docs/benchmarks.md", "models/ball_physics_fitted.json", "models/racket_fitted.json", "docs/benchmarks/sim.json",
+                 "docs/benchmarks/train.json",
                  *(f"models/policies/{policy}.json" for policy in results.SHIPPED_POLICIES)):
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(REPO_ROOT / name, root / name)

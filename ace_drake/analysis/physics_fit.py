@@ -28,11 +28,21 @@ FIT_BOUNDS = {
     "aero.drag_coefficient": (0.2, 1.2),
     "aero.magnus_slope": (0.0, 0.5),
     "aero.magnus_offset": (-0.05, 0.05),
+    "aero.magnus_scale": (0.2, 3.0),  # the refined Magnus model's only free coefficient
     "table.friction": (0.02, 0.8),
     "table.restitution_base": (0.6, 1.0),
     "table.restitution_slope": (0.0, 0.15),
 }
-DEFAULT_FIT_PARAMETERS = tuple(FIT_BOUNDS)
+DEFAULT_FIT_PARAMETERS = tuple(name for name in FIT_BOUNDS if name != "aero.magnus_scale")  # the printed model's
+
+
+def default_fit_parameters(params: BallPhysicsParams) -> tuple[str, ...]:
+    """The coefficients ``physics-fit`` fits by default from ``params``: its drag coefficient (a
+    constant, or the scale of the spin-ratio table), its Magnus model's coefficients (slope and
+    offset of the printed ratio law, or the refined model's scale) and the table's."""
+    if params.aero.magnus_model == "refined":
+        return tuple(name for name in FIT_BOUNDS if name not in ("aero.magnus_slope", "aero.magnus_offset"))
+    return DEFAULT_FIT_PARAMETERS
 
 
 
@@ -104,6 +114,7 @@ START_GRID = {
     "aero.drag_coefficient": (0.3, 0.4, 0.5, 0.6),
     "aero.magnus_slope": (0.07, 0.09, 0.11, 0.13),
     "aero.magnus_offset": (-0.03, -0.01, 0.0),
+    "aero.magnus_scale": (0.7, 1.0, 1.4),
 }
 
 # Which residual columns (of pair_residuals) identify which coefficients: the landing point and
@@ -203,7 +214,7 @@ def _split(name: str) -> tuple[str, str]:
 def fit_and_write(data, holdout_players: Sequence[str], parameters: Sequence[str] | None = None, ball_params=None,
                   out=MODELS_DIR / "ball_physics_fitted.yaml", max_evaluations: int = 200,
                   progress: Callable[[str], None] = print) -> dict:
-    """``ace-drake physics-fit``: fits ``parameters`` (default ``DEFAULT_FIT_PARAMETERS``), from
+    """``ace-drake physics-fit``: fits ``parameters`` (default ``default_fit_parameters``), from
     the ball model of the YAML ``ball_params`` (None: the paper's), on the pairs of the match-data
     CSV ``data`` of every player but ``holdout_players``; writes ``out`` (the fitted and changed
     fields, rounded) and its sidecar (``artefacts.write_sidecar``) with the figures of the initial
@@ -218,7 +229,7 @@ def fit_and_write(data, holdout_players: Sequence[str], parameters: Sequence[str
     if held_out.all():
         raise ConfigError("--holdout-player: every player is held out; nothing is left to fit on")
     initial = load_ball_params(ball_params)
-    names = tuple(parameters or DEFAULT_FIT_PARAMETERS)
+    names = tuple(parameters or default_fit_parameters(initial))
     fit_players = sorted(set(pairs.players[~held_out]))
     progress(f"fitting {names} on {int((~held_out).sum())} pairs ({', '.join(fit_players)}); "
              f"holding out {int(held_out.sum())} pairs ({', '.join(holdout_players)})")

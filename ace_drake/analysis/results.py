@@ -5,7 +5,8 @@ Sources, all relative to the repository root:
 - the shipped policies' sidecars ``models/policies/<name>.json`` (``SHIPPED_POLICIES``): the
   export evaluation ``final_evaluation`` that ``ace-drake train --evaluate-data`` records (the
   recorded human shots through the cameras, at the run's seed);
-- the fitted ball model's sidecar ``models/ball_physics_fitted.json`` (``ace-drake physics-fit``);
+- the fitted ball model's sidecar ``models/ball_physics_fitted.json`` (``ace-drake physics-fit``)
+  and the fitted racket model's ``models/racket_fitted.json`` (``ace-drake physics-fit-racket``);
 - stored evaluations ``docs/results/<controller>.json`` (``ace-drake evaluate ... --json``
   redirected there; the default controller's row says "not measured" until its file exists);
 - stored benchmarks ``docs/benchmarks/<name>.json`` (``ace-drake bench <name> --json``).
@@ -93,6 +94,8 @@ def policy_row(name: str, sidecar: dict | None, source: str) -> Row:
 def evaluation_row(controller: str, evaluation: dict | None, source: str) -> Row:
     """A stored ``ace-drake evaluate --json`` (or "not measured" without one)."""
     what = f"`{controller}`" + (": the default controller" if controller == DEFAULT_CONTROLLER else "")
+    if evaluation is not None and evaluation.get("ball_params"):
+        what += f", ball model `{Path(evaluation['ball_params']).name}`"
     if evaluation is None:
         command = EVALUATE_COMMAND.format(controller=controller)
         return Row(what, NOT_MEASURED, f"`{command} > {source}` measures it on the recorded human shots", _source(source))
@@ -102,6 +105,24 @@ def evaluation_row(controller: str, evaluation: dict | None, source: str) -> Row
     measured_on = (f"{_shots_text(evaluation)}, seed {evaluation['seed']}, the {stepping} diagram{batch}"
                    + (f", {evaluation['date']}" if evaluation.get("date") else ""))
     return Row(what, figure, measured_on, _source(source))
+
+
+def racket_fit_row(sidecar: dict | None, source: str) -> Row:
+    """The racket contact model fitted to measured contacts against the paper's, on the held-out
+    games (physics-fit-racket sidecar)."""
+    what = "racket contact model fitted to measured contacts (`models/racket_fitted.yaml`, with its residual network)"
+    if sidecar is None:
+        return Row(what, NOT_MEASURED, "-", _source(source))
+    held_out = sidecar["figures"]["held_out"]
+    cells = []
+    for label, name in (("paper", "default"), (f"fitted {sidecar['law']} law", f"fitted_{sidecar['law']}"), ("with residual", "fitted_residual")):
+        velocity, spin = held_out[name]["velocity_error_m_s"], held_out[name]["spin_error_rad_s"]
+        cells.append(f"{label} {velocity['median']:.2f} m/s (rms {velocity['rms']:.2f}), {spin['median']:.1f} rad/s (rms {spin['rms']:.1f})")
+    split = sidecar["split"]
+    measured_on = (f"post-contact velocity and spin error, median, on {split['held_out_contacts']} contacts of "
+                   f"{len(split['held_out_games'])} held-out games; fitted on {split['training_contacts']}, "
+                   f"{sidecar['data']['file']}, {sidecar['date']}")
+    return Row(what, "; ".join(cells), measured_on, _source(source))
 
 
 def ball_fit_row(sidecar: dict | None, source: str) -> Row:
@@ -173,6 +194,7 @@ def result_rows(root: Path) -> list[Row]:
         source = f"models/policies/{name}.json"
         rows.append(policy_row(name, read_json(root / source), source))
     rows.append(ball_fit_row(read_json(root / "models/ball_physics_fitted.json"), "models/ball_physics_fitted.json"))
+    rows.append(racket_fit_row(read_json(root / "models/racket_fitted.json"), "models/racket_fitted.json"))
     rows.extend(speed_rows(read_json(root / "docs/benchmarks/sim.json"), "docs/benchmarks/sim.json"))
     rows.extend(collection_rows(read_json(root / "docs/benchmarks/train.json"), "docs/benchmarks/train.json"))
     return rows

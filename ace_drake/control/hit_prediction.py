@@ -546,7 +546,8 @@ def _simulate_rows(initial_state: np.ndarray, durations: np.ndarray, dts: np.nda
 
 @numba.njit(cache=True)
 def _free_steps(x, t, step, steps, dts, durations, active, enabled, rows, times, states,
-                drag_scale, density_ratio, slope, radius, offset, cap, weight, table_height, margin):
+                drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model, drag_table_scale,
+                magnus_scale, table_height, margin):
     """``_simulate_rows``' whole steps of the balls ``rows`` while they are plainly free: from
     each ball's current step (none of it taken yet) on, the step h = min(dt, duration - t) by the
     compiled RK4 step (``physics.flight``'s, as ``rk4_step``), kept when every guard the ball has
@@ -560,7 +561,8 @@ def _free_steps(x, t, step, steps, dts, durations, active, enabled, rows, times,
         while step[row] < steps[row]:
             h = min(dts[row], durations[row] - t[row])
             if active[row] and h > 0.0:
-                rk4_one(x[row], h, drag_scale, density_ratio, slope, radius, offset, cap, weight, k1, k2, k3, k4, trial, x1)
+                rk4_one(x[row], h, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                        drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
                 if enabled[row, 0] and not x1[2] - radius > margin:
                     break
                 if enabled[row, 1] and not abs(x1[0]) - radius > margin:

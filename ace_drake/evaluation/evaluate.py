@@ -240,7 +240,7 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     progress(f"evaluate: '{controller}'{noise} on {source}, {sensors} sensors, seed {seed}, {skill_text}{stepped}")
     figures = evaluate(controllers if len(controllers) > 1 else controllers[0], params, shots, serve, seed, progress=progress, skills=skills, batch=batch)
     return {"controller": controller, "action_noise": action_noise, "data": data, "players": list(players), "sensors": sensors,
-            "seed": seed, "skills": skill or "default", **figures, **provenance(), **({"data_sha256": sha256(data)} if data else {})}
+            "seed": seed, "skills": skill or "default", "ball_params": str(ball_params) if ball_params else None, **figures, **provenance(), **({"data_sha256": sha256(data)} if data else {})}
 
 
 def evaluation_skills(spec: str | None, count: int, params: RallyParams, seed: int, skill_sampling=None) -> tuple[np.ndarray | None, str]:

@@ -36,7 +36,7 @@ import math
 import numba
 import numpy as np
 
-from ace_drake.physics.flight import ball_acceleration, rk4_rows
+from ace_drake.physics.flight import FLIGHT_CONSTANT_COUNT, ball_acceleration, rk4_rows
 
 CONTACT, POSITION, SPIN = 0, 1, 2  # observation kinds, also their order among equal keys
 MAX_START_SPINS = 16  # spins kept while a track starts
@@ -62,7 +62,7 @@ INDEX_SIZE = 6
 (F_GAP, F_JUMP, F_INNOVATION, F_HISTORY, F_FD_STEP, F_MAX_STEP, F_Q_A, F_Q_W, F_BOUNCE_V, F_BOUNCE_W,
  F_BIAS_MAGNITUDE, F_BIAS_AXIS, F_FIT_THRESHOLD, F_POSITION_VARIANCE, F_SPIN_VARIANCE, F_RADIUS,
  F_TABLE_LENGTH, F_TABLE_WIDTH, F_SURFACE_HEIGHT, F_NET_HEIGHT, F_NET_OVERHANG, F_FLIGHT) = range(22)
-CONFIG_SIZE = F_FLIGHT + 7
+CONFIG_SIZE = F_FLIGHT + FLIGHT_CONSTANT_COUNT  # then physics.flight.flight_constants
 OK, BLOCKED = 0, 1
 NAN = math.nan
 
@@ -202,7 +202,8 @@ def _flight_without_contact(batch, duration, dt, cfg):
         h = min(dt, duration - t)
         if h > 0.0:
             h_rows[:] = h
-            rk4_rows(x, h_rows, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6], x1)
+            rk4_rows(x, h_rows, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6], flight[7], flight[8],
+                     flight[9], flight[10], x1)
             for r in range(rows):
                 table, net, floor = contact_gaps(x1[r, 0], x1[r, 1], x1[r, 2], cfg)
                 if (gaps[r, 0] > 0.0 and table <= 0.0) or (gaps[r, 1] > 0.0 and net <= 0.0) or (gaps[r, 2] > 0.0 and floor <= 0.0):
@@ -243,7 +244,8 @@ def predict(mean, covariance, duration, cfg, request, result, out_mean, out_cova
         other = np.empty((10, 9))
         flight = cfg[F_FLIGHT:]
         for _ in range(substeps):
-            rk4_rows(batch, step_array, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6], other)
+            rk4_rows(batch, step_array, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6], flight[7],
+                     flight[8], flight[9], flight[10], other)
             batch, other = other, batch
     elif _flight_without_contact(batch, duration, step, cfg):
         pass
@@ -449,7 +451,8 @@ def _fit_start(positions, obs_f, offset, cfg, out):
     design[:, 0] = 1.0
     design[:, 1] = tau
     flight = cfg[F_FLIGHT:]
-    a = ball_acceleration(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6])
+    a = ball_acceleration(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6],
+                          flight[7], flight[8], flight[9], flight[10])
     solution = np.empty((2, 3))
     target = np.empty((n, 3))
     for _ in range(2):
@@ -457,7 +460,8 @@ def _fit_start(positions, obs_f, offset, cfg, out):
             for c in range(3):
                 target[k, c] = measured[k, c] - 0.5 * tau[k] ** 2 * a[c]
         solution = np.linalg.lstsq(design, target, rcond=-1.0)[0]  # rcond as NumPy's None: eps max(n, 2)
-        a = ball_acceleration(solution[1, 0], solution[1, 1], solution[1, 2], 0.0, 0.0, 0.0, flight[0], flight[1], flight[2], flight[3], flight[4], flight[5], flight[6])
+        a = ball_acceleration(solution[1, 0], solution[1, 1], solution[1, 2], 0.0, 0.0, 0.0, flight[0], flight[1], flight[2], flight[3],
+                              flight[4], flight[5], flight[6], flight[7], flight[8], flight[9], flight[10])
     normalised = 0.0
     noise = np.empty((3, 3))
     residual = np.empty(3)

@@ -72,7 +72,10 @@ def blade_standoff(radius: float, racket: RacketParams) -> float:
 
 
 def racket_restitution(v_normal: np.ndarray, racket: RacketParams) -> np.ndarray:
-    """eps_racket = gamma1 exp(gamma2 |v_z^-|) (paper, below eq. (8)); v_normal in m/s."""
+    """eps_racket(|v_z^-|), v_normal in m/s: gamma1 exp(gamma2 |v_z^-|) (paper, below eq. (8)),
+    or with ``racket.restitution_law`` "linear" a + b |v_z^-| (the authors' later law, notes.md)."""
+    if racket.restitution_law == "linear":
+        return racket.restitution_a + racket.restitution_b * np.abs(v_normal)
     return racket.restitution_gamma1 * np.exp(racket.restitution_gamma2 * np.abs(v_normal))
 
 

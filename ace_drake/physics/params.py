@@ -10,6 +10,10 @@ import math
 from ace_drake.config import ConfigError, load_config, require_non_negative, require_positive
 
 
+DRAG_MODELS = ("constant", "spin_ratio")  # AeroParams.drag_model
+MAGNUS_MODELS = ("ratio", "refined")  # AeroParams.magnus_model
+
+
 @dataclasses.dataclass(frozen=True)
 class AeroParams:
     """Ball and air constants for the flight model (paper eq. (1)); SI units."""
@@ -19,16 +23,30 @@ class AeroParams:
     ball_density: float = 81.2  # rho_ball, kg/m^3 (mass 2.721e-3 kg; authors' code)
     gravity: float = 9.81  # |g|, m/s^2, along -z
     drag_coefficient: float = 0.55  # c_d
+    # Which drag coefficient eq. (1) uses (physics.flight.drag_coefficient): "constant", the
+    # printed paper's c_d = drag_coefficient, or "spin_ratio", the authors' code's c_d(|v|, |w| r / |v|)
+    # table, multiplied by drag_coefficient / 0.55 (1 by default) so that fitting drag_coefficient
+    # still scales it.
+    drag_model: str = "constant"
     # Magnus coefficient c_M = min(magnus_slope * |v| / (r |w|) + magnus_offset, magnus_cap):
     # the paper's c_M = 0.1 |v| / (r |w|) - 0.001, capped at 1 as in the authors' code.
     magnus_slope: float = 0.1
     magnus_offset: float = -0.001
     magnus_cap: float = 1.0
+    # Which Magnus coefficient eq. (1) uses (physics.flight.magnus_coefficient): "ratio", the one
+    # above, or "refined", the authors' code's piecewise fit in |w| interpolated in |v|,
+    # multiplied by magnus_scale (which acts on "refined" only).
+    magnus_model: str = "ratio"
+    magnus_scale: float = 1.0
     buoyancy: bool = True  # include the (1 - rho_air / rho_ball) factor on gravity (authors' code)
 
     def __post_init__(self) -> None:
         require_positive(self, "air_density", "ball_radius", "ball_density", "gravity")
-        require_non_negative(self, "drag_coefficient", "magnus_cap")
+        require_non_negative(self, "drag_coefficient", "magnus_cap", "magnus_scale")
+        if self.drag_model not in DRAG_MODELS:
+            raise ConfigError(f"drag_model must be one of {', '.join(DRAG_MODELS)}, got {self.drag_model!r}")
+        if self.magnus_model not in MAGNUS_MODELS:
+            raise ConfigError(f"magnus_model must be one of {', '.join(MAGNUS_MODELS)}, got {self.magnus_model!r}")
 
     @property
     def ball_mass(self) -> float:
@@ -56,6 +74,9 @@ class TableParams:
             raise ConfigError(f"table.restitution_base must be in (0, 1], got {self.restitution_base}")
 
 
+RESTITUTION_LAWS = ("exponential", "linear")  # RacketParams.restitution_law
+
+
 @dataclasses.dataclass(frozen=True)
 class RacketParams:
     """Ball-racket contact (paper eqs (7)-(8)) and blade geometry; SI units."""
@@ -67,12 +88,24 @@ class RacketParams:
     # e = 0.878 - 0.0197 |v_n| over that range (notes.md).
     restitution_gamma1: float = 0.8901
     restitution_gamma2: float = -0.011418  # s/m
+    # Which restitution law eps(|v_n|) the contact uses: "exponential", the paper's printed
+    # gamma1 exp(gamma2 |v_n|), or "linear", the authors' later a + b |v_n| (notes.md), with:
+    restitution_law: str = "exponential"
+    restitution_a: float = 0.878
+    restitution_b: float = -0.0197  # s/m
+    # The learned correction added to eqs (7)-(8) (physics.racket_residual): a network file written
+    # by `ace-drake physics-fit-racket`, relative to models/ unless absolute; "" for none. Every
+    # user of these params (both BallPlants, the returner's inverse) loads the same network
+    # (``racket_residual.residual_model``).
+    residual: str = ""
     blade_radius: float = 0.075  # m
     blade_thickness: float = 0.014  # rubber plus blade, m
 
     def __post_init__(self) -> None:
         require_positive(self, "restitution_gamma1", "blade_radius")
         require_non_negative(self, "tangential_k", "blade_thickness")
+        if self.restitution_law not in RESTITUTION_LAWS:
+            raise ConfigError(f"restitution_law must be one of {', '.join(RESTITUTION_LAWS)}, got {self.restitution_law!r}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,9 +10,10 @@ import dataclasses
 
 import numpy as np
 
-from ace_drake.physics.contact import racket_impact, racket_restitution
+from ace_drake.physics.contact import ResidualModel, racket_impact, racket_restitution
 from ace_drake.physics.params import BallPhysicsParams, RacketParams
 from ace_drake.physics.propagate import simulate
+from ace_drake.physics.racket_residual import residual_model
 
 _UP = np.array([0.0, 0.0, 1.0])
 
@@ -34,6 +35,7 @@ def invert_racket_contact(
     radius: float,
     brush_speed: float = 0.0,
     iterations: int = 20,
+    residual: ResidualModel | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The blade normals n (..., 3) and racket velocities v_WR (..., 3) with which the racket
     contact model (paper eqs (7)-(8), as ``physics.contact.racket_impact``) sends a ball arriving
@@ -54,7 +56,12 @@ def invert_racket_contact(
     tangent t depends on n, so with b != 0 this repeats to a fixed point. Then
     s = (v_out.n + eps v_in.n) / (1 + eps), eps iterated to consistency. Raises ValueError if
     some v_out cannot be made: the ball would not meet the blade (v_out.n <= v_in.n), or the spin
-    turns it more than the racket can undo (no root mu > 0)."""
+    turns it more than the racket can undo (no root mu > 0).
+
+    With a ``residual`` correction (``physics.racket_residual``) the closed form no longer holds:
+    it gives the start, and Newton's method on (n, s) makes the full model's v_out
+    (``_newton_with_residual``). The residual sees the blade's centre as the contact point and the
+    contact frame of ``contact_frame(n)``: the inverse does not know the blade's roll about n."""
     v_in, w_in, v_out = (np.asarray(x, dtype=float) for x in (v_in, w_in, v_out))
     k = racket.tangential_k
     coupling = k * radius * w_in  # k r w
@@ -87,7 +94,48 @@ def invert_racket_contact(
     for _ in range(10):
         eps = racket_restitution(v_in_n - speed, racket)
         speed = (v_out_n + eps * v_in_n) / (1.0 + eps)
+    if residual is not None:
+        normal, speed = _newton_with_residual(v_in, w_in, v_out, normal, speed, racket, radius, brush_speed, residual)
     return normal, speed[..., None] * normal + brush_speed * _blade_up(normal)
+
+
+NEWTON_TOLERANCE = 1e-9  # m/s, of the outgoing velocity
+NEWTON_STEP = 1e-6  # finite-difference step: rad of the normal's tilt, m/s of the speed
+
+
+def _newton_with_residual(v_in, w_in, v_out, normal, speed, racket, radius, brush_speed, residual, iterations: int = 12):
+    """Newton's method on the blade normal (two tilts about the current one) and the normal speed
+    s so that ``racket_impact`` with ``residual`` sends the ball off at v_out (..., 3), from the
+    closed form's (normal, speed); finite-difference Jacobians, all rows and perturbations in one
+    call per iteration. Raises ValueError if some row does not converge."""
+    shape = v_out.shape[:-1]
+    v_out, normal, speed = v_out.reshape(-1, 3), normal.reshape(-1, 3).copy(), np.reshape(speed, -1).copy()
+    rows = len(v_out)
+
+    def outgoing(normals, speeds):
+        racket_velocity = speeds[:, None] * normals + brush_speed * _blade_up(normals)
+        v_post, _ = racket_impact(v_in, w_in, racket_velocity, contact_frame(normals), racket, radius, residual=residual)
+        return v_post
+
+    for _ in range(iterations):
+        error = outgoing(normal, speed) - v_out
+        if np.max(np.abs(error)) < NEWTON_TOLERANCE:
+            break
+        tilt_x = np.cross(normal, _blade_up(normal))  # two axes orthogonal to the normal
+        tilt_y = _blade_up(normal)
+        tilted = [normal + NEWTON_STEP * tilt_x, normal + NEWTON_STEP * tilt_y]
+        tilted = [n / np.linalg.norm(n, axis=-1, keepdims=True) for n in tilted]
+        perturbed = outgoing(np.concatenate([*tilted, normal]), np.concatenate([speed, speed, speed + NEWTON_STEP]))
+        jacobian = np.stack([(perturbed[i * rows:(i + 1) * rows] - (error + v_out)) / NEWTON_STEP for i in range(3)], axis=-1)
+        step = np.linalg.solve(jacobian, -error[..., None])[..., 0]
+        normal = normal + step[:, :1] * tilt_x + step[:, 1:2] * tilt_y
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        speed = speed + step[:, 2]
+    else:
+        error = outgoing(normal, speed) - v_out
+    if np.max(np.abs(error)) > 1e3 * NEWTON_TOLERANCE or not np.all(np.isfinite(error)):
+        raise ValueError("invert_racket_contact: no racket state makes the outgoing velocity under the residual-corrected model")
+    return normal.reshape(shape + (3,)), speed.reshape(shape)
 
 
 def _blade_up(normal: np.ndarray) -> np.ndarray:
@@ -128,7 +176,8 @@ def solve_return(
     radius above the table plane) from the flight model (eq. (1), RK4 in ``steps`` steps: within
     1e-5 m of a 0.5 ms step), finite-difference Jacobians from one batch of four balls per
     iteration, and each ball's spin from the racket state that makes its v_out
-    (``invert_racket_contact``, then ``racket_impact``: eqs (7)-(8)). None if it does not
+    (``invert_racket_contact``, then ``racket_impact``: eqs (7)-(8), with the residual network that
+    ``params.racket`` selects, as the BallPlant applies it). None if it does not
     converge to ``tolerance`` (m), an iterate leaves the finite numbers (a near-singular
     Jacobian), or no racket state makes the velocity."""
     ball = np.asarray(ball, dtype=float)
@@ -139,15 +188,16 @@ def solve_return(
         v_guess = (goal - p_hit) / flight_time + np.array([0.0, 0.0, 0.5 * params.aero.gravity * flight_time])
     v_out = np.asarray(v_guess, dtype=float)
     step = 0.01  # m/s, finite-difference step
+    correction = residual_model(params.racket)
     for _ in range(iterations):
         # The nominal v_out and three perturbed copies, each with the spin its own racket state
         # gives it (the spin moves with v_out by up to ~50 rad/s per m/s: it belongs in the Jacobian).
         velocities = v_out + np.vstack([np.zeros(3), step * np.eye(3)])
         try:
-            normals, racket_velocities = invert_racket_contact(v_in, w_in, velocities, params.racket, radius, brush_speed)
+            normals, racket_velocities = invert_racket_contact(v_in, w_in, velocities, params.racket, radius, brush_speed, residual=correction)
         except ValueError:
             return None
-        _, spins = racket_impact(v_in, w_in, racket_velocities, contact_frame(normals), params.racket, radius)  # paper eqs (7)-(8)
+        _, spins = racket_impact(v_in, w_in, racket_velocities, contact_frame(normals), params.racket, radius, residual=correction)  # eqs (7)-(8)
         starts = np.hstack([np.broadcast_to(p_hit, (4, 3)), velocities, spins])
         if not np.all(np.isfinite(starts)):
             return None

@@ -26,9 +26,10 @@ import torch
 from torch import nn
 
 from ace_drake.artefacts import dumps, sidecar_path, write_sidecar
+from ace_drake.config import MODELS_DIR, ConfigError
 from ace_drake.physics.contact import racket_contact_features, racket_impact
 from ace_drake.physics.flight import SPIN, VELOCITY
-from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.physics.params import BallPhysicsParams, RacketParams
 
 N_FEATURES = 8  # [v_rel_C (3), w_C (3), contact offset (2)]
 N_OUTPUTS = 6  # [delta v+_C (3), delta w+_C (3)]
@@ -144,6 +145,8 @@ def fit_racket_residual(
     progress: Callable[[int, float, float], None] | None = None,
     patience: int = 50,
     activation: str = "silu",
+    groups: Sequence | None = None,
+    weight_decay: float = 0.0,
 ) -> tuple[RacketResidualMLP, ResidualFitReport]:
     """Fits the racket residual MLP to observed contacts (paper, Methods *Ball-racket contact model*).
 
@@ -168,6 +171,10 @@ def fit_racket_residual(
         seed: seeds the network initialisation, the validation split and the batch order.
         validation_fraction: share of samples held out for early stopping and the report.
         progress: optional callable(epoch, train_loss, val_loss), called after every epoch.
+        groups: (N,) a label per sample (e.g. its game): the validation split then takes whole
+            groups (about ``validation_fraction`` of the samples), so that early stopping judges
+            the network on contacts uncorrelated with its training ones; None splits samples.
+        weight_decay: AdamW's decoupled weight decay (0: Adam).
     Returns (model, report); the model is in eval mode.
     """
     pre_states = _as_array("pre_states", pre_states, ("N", 9))
@@ -206,8 +213,22 @@ def fit_racket_residual(
     )
 
     rng = np.random.default_rng(seed)
-    order = rng.permutation(n)
-    val_idx, train_idx = np.sort(order[:n_val]), np.sort(order[n_val:])
+    if groups is None:
+        order = rng.permutation(n)
+        val_idx, train_idx = np.sort(order[:n_val]), np.sort(order[n_val:])
+    else:
+        labels = np.asarray(groups)
+        if labels.shape != (n,):
+            raise ValueError(f"groups must have shape ({n},), got {labels.shape}")
+        names, counts = np.unique(labels, return_counts=True)
+        if names.size < 2:
+            raise ValueError("groups: a split by group needs at least 2 groups")
+        order = rng.permutation(names.size)
+        taken = np.cumsum(counts[order])
+        chosen = names[order[: max(1, min(names.size - 1, int(np.searchsorted(taken, n_val)) + 1))]]
+        held = np.isin(labels, chosen)
+        val_idx, train_idx = np.flatnonzero(held), np.flatnonzero(~held)
+        n_val = val_idx.size
 
     feature_mean = features[train_idx].mean(axis=0)
     feature_std = features[train_idx].std(axis=0)
@@ -231,7 +252,7 @@ def fit_racket_residual(
         y = torch.as_tensor(targets / target_scale, dtype=torch.float32)
         x_train, y_train = x[train_idx], y[train_idx]
         x_val, y_val = x[val_idx], y[val_idx]
-        optimiser = torch.optim.Adam(model.parameters(), lr=lr)
+        optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay) if weight_decay else torch.optim.Adam(model.parameters(), lr=lr)
         best_loss, best_epoch, best_state = np.inf, 0, _clone_state(model)
         epochs_run = 0
         for epoch in range(1, int(epochs) + 1):
@@ -334,6 +355,33 @@ def load_residual(path) -> RacketResidualMLP:
     model.load_state_dict(data["state_dict"])
     model.eval()
     return model
+
+
+def residual_path(racket: RacketParams) -> Path | None:
+    """The network file that ``racket.residual`` names (relative to models/ unless absolute), or
+    None when it names none."""
+    if not racket.residual:
+        return None
+    path = Path(racket.residual)
+    return path if path.is_absolute() else MODELS_DIR / path
+
+
+_LOADED: dict[Path, NumpyResidual] = {}
+
+
+def residual_model(racket: RacketParams) -> NumpyResidual | None:
+    """The racket residual that ``racket.residual`` selects, as ``racket_impact``'s ``residual``
+    callable, or None. Loaded once per process and file, so the BallPlants and the returner's
+    inverse share one network. A missing or malformed file is a ConfigError naming it."""
+    path = residual_path(racket)
+    if path is None:
+        return None
+    if path not in _LOADED:
+        try:
+            _LOADED[path] = load_residual(path).as_numpy()
+        except (FileNotFoundError, ValueError, RuntimeError, KeyError) as error:
+            raise ConfigError(f"racket.residual: {error}") from None
+    return _LOADED[path]
 
 
 def _check_hidden(hidden) -> tuple[int, ...]:
