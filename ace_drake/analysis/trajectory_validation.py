@@ -498,7 +498,8 @@ def format_trajectory_figures(result: dict) -> str:
     """A plain-text table of ``validate_trajectories``' figures, one row per model: median/p90 of
     the position error in mm at the last pre-bounce sample, at all pre-bounce samples, after it."""
     figures = result.get("trajectories", result)
-    header = f"{'model':<16}{'spin':>9}{'fitted':>8}  {'pre-bounce last':>16}  {'pre-bounce all':>15}  {'post-bounce':>13}"
+    width = max(16, *(len(name) + 2 for name in figures["models"]))
+    header = f"{'model':<{width}}{'spin':>9}{'fitted':>8}  {'pre-bounce last':>16}  {'pre-bounce all':>15}  {'post-bounce':>13}"
     lines = [header, "-" * len(header)]
 
     def cell(values: dict, width: int) -> str:
@@ -506,7 +507,7 @@ def format_trajectory_figures(result: dict) -> str:
         return f"{text:>{width}}"
 
     for name, model in figures["models"].items():
-        lines.append(f"{name:<16}{model['spin']:>9}{model['fitted']:>8}  {cell(model['pre_bounce_error_m'], 16)}  "
+        lines.append(f"{name:<{width}}{model['spin']:>9}{model['fitted']:>8}  {cell(model['pre_bounce_error_m'], 16)}  "
                      f"{cell(model['pre_bounce_all_samples_error_m'], 15)}  {cell(model['post_bounce_error_m'], 13)}")
     lines.append(f"(median/p90 of the position error, mm; {figures['count']} trajectories, split at the measured bounce)")
     for reason, count in figures["skipped"].items():
