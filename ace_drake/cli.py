@@ -145,8 +145,9 @@ def _print_evaluation(figures: dict) -> None:
 def cmd_physics_validate(args) -> int:
     """The ball model against recorded data: (shot or bounce) -> bounce pairs of match events
     (--data), measured racket contacts (--racket-contacts), measured trajectories (--trajectories);
-    any of them in one run, one JSON object (keys: the match-event figures at the top level,
-    ``racket``, ``trajectories``)."""
+    any of them in one run, one JSON object (the match-event figures at the top level; the racket
+    contacts' under ``racket`` with their ``contacts``, ``skipped_rows``, ``racket_model`` and
+    ``residual`` beside it; the trajectories' under ``trajectories``)."""
     if not (args.data or args.racket_contacts or args.trajectories):
         raise ConfigError("physics-validate: give --data, --racket-contacts or --trajectories (or several)")
     if args.player and not args.data:
@@ -450,7 +451,8 @@ def build_parser() -> argparse.ArgumentParser:
     validate = commands.add_parser("physics-validate", help="the ball model against recorded match events, racket contacts, trajectories")
     validate.add_argument("--data", help="match-data CSV (format of ace_match_events_elite.csv): (shot or bounce) -> bounce pairs")
     validate.add_argument("--racket-contacts", help="measured racket contacts (format of sony_racket_contacts.csv)")
-    validate.add_argument("--trajectories", help="measured trajectories: CSV trajectory,t,x,y,z,wx,wy,wz (m, s, rad/s)")
+    validate.add_argument("--trajectories", help="measured trajectories: CSV trajectory,t,x,y,z,wx,wy,wz (m, s, rad/s); "
+                          "reported for --params beside the paper's, the match-fitted, the authors' aerodynamics and zero spin")
     validate.add_argument("--params", help="ball-model parameter YAML (default: the paper's model), e.g. models/racket_fitted.yaml")
     validate.add_argument("--residual", help="with --racket-contacts: a racket residual network (default: the one --params names, if any)")
     validate.add_argument("--player", action="append", help="with --data: only these players (repeatable)")

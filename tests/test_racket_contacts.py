@@ -3,6 +3,7 @@ on synthetic contacts with planted parameters (physics/racket_contacts.py)."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 from pathlib import Path
 
@@ -153,6 +154,17 @@ def test_the_measured_contacts_load_and_the_paper_model_misses_them_as_filed():
     contacts = load_racket_contacts(DATA)
     assert len(contacts) == 572 and contacts.skipped == {}
     assert np.all(np.einsum("nij,nj->ni", np.swapaxes(contacts.R_WC, 1, 2), contacts.v_pre - contacts.v_contact_point)[:, 2] < 0.0)
+    # The file's racket-frame columns: Before_Vel = R^T (v_pre - v_r - w_r x d), Before_Dist = R^T d.
+    with DATA.open(newline="") as handle:
+        table = list(csv.DictReader(handle))
+    before_velocity = np.array([[float(row[f"Before_Vel_{axis}"]) for axis in "XYZ"] for row in table])
+    before_offset = np.array([[float(row[f"Before_Dist_{axis}"]) for axis in "XYZ"] for row in table])
+    R_RW = np.swapaxes(contacts.R_WR, 1, 2)
+    relative = contacts.v_pre - contacts.v_racket - np.cross(contacts.w_racket, contacts.offset)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", R_RW, relative), before_velocity, atol=1e-9)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", R_RW, contacts.offset), before_offset, atol=1e-9)
     velocity, spin = contact_errors(contacts, *predict_post_contact(contacts, RacketParams(), RADIUS))
-    assert np.median(velocity) == pytest.approx(0.51, abs=0.01)  # the issue's figure
-    assert np.median(spin) == pytest.approx(23.1, abs=0.5)
+    # The issue measured 0.51 m/s and 23 rad/s with the ball's centre for the contact point; on the
+    # blade's surface point, as the BallPlant takes it, the paper's model misses by a little less.
+    assert np.median(velocity) == pytest.approx(0.476, abs=0.005)
+    assert np.median(spin) == pytest.approx(22.8, abs=0.3)

@@ -63,7 +63,7 @@ def landing_points(contacts: RacketContacts, v_post: np.ndarray, w_post: np.ndar
 
 def racket_figures(contacts: RacketContacts, physics: BallPhysicsParams, residual: Callable | None = None) -> dict:
     """The model ``physics.racket`` (with ``residual``) on ``contacts``: velocity_error_m_s,
-    spin_error_rad_s and landing_error_m, each {median, p90, count}."""
+    spin_error_rad_s and landing_error_m, each {median, p90, rms, count}."""
     v_post, w_post = predict_post_contact(contacts, physics.racket, physics.aero.ball_radius, residual)
     velocity, spin = contact_errors(contacts, v_post, w_post)
     landing = np.linalg.norm(landing_points(contacts, v_post, w_post, physics) - landing_points(contacts, contacts.v_post, contacts.w_post, physics), axis=1)
@@ -113,7 +113,7 @@ def fit_racket_and_write(data, holdout_fraction: float | None = None, holdout_ga
             raise InputError(f"physics-fit-racket: {path} ends in .json, the name of its sidecar")
     command = (f"ace-drake physics-fit-racket --data {data}" + (f" --holdout-games {','.join(holdout_games)}" if holdout_games else
                                                                  f" --holdout-fraction {0.2 if holdout_fraction is None else holdout_fraction}")
-               + f" --seed {seed}")
+               + f" --seed {seed} --epochs {epochs}" + (f" --params {params_file}" if params_file else ""))
     out.parent.mkdir(parents=True, exist_ok=True)
     header = ("# The racket contact model (paper eqs (7)-(8)) identified on measured contacts by `ace-drake physics-fit-racket`,\n"
               "# with the residual network trained on the same contacts (set `residual: ''` for the fitted law alone).\n"
@@ -122,7 +122,8 @@ def fit_racket_and_write(data, holdout_fraction: float | None = None, holdout_ga
     # The residual by name when it sits in models/ (the file moves with the repository), else by path.
     section["residual"] = residual_out.name if residual_out.resolve().parent == MODELS_DIR.resolve() else str(residual_out.resolve())
     out.write_text(header + yaml.safe_dump({"racket": section}, sort_keys=True))
-    split = {"held_out_games": games, "training_contacts": len(train), "held_out_contacts": len(test), "skipped_rows": contacts.skipped}
+    split = {"held_out_games": games, "training_games": sorted(set(train.games.tolist())), "training_contacts": len(train),
+             "held_out_contacts": len(test), "skipped_rows": contacts.skipped}
     save_residual(network, residual_out, {"command": command, "seed": seed, "data": data_file(data), "racket_params": out.name,
                                           "split": split, "report": report.as_dict()})
     return write_sidecar(out, command=command, seed=seed, data=data_file(data), figures=figures, split=split, law=kept.law,

@@ -502,9 +502,9 @@ def format_trajectory_figures(result: dict) -> str:
     header = f"{'model':<{width}}{'spin':>9}{'fitted':>8}  {'pre-bounce last':>16}  {'pre-bounce all':>15}  {'post-bounce':>13}"
     lines = [header, "-" * len(header)]
 
-    def cell(values: dict, width: int) -> str:
+    def cell(values: dict, cell_width: int) -> str:
         text = "-" if values["median"] is None else f"{values['median'] * 1e3:.1f}/{values['p90'] * 1e3:.1f}"
-        return f"{text:>{width}}"
+        return f"{text:>{cell_width}}"
 
     for name, model in figures["models"].items():
         lines.append(f"{name:<{width}}{model['spin']:>9}{model['fitted']:>8}  {cell(model['pre_bounce_error_m'], 16)}  "

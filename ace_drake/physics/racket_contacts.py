@@ -5,11 +5,11 @@ on them and judged on them.
 A contact row gives, in the world frame of the match data (this project's: origin at the centre of
 the playing surface, x towards the human, z up), the ball's position, velocity and spin just
 before and after the contact, the racket frame's velocity v_r, angular velocity w_r and
-orientation R_WR (quaternion, scalar last), and the contact point's offset d from the racket
-frame's origin. The racket frame's x axis is the blade normal on the ball's side, so the model's
+orientation R_WR (quaternion, scalar last), and the offset d of the ball's centre at the contact
+from the racket frame's origin. The racket frame's x axis is the blade normal on the ball's side, so the model's
 contact frame C (z along that normal) is R_WC = R_WR [y x z -> x y z]: C's x, y, z are R's y, z, x.
-The model sees the velocity of the racket's material point at the contact, v_r + w_r x d, and the
-offset's components in C's x-y (the residual network's input).
+The model sees the velocity of the racket's material point at the contact, v_r + w_r x (d - r n),
+and the offset's components in C's x-y (the residual network's input).
 
 Split: contacts of one rally are correlated, and so are a game's, so a split holds out whole games
 (``game_keys``: a game is its date, its session and its number; game numbers restart between
@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from ace_drake.config import InputError
 from ace_drake.physics.contact import racket_impact
-from ace_drake.physics.params import BallPhysicsParams, RacketParams
+from ace_drake.physics.params import AeroParams, BallPhysicsParams, RacketParams
 
 VECTOR_COLUMNS = {
     "p": "Global_Ball_Pos_{}",
@@ -50,6 +50,7 @@ REQUIRED_COLUMNS = (
     *ID_COLUMNS, *(pattern.format(axis) for pattern in VECTOR_COLUMNS.values() for axis in "XYZ"),
     *QUATERNION_COLUMNS, *OFFSET_COLUMNS,
 )
+BALL_RADIUS = AeroParams().ball_radius  # m: the file's offsets are of the ball's centre
 QUATERNION_TOLERANCE = 1e-3  # |q| may differ from 1 by this much (rounding in the file); more is an error
 _SHOT_ID = re.compile(r"/game_(\d+)/rally_(\d+)/shot_(\d+)$")
 
@@ -61,7 +62,7 @@ class RacketContactsError(InputError):
 @dataclasses.dataclass(frozen=True)
 class RacketContacts:
     """N measured contacts as arrays, world frame, SI units: p, v_pre, w_pre, v_post, w_post,
-    v_racket, w_racket, offset (N, 3) (m, m/s, rad/s; offset: contact point from the racket
+    v_racket, w_racket, offset (N, 3) (m, m/s, rad/s; offset: the ball's centre from the racket
     frame's origin, m), R_WR (N, 3, 3); shot_ids (N,) str, games (N,) the game key
     (``game_keys``), serve (N,) bool, spin_confidence (N, 2) [pre, post] (NaN when the file has
     none), rows (N,) the file's data row numbers (1 = the first row after the header); skipped:
@@ -98,8 +99,12 @@ class RacketContacts:
 
     @property
     def v_contact_point(self) -> np.ndarray:
-        """Velocity of the racket's material point at the contact, v_r + w_r x d (N, 3), m/s."""
-        return self.v_racket + np.cross(self.w_racket, self.offset)
+        """Velocity of the racket's material point at the contact (N, 3), m/s: v_r + w_r x (d - r n),
+        d the file's offset of the ball's centre (d . n = r plus half the blade's thickness on
+        every row) and r n the way from the contact point to it, as ``contact.racket_contact``
+        takes the blade's surface point."""
+        normal = self.R_WR[:, :, 0]
+        return self.v_racket + np.cross(self.w_racket, self.offset - BALL_RADIUS * normal)
 
     @property
     def contact_offsets(self) -> np.ndarray:
@@ -108,13 +113,9 @@ class RacketContacts:
 
 
 def quaternion_to_rotation(q_xyzw: np.ndarray) -> np.ndarray:
-    """Rotation matrices (N, 3, 3) of unit quaternions (N, 4) [x, y, z, w] (scalar last)."""
-    x, y, z, w = np.moveaxis(np.asarray(q_xyzw, dtype=float), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+    """Rotation matrices (N, 3, 3) of unit quaternions (N, 4) [x, y, z, w] (scalar last; SciPy's
+    Rotation)."""
+    return Rotation.from_quat(np.asarray(q_xyzw, dtype=float)).as_matrix()
 
 
 def contact_frames(R_WR: np.ndarray) -> np.ndarray:

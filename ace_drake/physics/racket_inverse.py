@@ -177,7 +177,8 @@ def solve_return(
     1e-5 m of a 0.5 ms step), finite-difference Jacobians from one batch of four balls per
     iteration, and each ball's spin from the racket state that makes its v_out
     (``invert_racket_contact``, then ``racket_impact``: eqs (7)-(8), with the residual network that
-    ``params.racket`` selects, as the BallPlant applies it). None if it does not
+    ``params.racket`` selects, which the BallPlant applies too, though in the contact frame of the
+    blade's actual roll about its normal). None if it does not
     converge to ``tolerance`` (m), an iterate leaves the finite numbers (a near-singular
     Jacobian), or no racket state makes the velocity."""
     ball = np.asarray(ball, dtype=float)

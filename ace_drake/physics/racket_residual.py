@@ -17,6 +17,7 @@ pairs; ``save_residual`` / ``load_residual`` store it.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from pathlib import Path
 from typing import Callable, Sequence
@@ -88,21 +89,26 @@ class RacketResidualMLP(nn.Module):
 class NumpyResidual:
     """Wraps a ``RacketResidualMLP`` as ``features (N, 8) ndarray -> corrections (N, 6) float64``.
 
-    Evaluates in float32 under ``torch.no_grad`` with the module in eval mode; it refers to the
-    module (not a copy), so later training is seen.
+    Evaluates a float64 copy of the module under ``torch.no_grad``, so that the returner's Newton
+    iterations through it see a smooth function (float32 rounding at 10 m/s inputs is ~1e-6, the
+    size of their finite-difference steps); the copy is refreshed when the module's weights change.
     """
 
     def __init__(self, model: RacketResidualMLP):
         self.model = model
+        self._copy, self._version = None, None
 
     def __call__(self, features: np.ndarray) -> np.ndarray:
         features = np.asarray(features)
         if features.ndim != 2 or features.shape[1] != N_FEATURES:
             raise ValueError(f"features must have shape (N, {N_FEATURES}), got {features.shape}")
-        self.model.eval()
+        version = tuple(parameter._version for parameter in self.model.state_dict().values())
+        if self._copy is None or version != self._version:
+            self._copy = copy.deepcopy(self.model).double().eval()
+            self._version = version
         with torch.no_grad():
-            out = self.model(torch.as_tensor(features, dtype=torch.float32))
-        return out.numpy().astype(np.float64)
+            out = self._copy(torch.as_tensor(features, dtype=torch.float64))
+        return out.numpy()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -366,22 +372,25 @@ def residual_path(racket: RacketParams) -> Path | None:
     return path if path.is_absolute() else MODELS_DIR / path
 
 
-_LOADED: dict[Path, NumpyResidual] = {}
+_LOADED: dict[tuple, NumpyResidual] = {}
 
 
 def residual_model(racket: RacketParams) -> NumpyResidual | None:
     """The racket residual that ``racket.residual`` selects, as ``racket_impact``'s ``residual``
     callable, or None. Loaded once per process and file, so the BallPlants and the returner's
-    inverse share one network. A missing or malformed file is a ConfigError naming it."""
+    inverse share one network; a file written again is loaded again. A missing or malformed file
+    is a ConfigError naming it."""
     path = residual_path(racket)
     if path is None:
         return None
-    if path not in _LOADED:
-        try:
-            _LOADED[path] = load_residual(path).as_numpy()
-        except (FileNotFoundError, ValueError, RuntimeError, KeyError) as error:
-            raise ConfigError(f"racket.residual: {error}") from None
-    return _LOADED[path]
+    try:
+        stat = path.resolve().stat()
+        key = (path.resolve(), stat.st_mtime_ns, stat.st_size)
+        if key not in _LOADED:
+            _LOADED[key] = load_residual(path).as_numpy()
+    except (FileNotFoundError, ValueError, RuntimeError, KeyError) as error:
+        raise ConfigError(f"racket.residual: {error}") from None
+    return _LOADED[key]
 
 
 def _check_hidden(hidden) -> tuple[int, ...]:
