@@ -13,7 +13,9 @@ from pydrake.systems.framework import DiagramBuilder
 
 from ace_drake import cli
 from ace_drake.config import ConfigError
-from ace_drake.diagrams import add_ball
+from ace_drake.control.params import RallyParams
+from ace_drake.diagrams import add_ball, build_segment_rally_diagram
+from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.params import RacketParams, load_ball_params
 from ace_drake.physics.racket_contacts import write_racket_contacts
 from ace_drake.physics.racket_residual import residual_model
@@ -72,6 +74,9 @@ def test_the_yaml_selects_the_residual_in_both_ball_plants(fitted):
     assert plant._residual is residual_model(physics.racket)
     plain = add_ball(DiagramBuilder(), load_ball_params(None))
     assert plain._residual is None
+    params = RallyParams(physics=physics, perception=PerceptionParams(positions="statistical"), stepping="segment")
+    segment = build_segment_rally_diagram(params, None, 2).GetSubsystemByName("ball")
+    assert segment.residual is residual_model(physics.racket)
 
 
 def test_a_missing_residual_file_is_a_config_error_naming_it(tmp_path):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA = REPO_ROOT.parent / "shared/data/ace_match_events_elite.csv"
+CONTACTS = REPO_ROOT.parent / "shared/data/sony_racket_contacts.csv"
 EMPTY_MESHCAT_HTML = 2.3e6  # bytes: StaticHtml of an empty scene is about 2.2 MB of viewer code
 
 
@@ -34,6 +35,11 @@ def test_tutorial_01_ball_flight_writes_png_and_html(tmp_path):
         assert "median distance" in run.stdout
     else:
         assert "skipping part 3" in run.stdout
+    if CONTACTS.is_file():
+        assert (tmp_path / "racket_contacts.png").stat().st_size > 20_000
+        assert "fitted   held-out error" in run.stdout
+    else:
+        assert "skipping part 4" in run.stdout
     for path in html:
         assert path.is_file() and path.stat().st_size > EMPTY_MESHCAT_HTML, path
         assert "animation" in path.read_text()

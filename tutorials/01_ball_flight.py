@@ -8,7 +8,10 @@ Read this file top to bottom like a notebook. It shows
      ball's bounce, and whether the contact slid or rolled;
   3. a recorded rally from the robot's matches against elite players, replayed through the same ball
      model: how far each simulated bounce lands from the recorded one;
-  4. a Meshcat replay of both in 3D, saved as self-contained HTML files.
+  4. the racket contact (paper eqs (7)-(8)) against contacts the real robot measured: the printed
+     model, the model fitted on some games and judged on others (``ace-drake physics-fit-racket``
+     does this with the residual network too);
+  5. a Meshcat replay of parts 1 and 3 in 3D, saved as self-contained HTML files.
 
 Everything runs through the project's BallPlant (a Drake LeafSystem) in one Diagram and Simulator
 per part; the numbers are SI units throughout (m, s, rad). Run it from the repository root:
@@ -17,10 +20,11 @@ per part; the numbers are SI units throughout (m, s, rad). Run it from the repos
     .venv/bin/python tutorials/01_ball_flight.py --no-html      # skip the Meshcat files
     .venv/bin/python tutorials/01_ball_flight.py --data PATH --out DIR
 
-It writes ball_flight.png (parts 1-3) and, unless --no-html, spin_comparison.html and
-rally_replay.html into --out (default out/tutorials/01). Part 3 needs the recorded match data
-(default ../shared/data/ace_match_events_elite.csv beside the repository); without it that part is
-skipped. It takes a few seconds.
+It writes ball_flight.png (parts 1-3), racket_contacts.png (part 4) and, unless --no-html,
+spin_comparison.html and rally_replay.html into --out (default out/tutorials/01). Part 3 needs the
+recorded match data (default ../shared/data/ace_match_events_elite.csv beside the repository), part
+4 the measured racket contacts (../shared/data/sony_racket_contacts.csv, --contacts); without them
+those parts are skipped. It takes a few seconds.
 """
 
 from __future__ import annotations
@@ -37,15 +41,17 @@ from pydrake.geometry import Meshcat
 from ace_drake.analysis.ball_demo import run_shots, spin_comparison_shots, summarize_shots
 from ace_drake.analysis.replay import longest_rallies, replay_rally
 from ace_drake.match_data import load_match_events
-from ace_drake.physics.contact import table_alpha, table_restitution
+from ace_drake.physics.contact import racket_restitution, table_alpha, table_restitution
 from ace_drake.physics.flight import flight_acceleration
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
+from ace_drake.physics.racket_contacts import contact_errors, fit_racket_model, load_racket_contacts, predict_post_contact, split_by_game
 
 matplotlib.use("Agg")  # write files only, never open a window
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO_ROOT.parent / "shared/data/ace_match_events_elite.csv"
+DEFAULT_CONTACTS = REPO_ROOT.parent / "shared/data/sony_racket_contacts.csv"
 DEFAULT_OUT = REPO_ROOT / "out/tutorials/01"
 REPLAY_PLAYER = "Elite B"  # part 3 replays this opponent's longest rally
 SPIN_COLORS = {"topspin": "tab:red", "no spin": "tab:gray", "backspin": "tab:blue"}
@@ -54,8 +60,9 @@ SPIN_COLORS = {"topspin": "tab:red", "no spin": "tab:gray", "backspin": "tab:blu
 def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="recorded match events CSV (part 3)")
+    parser.add_argument("--contacts", type=Path, default=DEFAULT_CONTACTS, help="measured racket contacts CSV (part 4)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="directory for the PNG and HTML files")
-    parser.add_argument("--no-html", action="store_true", help="skip the Meshcat HTML replays (part 4)")
+    parser.add_argument("--no-html", action="store_true", help="skip the Meshcat HTML replays (part 5)")
     return parser.parse_args()
 
 
@@ -265,12 +272,54 @@ def main() -> None:
     written.insert(0, png)
 
     # ------------------------------------------------------------------------------------------
-    # 4. Looking at it in 3D
+    # 4. The racket contact against measured contacts: paper eqs (7)-(8)
+    # ------------------------------------------------------------------------------------------
+    # At the racket the ball's velocity relative to the blade's surface point, in the contact frame C
+    # (z along the blade normal), is mapped linearly: the normal part reverses with restitution
+    # eps(|v_n|), the tangential part keeps (1 - k) of itself plus k r times the spin's cross term,
+    # and the spin changes by the slip (eq. (8)). The real robot measured 572 such contacts (ball
+    # before and after, racket velocity and orientation). Contacts of one game are correlated, so
+    # the fit holds out whole games and is judged on them.
+    print("\n== 4. The racket contact against measured contacts (eqs (7)-(8)) ==")
+    if not args.contacts.is_file():
+        print(f"racket contacts not found at {args.contacts}: skipping part 4 (pass --contacts PATH to the CSV)")
+    else:
+        contacts = load_racket_contacts(args.contacts)
+        held, games = split_by_game(contacts, holdout_fraction=0.2, seed=0)
+        fit = fit_racket_model(contacts.subset(~held), "exponential", params)
+        test = contacts.subset(held)
+        print(f"{len(contacts)} contacts in {len(set(contacts.games))} games; fitted on {int((~held).sum())}, "
+              f"judged on the {len(test)} of {len(games)} held-out games")
+        print(f"fitted k {fit.parameters['tangential_k']:.3f}, eps = {fit.parameters['restitution_gamma1']:.3f} "
+              f"exp({fit.parameters['restitution_gamma2']:.4f} |v_n|) (printed defaults: k {params.racket.tangential_k:.3f}, "
+              f"eps = {params.racket.restitution_gamma1:.3f} exp({params.racket.restitution_gamma2:.4f} |v_n|))")
+        racket_figure, axes = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
+        for name, racket in (("printed", params.racket), ("fitted", fit.racket)):
+            v_post, w_post = predict_post_contact(test, racket, params.aero.ball_radius)
+            velocity_error, spin_error = contact_errors(test, v_post, w_post)
+            print(f"  {name:<8} held-out error: velocity median {np.median(velocity_error):.2f} m/s "
+                  f"(p90 {np.percentile(velocity_error, 90):.2f}), spin median {np.median(spin_error):.0f} rad/s")
+            axes[0].plot(np.linalg.norm(test.v_post, axis=1), np.linalg.norm(v_post, axis=1), ".", alpha=0.6, label=f"{name} model")
+        speeds = np.linspace(0.0, 25.0, 2)
+        axes[0].plot(speeds, speeds, color="black", linewidth=0.8)
+        axes[0].set(title="4. Outgoing ball speed, held-out contacts", xlabel="measured (m/s)", ylabel="model (m/s)")
+        axes[0].legend()
+        normal_speed = np.linspace(0.5, 20.0, 100)
+        for name, racket in (("printed", params.racket), ("fitted", fit.racket)):
+            axes[1].plot(normal_speed, racket_restitution(normal_speed, racket), label=f"{name} eps(|v_n|)")
+        axes[1].set(title="4. Racket restitution", xlabel="normal speed into the blade |v_n| (m/s)", ylabel="eps")
+        axes[1].legend()
+        racket_png = args.out / "racket_contacts.png"
+        racket_figure.savefig(racket_png, dpi=110)
+        written.insert(1, racket_png)
+
+    # ------------------------------------------------------------------------------------------
+    # 5. Looking at it in 3D
     # ------------------------------------------------------------------------------------------
     # Parts 1 and 3 passed a Meshcat to run_shots and replay_rally, which recorded the ball (orange,
     # with a trail) while simulating; StaticHtml() then bundled scene and recording into one file
     # that plays in any browser. In the rally replay, green dots are the recorded bounces.
-    print("\n== 4. Files ==")
+    print("\n== 5. Files ==")
     if meshcat is None:
         print("(--no-html: Meshcat replays skipped)")
     for path in written:

@@ -76,6 +76,17 @@ def predict_pairs(pairs: EventPairs, params: BallPhysicsParams, dt: float = 1e-3
     )
 
 
+def error_figures(values) -> dict:
+    """{median, p90, rms, count} of the finite errors in ``values`` (any unit; median, p90 and rms
+    are None when there are none): the figures of the racket-contact and trajectory validations."""
+    values = np.asarray(values, dtype=float)
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return {"median": None, "p90": None, "rms": None, "count": 0}
+    return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "rms": float(np.sqrt(np.mean(values**2))),
+            "count": int(values.size)}
+
+
 def summarize(pairs: EventPairs, predictions: PairPredictions) -> dict:
     """Error figures overall and per transition type, as a JSON-ready dict.
 

@@ -21,6 +21,7 @@ from typing import Callable, Sequence
 import numpy as np
 import yaml
 
+from ace_drake.analysis.physics_validation import error_figures
 from ace_drake.artefacts import data_file, sidecar_path, write_sidecar
 from ace_drake.config import MODELS_DIR, InputError, to_dict
 from ace_drake.physics.params import BallPhysicsParams, load_ball_params
@@ -41,17 +42,6 @@ DEFAULT_RESIDUAL = MODELS_DIR / "racket_residual.pt"
 LANDING_HORIZON = 3.0  # s of flight within which a returned ball lands
 
 
-def _stats(values: np.ndarray) -> dict:
-    """{median, p90, rms, count} of the finite ``values`` (None without any): the residual network
-    is trained on squared errors, so its gain shows in the RMS first."""
-    values = np.asarray(values, dtype=float)
-    values = values[np.isfinite(values)]
-    if values.size == 0:
-        return {"median": None, "p90": None, "rms": None, "count": 0}
-    return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "rms": float(np.sqrt(np.mean(values**2))),
-            "count": int(values.size)}
-
-
 def landing_points(contacts: RacketContacts, v_post: np.ndarray, w_post: np.ndarray, physics: BallPhysicsParams) -> np.ndarray:
     """Where each ball leaving the contact point with (v_post, w_post) first meets the table or
     the floor (N, 3), m; NaN where it does neither within LANDING_HORIZON."""
@@ -67,7 +57,7 @@ def racket_figures(contacts: RacketContacts, physics: BallPhysicsParams, residua
     v_post, w_post = predict_post_contact(contacts, physics.racket, physics.aero.ball_radius, residual)
     velocity, spin = contact_errors(contacts, v_post, w_post)
     landing = np.linalg.norm(landing_points(contacts, v_post, w_post, physics) - landing_points(contacts, contacts.v_post, contacts.w_post, physics), axis=1)
-    return {"velocity_error_m_s": _stats(velocity), "spin_error_rad_s": _stats(spin), "landing_error_m": _stats(landing)}
+    return {"velocity_error_m_s": error_figures(velocity), "spin_error_rad_s": error_figures(spin), "landing_error_m": error_figures(landing)}
 
 
 def _residual_arrays(contacts: RacketContacts) -> dict:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
+from ace_drake.analysis.physics_validation import error_figures
 from ace_drake.config import MODELS_DIR, InputError
 from ace_drake.physics.flight import POSITION, SPIN, make_state, rk4_step, rk4_trajectory
 from ace_drake.physics.params import BallPhysicsParams, load_ball_params
@@ -389,15 +390,6 @@ def validate_trajectories_with_params(path, params_file=None, progress: Callable
     """``ace-drake physics-validate --trajectories FILE [--params FILE]``: ``validate_trajectories``
     with ``command_models(params_file)``."""
     return validate_trajectories(path, command_models(params_file), progress=progress)
-
-
-def error_figures(values) -> dict:
-    """{median, p90, count} of errors (m); median and p90 are None when there are none."""
-    values = np.asarray(values, dtype=float)
-    values = values[np.isfinite(values)]
-    if not values.size:
-        return {"median": None, "p90": None, "count": 0}
-    return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "count": int(values.size)}
 
 
 def evaluate_model(

@@ -159,10 +159,7 @@ def load_racket_contacts(path) -> RacketContacts:
         for number, row in enumerate(reader, start=1):
             parsed = []
             for name in numeric:
-                try:
-                    value = float(row[name])
-                except (TypeError, ValueError):
-                    value = math.nan
+                value = _optional_float(row[name])
                 if not math.isfinite(value):
                     reason = f"missing or non-finite {name}"
                     skipped[reason] = skipped.get(reason, 0) + 1
@@ -225,6 +222,7 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
 
 
 def _optional_float(text) -> float:
+    """``text`` as a float, NaN where it is empty or not a number."""
     try:
         return float(text)
     except (TypeError, ValueError):

@@ -152,7 +152,6 @@ def fit_racket_residual(
     patience: int = 50,
     activation: str = "silu",
     groups: Sequence | None = None,
-    weight_decay: float = 0.0,
 ) -> tuple[RacketResidualMLP, ResidualFitReport]:
     """Fits the racket residual MLP to observed contacts (paper, Methods *Ball-racket contact model*).
 
@@ -180,7 +179,6 @@ def fit_racket_residual(
         groups: (N,) a label per sample (e.g. its game): the validation split then takes whole
             groups (about ``validation_fraction`` of the samples), so that early stopping judges
             the network on contacts uncorrelated with its training ones; None splits samples.
-        weight_decay: AdamW's decoupled weight decay (0: Adam).
     Returns (model, report); the model is in eval mode.
     """
     pre_states = _as_array("pre_states", pre_states, ("N", 9))
@@ -258,7 +256,7 @@ def fit_racket_residual(
         y = torch.as_tensor(targets / target_scale, dtype=torch.float32)
         x_train, y_train = x[train_idx], y[train_idx]
         x_val, y_val = x[val_idx], y[val_idx]
-        optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay) if weight_decay else torch.optim.Adam(model.parameters(), lr=lr)
+        optimiser = torch.optim.Adam(model.parameters(), lr=lr)
         best_loss, best_epoch, best_state = np.inf, 0, _clone_state(model)
         epochs_run = 0
         for epoch in range(1, int(epochs) + 1):
