@@ -1,8 +1,9 @@
 """The simulated opponent.
 
-For now the opponent is a ``Launcher``: it starts each rally episode with one shot drawn from the
-incoming-shot distribution (``play/shots.py``) and takes no further part. The rules-aware opponent,
-which returns the robot's shots and keeps score, comes later (issue 6).
+The rally episodes start from a ``Launcher``: one shot drawn from the incoming-shot distribution
+(``play/shots.py``), no reply. The opponent that returns the robot's balls as the recorded players
+did is ``play.opponent_model.OpponentModel``; the umpire and the score are ``play.umpire`` and
+``play.scoring`` (docs/play.md).
 """
 
 from __future__ import annotations
