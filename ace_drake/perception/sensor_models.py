@@ -256,12 +256,26 @@ def spin_capture_times(
     (the times <= until, starting with first_time if it is; the first time after until). Draws one
     uniform per interval.
     """
-    times = []
     time = float(first_time)
-    while time <= until:
-        times.append(time)
-        time += rng.uniform(1.0 / params.rate_max, 1.0 / params.rate_min)
-    return np.asarray(times, dtype=float), time
+    if not time <= until:  # NaN included: no sample, no draw
+        return np.zeros(0), time
+    low, high = 1.0 / params.rate_max, 1.0 / params.rate_min
+    # Vectorised: draw more intervals than can fit (each is at least ``low``), sum them in order
+    # (cumsum adds one after another, as the loop did), then rewind the generator and draw again
+    # exactly as many as the loop would have, so that the stream goes on as before.
+    state = rng.bit_generator.state
+    bound = int((until - time) / low) + 2
+    times = np.cumsum(np.concatenate(([time], rng.uniform(low, high, bound))))
+    count = int(np.searchsorted(times, until, side="right"))  # times <= until
+    rng.bit_generator.state = state
+    if count > bound:  # rounding left the bound short: the loop itself
+        times, next_time = [], time
+        while next_time <= until:
+            times.append(next_time)
+            next_time += rng.uniform(low, high)
+        return np.asarray(times, dtype=float), next_time
+    rng.uniform(low, high, count)
+    return times[:count], float(times[count])
 
 
 def first_spin_capture_time(start_time: float, params: SpinSensorParams, rng: np.random.Generator) -> float:
