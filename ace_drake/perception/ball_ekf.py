@@ -536,10 +536,18 @@ class BallEkf:
     # ------------------------------------------------------------------------------ contacts
     def _simulate_requests(self, requests: np.ndarray, results: np.ndarray, rows) -> None:
         """Runs the predictions the kernels left in requests[rows] through ``simulate`` (table,
-        net and floor contacts located exactly) into results[rows]."""
+        net and floor contacts located exactly) into results[rows]. Rows asking for the same
+        duration and step bit for bit share one ``simulate`` call: its balls are independent (a
+        ball's result does not depend on the others'), and a call costs nearly the same for 10
+        balls as for 70."""
+        groups: dict[tuple[float, float], list[int]] = {}
         for b in rows:
-            states = requests[b, :90].reshape(10, 9)
-            trajectory = simulate(states, self.physics, float(requests[b, 90]), dt=float(requests[b, 91]), record=False)
-            results[b, :90] = trajectory.final_state.ravel()
-            results[b, 90] = 1.0
-            results[b, 91] = trajectory.events[0][-1].time if trajectory.events[0] else math.nan
+            groups.setdefault((float(requests[b, 90]), float(requests[b, 91])), []).append(int(b))
+        for (duration, step), members in groups.items():
+            states = requests[members, :90].reshape(-1, 9)  # 10 states per row, row by row
+            trajectory = simulate(states, self.physics, duration, dt=step, record=False)
+            for k, b in enumerate(members):
+                results[b, :90] = trajectory.final_state[10 * k : 10 * (k + 1)].ravel()
+                results[b, 90] = 1.0
+                events = trajectory.events[10 * k]  # of the row's first state, the mean
+                results[b, 91] = events[-1].time if events else math.nan
