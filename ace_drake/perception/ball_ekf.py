@@ -434,8 +434,9 @@ class BallEkf:
     def observation_arrays(self, positions, spins, racket_contact_times: Sequence[Sequence[float]]) -> ObservationBatch:
         """``observations`` from arrays: ``positions`` and ``spins`` each (rows (n,) int, sequence
         (n,) int, capture time (n,) s, value (n, 3) m or rad/s, covariance (n, 3, 3)), grouped by
-        environment row and in capture order within it; ``racket_contact_times``: B sequences of
-        times (s). Environment b's rows are its positions, then its spins, then its contacts."""
+        environment row in ascending order; ``racket_contact_times``: B sequences of times (s).
+        Environment b's rows are its positions, then its spins, then its contacts, each in the
+        order given (the filter processes them in capture order whatever the order here)."""
         count = len(racket_contact_times)
         position_rows, spin_rows = np.asarray(positions[0], dtype=np.int64), np.asarray(spins[0], dtype=np.int64)
         contact_rows = np.repeat(np.arange(count, dtype=np.int64), [len(times) for times in racket_contact_times])
