@@ -249,3 +249,16 @@ def test_fusing_a_batch_is_fusing_each_environment():
                 np.testing.assert_array_equal(a.mean, e.mean)
                 np.testing.assert_array_equal(a.covariance, e.covariance)
     assert single[1].filter.latest.resets >= 1 and all(state.filter.latest.tracking for state in single)
+
+
+def test_fusing_a_batch_refuses_a_history_that_lost_measurements():
+    from ace_drake.perception.measurements import MeasurementHistoryBatch
+    from ace_drake.systems.ball_estimator import EstimatorBatchState, fuse_measurements_batch
+
+    ekf = BallEkf()
+    positions = MeasurementHistoryBatch.empty(2, 4)
+    rows = np.array([1] * 6)  # six released in environment 1 since the filter read nothing: 1 and 2 are lost
+    times = 0.005 * np.arange(1, 7)
+    positions = positions.extended(rows, times, times + 0.01, np.tile([0.0, 0.0, 1.0], (6, 1)), np.tile(np.eye(3) * 1e-6, (6, 1, 1)))
+    with pytest.raises(RuntimeError, match="position sensor's history starts at measurement 3, but the filter has read only up to 0"):
+        fuse_measurements_batch(ekf, EstimatorBatchState.initial(ekf, 2), positions, MeasurementHistoryBatch.empty(2, 4), [(), ()], np.full(2, 0.05))

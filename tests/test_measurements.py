@@ -1,9 +1,10 @@
-"""Measurement and MeasurementHistory: validation, numbering, what a consumer reads since."""
+"""Measurement, MeasurementHistory and MeasurementHistoryBatch: validation, numbering, what a
+consumer reads since, and the batch row by row as the histories it stands for."""
 
 import numpy as np
 import pytest
 
-from ace_drake.perception.measurements import Measurement, MeasurementHistory
+from ace_drake.perception.measurements import Measurement, MeasurementHistory, MeasurementHistoryBatch
 
 
 def measurement(sequence: int) -> Measurement:
@@ -32,3 +33,51 @@ def test_a_measurement_owns_read_only_copies_and_refuses_bad_values():
         Measurement(1, 0.02, 0.01, np.zeros(3), np.eye(3))
     with pytest.raises(ValueError, match="sequence 1 does not follow 1"):
         MeasurementHistory().appended(dut).appended(dut)
+
+
+def assert_same_history(a: MeasurementHistory, b: MeasurementHistory):
+    assert a.capacity == b.capacity and a.last_sequence == b.last_sequence and len(a.measurements) == len(b.measurements)
+    for x, y in zip(a.measurements, b.measurements):
+        assert (x.sequence, x.capture_time, x.release_time) == (y.sequence, y.capture_time, y.release_time)
+        assert np.array_equal(x.value, y.value) and np.array_equal(x.covariance, y.covariance)
+
+
+def test_history_batch_rows_are_the_histories_through_wraps_overflows_and_restarts():
+    rng = np.random.default_rng(2)
+    capacity, batch = 4, 3
+    dut = MeasurementHistoryBatch.empty(batch, capacity)
+    expected = [MeasurementHistory(capacity=capacity)] * batch
+    for step in range(40):
+        # 0 to 6 new measurements per row: more than the capacity at once sometimes, none at others
+        counts = rng.integers(0, 7, batch)
+        rows = np.repeat(np.arange(batch), counts)
+        capture = np.sort(rng.uniform(0.0, 1.0, rows.size)) + step
+        release, value, covariance = capture + 0.01, rng.normal(size=(rows.size, 3)), rng.normal(size=(rows.size, 3, 3))
+        dut = dut.extended(rows, capture, release, value, covariance)
+        for b in range(batch):
+            chosen = np.flatnonzero(rows == b)
+            first = expected[b].last_sequence + 1
+            expected[b] = expected[b].extended(tuple(
+                Measurement(first + k, capture[i], release[i], value[i], covariance[i]) for k, i in enumerate(chosen)
+            ))
+        if step % 7 == 6:  # a new episode in row 1
+            dut, expected[1] = dut.restarted([1]), MeasurementHistory(capacity=capacity)
+        now = step + 1.5 + rng.uniform(0.0, 0.1, batch)
+        observed = dut.as_array(3, now)
+        read = rng.integers(0, 2 + max(h.last_sequence for h in expected), batch)
+        since_rows, since_slots = dut.since_rows(read)
+        for b in range(batch):
+            assert_same_history(dut[b], expected[b])
+            assert dut.last_sequence[b] == expected[b].last_sequence
+            assert dut.first_sequence()[b] == (expected[b].measurements[0].sequence if expected[b].measurements else 0)
+            np.testing.assert_array_equal(observed[b], expected[b].as_array(3, float(now[b])))
+            mine = since_slots[since_rows == b]
+            assert dut.sequence[b, mine].tolist() == [m.sequence for m in expected[b].since(int(read[b]))]
+    assert_same_history(MeasurementHistoryBatch.from_histories(expected)[2], expected[2])
+
+
+def test_history_batch_is_read_only():
+    dut = MeasurementHistoryBatch.empty(2, 4).extended(np.array([0]), np.array([0.0]), np.array([0.01]), np.zeros((1, 3)), np.zeros((1, 3, 3)))
+    with pytest.raises(ValueError, match="read-only"):
+        dut.value[0, 0, 0] = 1.0
+    assert len(dut) == 2 and dut.capacity == 4 and dut[-1].measurements == ()

@@ -117,3 +117,155 @@ class MeasurementHistory:
             out[row, :3] = measurement.value
             out[row, 3] = now - measurement.capture_time
         return out
+
+
+@dataclasses.dataclass(frozen=True)
+class MeasurementHistoryBatch:
+    """The MeasurementHistory of B sensors (one per environment of the segment-stepped diagram)
+    as arrays, so that releasing, fusing and observing them are array operations rather than one
+    ``Measurement`` object per sample. Immutable: the arrays are read-only and every change makes
+    a new batch.
+
+    Each row is a ring of ``capacity`` slots: the row's ``written`` (B,) measurements so far went
+    to slots 0, 1, ... modulo capacity, of which the newest ``count`` (B,) (at most capacity) are
+    held. Per slot: ``sequence`` (B, C) int64, ``capture_time`` and ``release_time`` (B, C), s,
+    ``value`` (B, C, 3), m or rad/s, ``covariance`` (B, C, 3, 3), m^2 or (rad/s)^2.
+    ``last_sequence`` (B,): the newest held measurement's number, 0 for none.
+
+    Indexing gives the MeasurementHistory of a row (``batch[b]``, built on demand), so a batch
+    stands wherever a tuple of B histories did; consumers of all B rows read the arrays
+    (``since_rows``, ``as_array``).
+    """
+
+    sequence: np.ndarray
+    capture_time: np.ndarray
+    release_time: np.ndarray
+    value: np.ndarray
+    covariance: np.ndarray
+    written: np.ndarray
+    count: np.ndarray
+    last_sequence: np.ndarray
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            getattr(self, field.name).flags.writeable = False
+
+    def __deepcopy__(self, memo) -> MeasurementHistoryBatch:
+        return self  # immutable: Drake copies abstract values on every state update
+
+    @classmethod
+    def empty(cls, batch: int, capacity: int) -> MeasurementHistoryBatch:
+        """B empty histories that keep ``capacity`` measurements each."""
+        if capacity < 1:
+            raise ValueError(f"MeasurementHistoryBatch: capacity must be >= 1, got {capacity}")
+        B, C = int(batch), int(capacity)
+        zeros = np.zeros(B, dtype=np.int64)
+        return cls(np.zeros((B, C), dtype=np.int64), np.zeros((B, C)), np.zeros((B, C)), np.zeros((B, C, 3)), np.zeros((B, C, 3, 3)),
+                   zeros, zeros.copy(), zeros.copy())
+
+    @classmethod
+    def from_histories(cls, histories) -> MeasurementHistoryBatch:
+        """The batch of B MeasurementHistory (capacity: the largest of theirs, so each keeps what
+        it holds and no more is held than it showed)."""
+        histories = tuple(histories)
+        batch = cls.empty(len(histories), max((h.capacity for h in histories), default=1))
+        fields = {name: getattr(batch, name).copy() for name in ("sequence", "capture_time", "release_time", "value", "covariance", "written", "count", "last_sequence")}
+        for b, history in enumerate(histories):
+            for slot, measurement in enumerate(history.measurements):
+                fields["sequence"][b, slot] = measurement.sequence
+                fields["capture_time"][b, slot], fields["release_time"][b, slot] = measurement.capture_time, measurement.release_time
+                fields["value"][b, slot], fields["covariance"][b, slot] = measurement.value, measurement.covariance
+            fields["written"][b] = fields["count"][b] = len(history.measurements)
+            fields["last_sequence"][b] = history.last_sequence
+        return cls(**fields)
+
+    @property
+    def capacity(self) -> int:
+        """The measurements each row keeps."""
+        return self.sequence.shape[1]
+
+    def __len__(self) -> int:
+        return self.sequence.shape[0]
+
+    def __getitem__(self, b: int) -> MeasurementHistory:
+        """Row ``b`` as a MeasurementHistory of the same capacity (its Measurements own copies)."""
+        b = range(len(self))[b]  # negative indices and bounds as a tuple's
+        slots = [(int(self.written[b]) - int(self.count[b]) + k) % self.capacity for k in range(int(self.count[b]))]
+        measurements = tuple(
+            Measurement.from_model(int(self.sequence[b, s]), float(self.capture_time[b, s]), float(self.release_time[b, s]),
+                                   self.value[b, s].copy(), self.covariance[b, s].copy())
+            for s in slots
+        )
+        return MeasurementHistory(measurements, self.capacity)
+
+    def first_sequence(self) -> np.ndarray:
+        """The oldest held measurement's number per row (B,), 0 where none is held."""
+        slot = (self.written - self.count) % self.capacity
+        return np.where(self.count > 0, self.sequence[np.arange(len(self)), slot], 0)
+
+    def extended(self, rows: np.ndarray, capture_time: np.ndarray, release_time: np.ndarray, value: np.ndarray, covariance: np.ndarray) -> MeasurementHistoryBatch:
+        """A new batch with measurements (n,) released last: entry i to row ``rows[i]`` (n,),
+        entries grouped by row and in release order within it, numbered on from the row's
+        ``last_sequence`` in that order (``MeasurementHistory.extended`` of every row).
+        capture_time, release_time (n,), s; value (n, 3); covariance (n, 3, 3)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        if rows.size == 0:
+            return self
+        C = self.capacity
+        starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+        counts = np.diff(np.r_[starts, rows.size])
+        first = rows[starts]
+        rank = np.arange(rows.size) - np.repeat(starts, counts)  # position within its row's entries
+        written, count, last = self.written.copy(), self.count.copy(), self.last_sequence.copy()
+        # Only the newest C of a row's entries survive; writing just those keeps each slot's last write unique.
+        keep = rank >= np.repeat(counts, counts) - C
+        slots = (written[rows] + rank)[keep] % C
+        target = rows[keep]
+        sequence, capture, release, values, covariances = (
+            self.sequence.copy(), self.capture_time.copy(), self.release_time.copy(), self.value.copy(), self.covariance.copy()
+        )
+        sequence[target, slots] = (last[rows] + 1 + rank)[keep]
+        capture[target, slots] = np.asarray(capture_time, dtype=float)[keep]
+        release[target, slots] = np.asarray(release_time, dtype=float)[keep]
+        values[target, slots] = np.asarray(value, dtype=float)[keep]
+        covariances[target, slots] = np.asarray(covariance, dtype=float)[keep]
+        written[first] += counts
+        count[first] = np.minimum(count[first] + counts, C)
+        last[first] += counts
+        return MeasurementHistoryBatch(sequence, capture, release, values, covariances, written, count, last)
+
+    def restarted(self, rows) -> MeasurementHistoryBatch:
+        """A new batch with rows ``rows`` empty (new episodes: numbering starts again at 1)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        written, count, last = self.written.copy(), self.count.copy(), self.last_sequence.copy()
+        written[rows] = count[rows] = last[rows] = 0
+        return dataclasses.replace(self, written=written, count=count, last_sequence=last)
+
+    def since_rows(self, sequence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The measurements numbered above ``sequence`` (B,) in every row, as (rows (n,), slots
+        (n,)) into the arrays: grouped by row, oldest first within it (``MeasurementHistory.since``
+        of each row)."""
+        # Numbers grow along a row, so the ones above ``sequence`` are its newest ``newer``.
+        age = (self.written[:, None] - 1 - np.arange(self.capacity)[None, :]) % self.capacity  # 0: newest slot
+        held = age < self.count[:, None]
+        newer = np.count_nonzero(held & (self.sequence > np.asarray(sequence, dtype=np.int64).reshape(-1, 1)), axis=1)
+        rows = np.repeat(np.arange(len(self)), newer)
+        starts = np.cumsum(newer) - newer
+        rank = np.arange(rows.size) - np.repeat(starts, newer)
+        return rows, (self.written[rows] - newer[rows] + rank) % self.capacity
+
+    def as_array(self, count: int, now: np.ndarray) -> np.ndarray:
+        """``MeasurementHistory.as_array`` of every row, row b at ``now[b]`` (B,), s: (B, count, 4)
+        of [value (3,), age (s)], newest first, zero-padded with age -1."""
+        B = len(self)
+        out = np.zeros((B, count, 4))
+        out[:, :, 3] = -1.0
+        if count == 0:
+            return out
+        newest = np.arange(count)
+        held = newest[None, :] < self.count[:, None]
+        rows, columns = np.nonzero(held)
+        slots = (self.written[rows] - 1 - columns) % self.capacity
+        out[rows, columns, :3] = self.value[rows, slots]
+        out[rows, columns, 3] = np.asarray(now, dtype=float)[rows] - self.capture_time[rows, slots]
+        return out

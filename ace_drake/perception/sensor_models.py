@@ -24,7 +24,7 @@ from collections.abc import Iterable
 import numba
 import numpy as np
 
-from ace_drake.perception.measurements import Measurement, MeasurementHistory
+from ace_drake.perception.measurements import Measurement, MeasurementHistory, MeasurementHistoryBatch
 from ace_drake.perception.params import PositionSensorParams, SpinSensorParams
 
 ZERO_SPIN = 1e-9  # rad/s: below this the true spin has no axis, and a random one is measured
@@ -157,31 +157,22 @@ def due_mask(pending: PendingBatch, now: np.ndarray) -> np.ndarray:
 
 
 def release_due_batch(
-    histories: tuple[MeasurementHistory, ...], pending: PendingBatch, now: np.ndarray
-) -> tuple[tuple[MeasurementHistory, ...], PendingBatch]:
+    histories: MeasurementHistoryBatch, pending: PendingBatch, now: np.ndarray
+) -> tuple[MeasurementHistoryBatch, PendingBatch]:
     """``release_due`` for every sensor of a batch: sensor b's pending measurements released at
-    or before ``now[b]`` (s) numbered on from ``histories[b].last_sequence`` in release order and
-    appended to it. Returns (the B histories, the rest of ``pending``); a history with nothing
-    released is the same object. The Measurements come from the sensor models, so they take
-    ``Measurement.from_model`` (no per-measurement checks)."""
+    or before ``now[b]`` (s) numbered on from ``histories.last_sequence[b]`` in release order and
+    appended to its row. ``histories``: a MeasurementHistoryBatch (a sequence of B
+    MeasurementHistory is converted). Returns (the histories, the rest of ``pending``); the same
+    objects when nothing is due. The measurements stay in arrays: no Measurement is built."""
     due = due_mask(pending, now)
     if not due.any():
         return histories, pending
-    # Fancy indexing copies: the released values belong to their Measurements alone.
-    rows, values, covariances = pending.row[due], pending.value[due], pending.covariance[due]
-    capture_times, release_times = pending.capture_time[due].tolist(), pending.release_time[due].tolist()
+    if not isinstance(histories, MeasurementHistoryBatch):
+        histories = MeasurementHistoryBatch.from_histories(histories)
     # A sensor's entries are in release order, so its due ones come first and in order.
-    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
-    stops = np.r_[starts[1:], rows.size]
-    updated = list(histories)
-    for b, start, stop in zip(rows[starts].tolist(), starts.tolist(), stops.tolist()):
-        history = histories[b]
-        first = history.last_sequence + 1 - start
-        updated[b] = history.extended(tuple(
-            Measurement.from_model(first + i, capture_times[i], release_times[i], values[i], covariances[i]) for i in range(start, stop)
-        ))
+    released = histories.extended(pending.row[due], pending.capture_time[due], pending.release_time[due], pending.value[due], pending.covariance[due])
     rest = ~due
-    return tuple(updated), PendingBatch(pending.row[rest], pending.capture_time[rest], pending.release_time[rest], pending.value[rest], pending.covariance[rest])
+    return released, PendingBatch(pending.row[rest], pending.capture_time[rest], pending.release_time[rest], pending.value[rest], pending.covariance[rest])
 
 
 # ---------------------------------------------------------------------------------- positions
@@ -265,12 +256,26 @@ def spin_capture_times(
     (the times <= until, starting with first_time if it is; the first time after until). Draws one
     uniform per interval.
     """
-    times = []
     time = float(first_time)
-    while time <= until:
-        times.append(time)
-        time += rng.uniform(1.0 / params.rate_max, 1.0 / params.rate_min)
-    return np.asarray(times, dtype=float), time
+    if not time <= until:  # NaN included: no sample, no draw
+        return np.zeros(0), time
+    low, high = 1.0 / params.rate_max, 1.0 / params.rate_min
+    # Vectorised: draw more intervals than can fit (each is at least ``low``), sum them in order
+    # (cumsum adds one after another, as the loop did), then rewind the generator and draw again
+    # exactly as many as the loop would have, so that the stream goes on as before.
+    state = rng.bit_generator.state
+    bound = int((until - time) / low) + 2
+    times = np.cumsum(np.concatenate(([time], rng.uniform(low, high, bound))))
+    count = int(np.searchsorted(times, until, side="right"))  # times <= until
+    rng.bit_generator.state = state
+    if count > bound:  # rounding left the bound short: the loop itself
+        times, next_time = [], time
+        while next_time <= until:
+            times.append(next_time)
+            next_time += rng.uniform(low, high)
+        return np.asarray(times, dtype=float), next_time
+    rng.uniform(low, high, count)
+    return times[:count], float(times[count])
 
 
 def first_spin_capture_time(start_time: float, params: SpinSensorParams, rng: np.random.Generator) -> float:

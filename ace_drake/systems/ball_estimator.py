@@ -9,7 +9,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem, ValueProducer
 
 from ace_drake.perception.ball_ekf import BallEkf, BallEstimate, EkfBatch, EkfState
-from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.measurements import MeasurementHistory, MeasurementHistoryBatch
 from ace_drake.perception.params import EstimatorParams
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
@@ -101,30 +101,53 @@ def fuse_measurements(ekf: BallEkf, current: EstimatorState, positions_history: 
 
 def fuse_measurements_batch(ekf: BallEkf, current: EstimatorBatchState, positions_histories, spins_histories, events, times) -> EstimatorBatchState:
     """``fuse_measurements`` of B estimators at once (one ``BallEkf.update_arrays``): the same
-    filters, environment by environment. positions_histories, spins_histories: B
-    MeasurementHistory each; events: B tuples of ContactEvent; times (B,) s. ``current`` itself
-    when no environment has anything new."""
+    filters, environment by environment. positions_histories, spins_histories: a
+    MeasurementHistoryBatch each (a sequence of B MeasurementHistory is converted); events: B
+    tuples of ContactEvent; times (B,) s. ``current`` itself when no environment has anything new."""
     size = current.filters.size
     if not (len(positions_histories) == len(spins_histories) == len(events) == size):
         raise ValueError(f"fuse_measurements_batch: expected {size} position and spin histories and event tuples, got "
                          f"{len(positions_histories)}, {len(spins_histories)} and {len(events)}")
+    positions, spins = (h if isinstance(h, MeasurementHistoryBatch) else MeasurementHistoryBatch.from_histories(h) for h in (positions_histories, spins_histories))
     times = np.broadcast_to(np.asarray(times, dtype=float), (size,))
-    new = [
-        _new_measurements(int(current.last_position_sequence[b]), int(current.last_spin_sequence[b]), int(current.contacts_seen[b]),
-                          positions_histories[b], spins_histories[b], events[b], float(times[b]))
-        for b in range(size)
-    ]
-    changed = np.array([item[3] for item in new], dtype=bool)
+    # ``_new_measurements``' rule on arrays: a sensor that started a new episode numbers from the start again.
+    last_position = np.where(positions.last_sequence >= current.last_position_sequence, current.last_position_sequence, 0)
+    last_spin = np.where(spins.last_sequence >= current.last_spin_sequence, current.last_spin_sequence, 0)
+    for kind, history, last in (("position", positions, last_position), ("spin", spins, last_spin)):
+        gaps = np.flatnonzero((history.count > 0) & (history.first_sequence() > last + 1))
+        if gaps.size:
+            b = gaps[0]
+            raise RuntimeError(
+                f"BallEstimator: at {times[b]:.4f} s the {kind} sensor's history starts at measurement "
+                f"{history.first_sequence()[b]}, but the filter has read only up to {last[b]}: more were released "
+                f"since its last update than the history holds ({history.capacity}). Raise the sensor's "
+                "history_capacity or shorten EstimatorParams.update_period."
+            )
+    position_rows, position_slots = positions.since_rows(last_position)
+    spin_rows, spin_slots = spins.since_rows(last_spin)
+    racket_times, changed = [], np.zeros(size, dtype=bool)
+    for b in range(size):
+        seen = int(current.contacts_seen[b]) if len(events[b]) >= current.contacts_seen[b] else 0
+        racket_times.append([event.time for event in events[b][seen:] if event.kind == ContactKind.RACKET])
+        changed[b] = bool(racket_times[b]) or len(events[b]) != seen
+    changed |= np.bincount(position_rows, minlength=size) > 0
+    changed |= np.bincount(spin_rows, minlength=size) > 0
     if not changed.any():
         return current
-    observations = ekf.observations([item[0] for item in new], [item[1] for item in new], [item[2] for item in new])
+    observations = ekf.observation_arrays(
+        (position_rows, positions.sequence[position_rows, position_slots], positions.capture_time[position_rows, position_slots],
+         positions.value[position_rows, position_slots], positions.covariance[position_rows, position_slots]),
+        (spin_rows, spins.sequence[spin_rows, spin_slots], spins.capture_time[spin_rows, spin_slots],
+         spins.value[spin_rows, spin_slots], spins.covariance[spin_rows, spin_slots]),
+        racket_times,
+    )
     filters = ekf.update_arrays(current.filters, observations)
-    sequences = [current.last_position_sequence.copy(), current.last_spin_sequence.copy(), current.contacts_seen.copy()]
-    for b in np.flatnonzero(changed):
-        sequences[0][b] = positions_histories[b].last_sequence
-        sequences[1][b] = spins_histories[b].last_sequence
-        sequences[2][b] = len(events[b])
-    return EstimatorBatchState(filters, *sequences)
+    return EstimatorBatchState(
+        filters,
+        np.where(changed, positions.last_sequence, current.last_position_sequence),
+        np.where(changed, spins.last_sequence, current.last_spin_sequence),
+        np.where(changed, [len(e) for e in events], current.contacts_seen).astype(np.int64),
+    )
 
 
 def estimate_outputs(estimate) -> tuple[np.ndarray, np.ndarray]:

@@ -27,15 +27,16 @@ def assemble_observation(layout: ObservationLayout, predictor: HitPredictor | No
     outputs; the ``hit_prediction`` part from ``predictor`` (zeros without one), keeping the hit at
     time ``kept_hit`` (s; NaN for none) while it is still a candidate, or ``hit_prediction``
     (HIT_PREDICTION_SIZE,) when given (computed for many rows at once by
-    ``hit_prediction_parts``). The ObservationBuilder's rule, shared by the segment-stepped
-    builder."""
+    ``hit_prediction_parts``). ``positions`` and ``spins``: MeasurementHistory, or their
+    ``as_array`` rows at ``now`` already computed (the segment-stepped builder's, for all rows at
+    once). The ObservationBuilder's rule, shared by the segment-stepped builder."""
     hit = hit_prediction
     if hit is None and predictor is not None:
         keep = kept_hit - now if np.isfinite(kept_hit) else None
         hit = predictor.features(estimate, valid=status[0] > 0.5, keep=keep)
     return layout.assemble(
-        positions=positions.as_array(layout.position_history, now),
-        spins=spins.as_array(layout.spin_history, now),
+        positions=positions if isinstance(positions, np.ndarray) else positions.as_array(layout.position_history, now),
+        spins=spins if isinstance(spins, np.ndarray) else spins.as_array(layout.spin_history, now),
         robot_state=robot_state,
         end_effector=end_effector,
         skill=skill,

@@ -8,7 +8,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ace_drake.perception.measurements import MeasurementHistory
+from ace_drake.perception.measurements import MeasurementHistory, MeasurementHistoryBatch
 from ace_drake.perception.params import PositionSensorParams
 from ace_drake.perception.sensor_models import (
     PendingBatch,
@@ -58,17 +58,18 @@ class SensorQueue:
 @dataclasses.dataclass(frozen=True)
 class SensorQueueBatch:
     """The SensorQueues of B sensors (one per environment) in one: their released ``histories``
-    and all their ``pending`` measurements in flat arrays, released by array operations
+    (MeasurementHistoryBatch; ``histories[b]`` is sensor b's MeasurementHistory) and all their
+    ``pending`` measurements in flat arrays, released by array operations
     (``sensor_models.release_due_batch``). Immutable (it memoises ``released``)."""
 
-    histories: tuple[MeasurementHistory, ...]
+    histories: MeasurementHistoryBatch
     pending: PendingBatch
     _released: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     def empty(cls, batch: int, capacity: int) -> SensorQueueBatch:
         """B empty queues whose histories keep ``capacity`` measurements."""
-        return cls((MeasurementHistory(capacity=capacity),) * batch, PendingBatch.empty())
+        return cls(MeasurementHistoryBatch.empty(batch, capacity), PendingBatch.empty())
 
     def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
         return self
@@ -77,7 +78,7 @@ class SensorQueueBatch:
         """Sensor ``b``'s queue as the continuous-time sensor keeps it."""
         return SensorQueue(self.histories[b], self.pending.row_pending(b))
 
-    def released(self, now: np.ndarray) -> tuple[tuple[MeasurementHistory, ...], PendingBatch]:
+    def released(self, now: np.ndarray) -> tuple[MeasurementHistoryBatch, PendingBatch]:
         """``SensorQueue.released`` of every sensor, sensor b at ``now[b]`` (s). Memoised per
         set released, as SensorQueue's."""
         due = due_mask(self.pending, now)
@@ -94,11 +95,13 @@ class SensorQueueBatch:
         return SensorQueueBatch(*release_due_batch(self.histories, insert_pending_batch(self.pending, new), now))
 
     def restarted(self, rows, empty: MeasurementHistory) -> SensorQueueBatch:
-        """Sensors ``rows`` back to ``empty`` histories with nothing pending (new episodes)."""
-        histories = list(self.histories)
-        for b in np.asarray(rows, dtype=int).reshape(-1):
-            histories[b] = empty
-        return SensorQueueBatch(tuple(histories), self.pending.without_rows(rows))
+        """Sensors ``rows`` back to ``empty`` histories with nothing pending (new episodes).
+        ``empty``: an empty MeasurementHistory of the batch's capacity (the per-sensor queue's
+        start, checked)."""
+        if empty.measurements or empty.capacity != self.histories.capacity:
+            raise ValueError(f"SensorQueueBatch.restarted: expected an empty history of capacity {self.histories.capacity}, "
+                             f"got {len(empty.measurements)} measurements and capacity {empty.capacity}")
+        return SensorQueueBatch(self.histories.restarted(rows), self.pending.without_rows(rows))
 
 
 def trigger_position_sensor(params: PositionSensorParams, queue: SensorQueue, seed: int, now: float, p_WB: np.ndarray) -> SensorQueue:

@@ -21,7 +21,8 @@ class SegmentBallEstimator(LeafSystem):
     they come in, so fusing once per tick gives the reference's estimate at the tick).
 
     Input ports:
-        position_measurements, spin_measurements (abstract tuple of B MeasurementHistory).
+        position_measurements, spin_measurements (abstract MeasurementHistoryBatch, or a tuple of B
+            MeasurementHistory).
         contact_events (abstract tuple of B tuples of ContactEvent): the ball's contacts up to the
             tick's start (a racket contact restarts the track).
         episode_ticks (abstract int64 (B,)): the EpisodeClock's.

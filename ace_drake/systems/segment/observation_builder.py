@@ -9,6 +9,7 @@ from pydrake.systems.framework import LeafSystem
 from ace_drake.contracts import SKILL_SIZE, ObservationLayout
 from ace_drake.control.hit_prediction import HitPredictor
 from ace_drake.control.segment_timing import SegmentTiming
+from ace_drake.perception.measurements import MeasurementHistoryBatch
 from ace_drake.systems.observation_builder import DEFAULT_SKILL, assemble_observation, hit_prediction_parts
 
 
@@ -18,7 +19,8 @@ class SegmentObservationBuilder(LeafSystem):
     instant 5 ms before the segment the tick decides.
 
     Input ports:
-        position_measurements, spin_measurements (abstract tuple of B MeasurementHistory).
+        position_measurements, spin_measurements (abstract MeasurementHistoryBatch, or a tuple of B
+            MeasurementHistory).
         robot_state (abstract float (B, 24)): [q, v, a] where the next segment starts.
         end_effector_state (abstract float (B, 13)): the racket frame's state there.
         ball_state_estimate (abstract float (B, 9)), estimate_status (abstract float (B, 3)).
@@ -80,7 +82,12 @@ class SegmentObservationBuilder(LeafSystem):
 
     def CalcObservation(self, context, output):
         now = self.timing.tick_time(self.episode_ticks_port.Eval(context))
-        positions, spins = self.position_measurements_port.Eval(context), self.spin_measurements_port.Eval(context)
+        # Every row's histories in one array operation (a tuple of MeasurementHistory is converted).
+        positions, spins = (
+            (h if isinstance(h, MeasurementHistoryBatch) else MeasurementHistoryBatch.from_histories(h)).as_array(count, now)
+            for h, count in ((self.position_measurements_port.Eval(context), self.layout.position_history),
+                             (self.spin_measurements_port.Eval(context), self.layout.spin_history))
+        )
         robot, effector = self.robot_state_port.Eval(context), self.end_effector_state_port.Eval(context)
         estimate, status = self.ball_state_estimate_port.Eval(context), self.estimate_status_port.Eval(context)
         skills, kept = self.skills(context), context.get_abstract_state(self._memory_index).get_value()

@@ -33,7 +33,7 @@ class SegmentPositionSensor(LeafSystem):
         ball_flight (abstract BallSegment): the SegmentBallPlant's samples over the tick.
         episode_ticks (abstract int64 (B,)): the EpisodeClock's.
     Output ports:
-        position_measurements (abstract tuple of B MeasurementHistory): positions p_WB (m) with
+        position_measurements (abstract MeasurementHistoryBatch, B rows): positions p_WB (m) with
             covariance, everything released at or before the tick's start (state only).
     State:
         abstract SensorQueueBatch (the B queues); abstract int64 (B,): each episode's seed.

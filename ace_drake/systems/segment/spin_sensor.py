@@ -26,7 +26,7 @@ class SegmentSpinSensor(LeafSystem):
         ball_flight (abstract BallSegment): the SegmentBallPlant's samples and contact events.
         episode_ticks (abstract int64 (B,)): the EpisodeClock's.
     Output ports:
-        spin_measurements (abstract tuple of B MeasurementHistory): spins w_WB (rad/s) with the
+        spin_measurements (abstract MeasurementHistoryBatch, B rows): spins w_WB (rad/s) with the
             precision noise's covariance, everything released at or before the tick's start.
     State:
         abstract SpinSensorBatchState (the B sensors' states); abstract int64 (B,): each episode's seed.
