@@ -90,3 +90,21 @@ def test_bad_batches_raise(stack):
         stack.propose_batch(q, v, a, actions[:2])
     with pytest.raises(ValueError, match="propose_batch"):
         stack.propose_batch(q[0], v[0], a[0], actions[0])
+
+
+def test_an_initial_plan_from_the_same_state_is_looked_up_and_cannot_be_changed(stack):
+    rng = np.random.default_rng(3)
+    q, v, a = random_invariant_state(stack, rng)
+    plan, free = stack.initial_plan(q, v, a)
+    again, free_again = stack.initial_plan(q.copy(), v.copy(), a.copy())
+    assert again is plan and free_again == free
+    with pytest.raises(ValueError):
+        plan.q[0, 0] = 1.0  # shared between callers: read-only
+    original = stack.reset_pose
+    try:
+        stack.reset_pose = original + 0.01  # another reset target: the cached plan no longer holds
+        other, _ = stack.initial_plan(q, v, a)
+    finally:
+        stack.reset_pose = original
+    assert other is not plan and not np.array_equal(other.q[-1], plan.q[-1])
+    assert stack.initial_plan(q, v, a)[0] is plan

@@ -215,3 +215,11 @@ def test_the_propagators_contacts_judge_a_service_the_receiver_misses():
     np.testing.assert_array_equal(events[1].position, contacts[0].state_pre[:3])
     decision = judge_rally(ROBOT, events, court=Court.from_physics(BallPhysicsParams()))
     assert decision.winner == ROBOT and decision.event is events[3] and decision.shots == 1
+
+
+def test_a_good_return_that_comes_back_under_the_net_untouched_is_the_strikers_point():
+    """After the human's good return bounced on the robot's court, the ball (heavy backspin) goes
+    back under the net untouched: the robot failed to return it (Law 2.10.1.2)."""
+    back_under = RallyEvent(NET, 1.3, [0.0, 0.9, -0.05], [-2.0, 0.0, 0.0])
+    decision = judge_rally(ROBOT, [*robot_serve(), *human_return(), back_under])
+    assert decision.winner == HUMAN and decision.law == "2.10.1.2"

@@ -448,7 +448,7 @@ def _distance_to_half(point, half: str, physics) -> float:
 def _illegal_stage(impact, ball_pre, strike, contacts, times, states, decision, clearance, court, physics) -> tuple[int, float]:
     """(stage, gap) of an illegal serve (module docstring)."""
     if not impact:
-        # The ball's speed towards the blade that an impact needed: (v_racket - v_ball) . n < 0.
+        # The ball's speed towards the blade that an impact needed: (v_ball - v_racket) . n < 0.
         return STAGE_MISS, float(np.dot(ball_pre[VELOCITY] - strike.v_WR, strike.normal))
     if decision is not None and (decision.event is None or decision.event.kind == ContactKind.RACKET):
         return STAGE_MISS, math.inf  # a toss or strike fault (Laws 2.6.2-2.6.4): not graded

@@ -339,7 +339,7 @@ class ControlStack:
         # Episode starts plan from a drawn state twice (drawing it checks that the supervisor's
         # plan from there is free; the supervisor then makes it): the same inputs bit for bit give
         # the same plan and check, so the second is looked up. A few recent states suffice.
-        key = (q.shape, q.tobytes(), v.tobytes(), a.tobytes(), self.collision_check)
+        key = (q.shape, q.tobytes(), v.tobytes(), a.tobytes(), np.asarray(self.reset_pose).tobytes(), self.collision_check)
         if key in self._initial_plans:
             return self._initial_plans[key]
         if not np.any(v) and not np.any(a):
@@ -348,6 +348,8 @@ class ControlStack:
             plan = self.resets.plan_reset(q, v, a, self.reset_pose)
         if len(self._initial_plans) >= 256:
             self._initial_plans.clear()
+        for samples in (plan.q, plan.v, plan.a):  # shared between callers: nobody may change it
+            samples.flags.writeable = False
         self._initial_plans[key] = result = (plan, self.check(plan).ok)
         return result
 

@@ -211,6 +211,8 @@ class MeasurementHistoryBatch:
         rows = np.asarray(rows, dtype=np.int64)
         if rows.size == 0:
             return self
+        if np.any(np.diff(rows) < 0):  # a row in two runs would count its first run only
+            raise ValueError("MeasurementHistoryBatch.extended: entries must be grouped by row in ascending order")
         C = self.capacity
         starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
         counts = np.diff(np.r_[starts, rows.size])

@@ -344,6 +344,8 @@ class Umpire:
             return None
         if event.kind == ContactKind.NET:
             if not court.on_net_assembly(event.position):
+                if bounced:  # a good return came back under the net untouched: not returned
+                    return self._point(striker, f"the {to_play} did not return the ball (it went back under the net)", "2.10.1.2", event)
                 return self._point(to_play, f"the {striker}'s shot went through or under the net", "2.10.1.5", event)
             return None  # the net assembly may be touched on a return, and after the bounce
         if not bounced:
