@@ -43,6 +43,7 @@ from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.contact import ResidualModel
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.racket_residual import residual_model
+from ace_drake.play.umpire import Court
 from ace_drake.robot.model import add_robot_to_plant, check_joint_order, load_scenario, racket_reach_box
 from ace_drake.robot.params import RobotScenario
 from ace_drake.systems.action_mapper import ActionMapper
@@ -77,6 +78,7 @@ from ace_drake.systems.segment.reset_mpc import SegmentResetMpc
 from ace_drake.systems.segment.safety_supervisor import SegmentSafetySupervisor
 from ace_drake.systems.segment.spin_sensor import SegmentSpinSensor
 from ace_drake.systems.segment.spline_qp import SegmentSplineQp
+from ace_drake.systems.segment.umpire import SegmentUmpire
 from ace_drake.systems.statistical_position_sensor import StatisticalPositionSensor
 from ace_drake.systems.triangulator import Triangulator
 
@@ -547,6 +549,7 @@ class SegmentRallySystems:
     observation: SegmentObservationBuilder
     policy_controller: SegmentPolicyController
     supervisor: SegmentSafetySupervisor
+    umpire: SegmentUmpire
     stack: ControlStack
 
 
@@ -589,7 +592,9 @@ def add_segment_rally(builder: DiagramBuilder, params: RallyParams, policy, batc
     qp = add("spline_qp", SegmentSplineQp(stack, batch))
     reset = add("reset_mpc", SegmentResetMpc(stack, batch))
     supervisor = add("safety_supervisor", SegmentSafetySupervisor(stack, batch, timing))
+    umpire = add("umpire", SegmentUmpire(batch, timing.duration, Court.from_physics(params.physics)))
     connect = builder.Connect
+    connect(ball.ball_flight_port, umpire.ball_flight_port)
     for system in (ball, positions, spins, estimator, observation, controller, supervisor):
         connect(clock.episode_ticks_port, system.episode_ticks_port)
     connect(supervisor.command_stream_port, joints.command_stream_port)
@@ -618,7 +623,7 @@ def add_segment_rally(builder: DiagramBuilder, params: RallyParams, policy, batc
     builder.ExportInput(supervisor.light_curtain_port, "light_curtain")
     if policy is None:
         builder.ExportInput(controller.action_request_port, "action_request")
-    return SegmentRallySystems(batch, timing, clock, ball, joints, racket, positions, spins, estimator, observation, controller, supervisor, stack)
+    return SegmentRallySystems(batch, timing, clock, ball, joints, racket, positions, spins, estimator, observation, controller, supervisor, umpire, stack)
 
 
 def build_segment_rally_diagram(params: RallyParams | None = None, policy=None, batch: int = 1) -> Diagram:
@@ -650,18 +655,29 @@ def system_seeds(seeds, stream: int) -> np.ndarray:
     return np.array([np.random.SeedSequence([int(seed), stream]).generate_state(1, np.uint32)[0] for seed in np.asarray(seeds).reshape(-1)], dtype=np.int64)
 
 
-def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills=None, q=None, v=None, a=None) -> None:
+def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills=None, q=None, v=None, a=None, planned=None,
+                           continuing: bool = False) -> None:
     """Starts episodes in environments ``rows`` (k,) of a segment-stepped diagram: balls in states
     ``shots`` (k, 9) [p (m), v (m/s), w (rad/s)] (just after the opponent's hit), each episode's
     stochastic systems seeded from ``seeds`` (k,) (one stream per system, ``system_seeds``), the
     skills (k, 3) (default: the builder's), the robots at q (k, 8) (default: the reset pose) with
     v, a (k, 8) (default rest; a moving start follows the reset from there), the episode clocks
     at tick 0 and the policies told (``SegmentPolicyController.ResetPolicies``). The next tick is
-    each episode's first (``control.segment_timing``); the other environments go on."""
+    each episode's first (``control.segment_timing``); the other environments go on.
+
+    ``planned`` (k,) of ``control.serve_execution.PlannedStart`` or None: those robots start
+    part-way along that plan (a serve), which the supervisor keeps through its hold.
+    ``continuing``: the robots go on as they are (the next shot of a rally: their joints and
+    committed plans untouched, the plans re-timed to the new episodes); q, v, a and planned must
+    then be None."""
     rows = np.asarray(rows, dtype=int).reshape(-1)
     seeds = np.asarray(seeds).reshape(-1)
     if seeds.size != rows.size:
         raise ValueError(f"start_segment_episodes: {rows.size} rows but {seeds.size} seeds")
+    if planned is not None and len(planned) != rows.size:
+        raise ValueError(f"start_segment_episodes: {rows.size} rows but {len(planned)} planned starts")
+    if continuing and not (q is None and v is None and a is None and planned is None):
+        raise ValueError("start_segment_episodes: continuing robots take no q, v, a or planned start")
 
     def sub(name):
         system = diagram.GetSubsystemByName(name)
@@ -674,6 +690,7 @@ def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills
     estimator, estimator_context = sub("ball_estimator")
     estimator.StartEpisodes(estimator_context, rows)  # first: it stores the other rows' cached fusion
     clock, clock_context = sub("episode_clock")
+    shifts = supervisor.timing.boundary_sample(clock.ticks(clock_context)[rows])  # the old episodes' samples at the new time 0
     clock.StartEpisodes(clock_context, rows)
     ball, ball_context = sub("ball")
     ball.StartEpisodes(ball_context, rows, shots, system_seeds(seeds, SEED_STREAMS["ball"]))
@@ -684,9 +701,12 @@ def start_segment_episodes(diagram: Diagram, context, rows, shots, seeds, skills
         system.StartEpisodes(system_context, rows, system_seeds(seeds, SEED_STREAMS[name]))
     observation, observation_context = sub("observation_builder")
     observation.SetSkills(observation_context, rows, np.tile(DEFAULT_SKILL, (rows.size, 1)) if skills is None else skills)
-    supervisor.StartEpisodes(supervisor_context, rows, q, v, a)
-    joints, joints_context = sub("joint_plant")
-    joints.StartEpisodes(joints_context, rows, q, v)
+    if continuing:
+        supervisor.ContinueEpisodes(supervisor_context, rows, shifts)
+    else:
+        supervisor.StartEpisodes(supervisor_context, rows, q, v, a, planned)
+        joints, joints_context = sub("joint_plant")
+        joints.StartEpisodes(joints_context, rows, q, v, planned)
     controller, controller_context = sub("policy_controller")
     controller.StartEpisodes(controller_context, rows)
     controller.ResetPolicies(rows, seeds)

@@ -344,6 +344,66 @@ def execute_commands(dynamics: RobotDynamicsParams, plan: JointTrajectory, settl
     return JointMotion(propagator, zeta, u_old[None], u_new[None])
 
 
+@dataclasses.dataclass(frozen=True)
+class PlannedStart:
+    """An episode that starts part-way along a committed command plan (a serve: the toss's
+    commands already running when the ball leaves the cup).
+
+    plan: the 1 kHz commands from rest (row 0; before it the joints rest there with that command
+    held, as ``execute_commands`` assumes). start_sample: the plan's row at the episode's time 0.
+    hold_samples: episode samples from time 0 during which the plan is kept whatever the policy
+    proposes (the safety supervisor decides no new segment before then).
+    """
+
+    plan: JointTrajectory
+    start_sample: int
+    hold_samples: int
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.start_sample < self.plan.samples:
+            raise ValueError(f"PlannedStart.start_sample must lie in the plan's {self.plan.samples} samples, got {self.start_sample}")
+        if self.hold_samples < 0:
+            raise ValueError(f"PlannedStart.hold_samples must be >= 0, got {self.hold_samples}")
+
+    def joint_state(self, dynamics: RobotDynamicsParams, episode_sample: int, history: int) -> tuple[np.ndarray, np.ndarray]:
+        """The joints executing the plan (``execute_commands``) at episode sample
+        ``episode_sample`` (time 0 at ``start_sample``): zeta (8, 2) [q, q_dot] and the
+        ``history`` commands before that sample (history, 8), oldest first: the
+        ``SegmentJointPlant``'s state there."""
+        sample = self.start_sample + int(episode_sample)
+        if sample < 0:
+            raise ValueError(f"PlannedStart.joint_state: episode sample {episode_sample} lies before the plan's start")
+        motion = execute_commands(dynamics, self.plan, settle=max(1, sample - self.plan.samples + 2))
+        before = np.clip(np.arange(sample - history, sample), 0, self.plan.samples - 1)
+        return motion.zeta[0, sample].copy(), self.plan.q[before].copy()
+
+
+@dataclasses.dataclass(frozen=True)
+class ServeStart:
+    """A served point's first episode (``serve_episode_start``): the robot part-way along the
+    serve's commands (``planned``), the ball (9,) [p, v, w] just released at the episode's time 0,
+    and the umpire's Toss in episode time (its release at or just before 0)."""
+
+    planned: PlannedStart
+    ball: np.ndarray
+    toss: Toss
+
+
+def serve_episode_start(commands: JointTrajectory, t_lift: float, release: TossState, physics: BallPhysicsParams) -> ServeStart:
+    """The episode of a serve whose ``commands`` (1 kHz, from rest; toss then strike) release the
+    ball at ``t_lift`` (s from their start) in the state ``release``: time 0 is the first command
+    sample at or after the release, the ball there in free flight from it (``toss_ball``), the
+    plan held to its end (the strike and follow-through are committed; the policy takes over
+    after)."""
+    period = commands.period
+    start = int(math.ceil(t_lift / period - 1e-9))
+    lag = start * period - t_lift
+    ball = toss_ball(release, physics, lag)
+    toss = umpire_toss(release, physics)
+    toss = Toss(-lag, toss.release_position, toss.release_velocity, toss.apex_height)
+    return ServeStart(PlannedStart(commands, start, commands.samples - start), ball, toss)
+
+
 def mean_joint_state(motion: JointMotion, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The executed joints (environment 0 of ``motion``) at time t (s from its first sample):
     positions (8,) linear between the samples, velocities (8,) the periods' means (position

@@ -110,7 +110,8 @@ class HumanResponses:
     bounce on the human's half, [p (m), v (m/s), w (rad/s)]; returned (N,) bool; returns (N, 9) the
     human's recorded post-hit state (NaN where missed); hit_delays (N,) s from the bounce to the
     hit (NaN where missed); return_landed (N,) the return bounced on the robot's half next;
-    robot_serve (N,) the incoming ball is the robot's serve; via_net (N,) it touched the net.
+    return_landings (N, 3) where that bounce was recorded, x, y (m), and how long after the hit
+    (s) (NaN where it did not land); robot_serve (N,) the incoming ball is the robot's serve; via_net (N,) it touched the net.
     M serves: serves (M, 9) post-hit states, serve_players (M,).
     """
 
@@ -120,6 +121,7 @@ class HumanResponses:
     returns: np.ndarray
     hit_delays: np.ndarray
     return_landed: np.ndarray
+    return_landings: np.ndarray
     robot_serve: np.ndarray
     via_net: np.ndarray
     serves: np.ndarray
@@ -178,12 +180,17 @@ def human_responses(events: Sequence[MatchEvent], players: Sequence[str] = ()) -
                 continue
             response = rally[i + 1] if i + 1 < len(rally) else None
             if response is not None and response.type == "shot_p2" and np.all(np.isfinite(response.state)):
-                after = [e.type for e in rally[i + 2:i + 4]]
-                landed = bool(after) and (after[0] == "bounce_p1" or after[:2] == ["net", "bounce_p1"])
-                rows.append((player, event.state, True, response.state, response.time - event.time, landed, serve, "net" in between))
+                after = rally[i + 2:i + 4]
+                kinds = [e.type for e in after]
+                landed = bool(kinds) and (kinds[0] == "bounce_p1" or kinds[:2] == ["net", "bounce_p1"])
+                landing = np.full(3, np.nan)
+                if landed:
+                    bounce = after[kinds.index("bounce_p1")]
+                    landing = np.array([bounce.state[0], bounce.state[1], bounce.time - response.time])
+                rows.append((player, event.state, True, response.state, response.time - event.time, landed, landing, serve, "net" in between))
             elif response is None or response.type == "bounce_p2":
-                rows.append((player, event.state, False, np.full(9, np.nan), math.nan, False, serve, "net" in between))
-    columns = list(zip(*rows)) if rows else [[]] * 8
+                rows.append((player, event.state, False, np.full(9, np.nan), math.nan, False, np.full(3, np.nan), serve, "net" in between))
+    columns = list(zip(*rows)) if rows else [[]] * 9
     return HumanResponses(
         players=np.array(columns[0], dtype=object).astype(str),
         incoming=np.array(columns[1], dtype=float).reshape(-1, 9),
@@ -191,8 +198,9 @@ def human_responses(events: Sequence[MatchEvent], players: Sequence[str] = ()) -
         returns=np.array(columns[3], dtype=float).reshape(-1, 9),
         hit_delays=np.array(columns[4], dtype=float),
         return_landed=np.array(columns[5], dtype=bool),
-        robot_serve=np.array(columns[6], dtype=bool),
-        via_net=np.array(columns[7], dtype=bool),
+        return_landings=np.array(columns[6], dtype=float).reshape(-1, 3),
+        robot_serve=np.array(columns[7], dtype=bool),
+        via_net=np.array(columns[8], dtype=bool),
         serves=np.array(serves, dtype=float).reshape(-1, 9),
         serve_players=np.array(serve_players, dtype=object).astype(str),
     )
@@ -283,16 +291,19 @@ class OpponentModel:
         speed = np.linalg.norm(np.asarray(incoming, dtype=float).reshape(-1, 9)[:, VELOCITY], axis=-1)
         return speed <= self.max_return_speed
 
-    def draw_returns(self, incoming: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    def draw_returns(self, incoming: np.ndarray, rng: np.random.Generator, landings: bool = False):
         """Post-hit states (N, 9) and hit delays (N,) s for the (N, 9) incoming balls *given that
         the human returns them*: each a recorded return of one of the k nearest returned incoming
-        balls, chosen uniformly, plus the jitter."""
+        balls, chosen uniformly, plus the jitter; with ``landings``, also where and when each
+        chosen return was recorded landing (N, 3) (``HumanResponses.return_landings``)."""
         incoming = self._check_incoming(incoming)
         k = min(self.params.k, len(self._returned_rows))
         _, neighbours = self._returned_tree.query(incoming_features(incoming) / self.feature_scale, k=k)
         neighbours = np.reshape(neighbours, (len(incoming), k))
         chosen = self._returned_rows[neighbours[np.arange(len(incoming)), rng.integers(k, size=len(incoming))]]
         states = self.data.returns[chosen] + self.params.jitter * rng.standard_normal((len(incoming), 9))
+        if landings:
+            return states, self.data.hit_delays[chosen], self.data.return_landings[chosen]
         return states, self.data.hit_delays[chosen]
 
     def sample_returns(self, incoming: np.ndarray, rng: np.random.Generator) -> ReturnSample:
@@ -382,6 +393,79 @@ def landing_points(returns: np.ndarray, physics: BallPhysicsParams | None = None
         if event is not None and event.kind == ContactKind.TABLE and event.state_pre[0] < 0.0:
             landing[i] = event.state_pre[:2]
     return landing
+
+
+def first_landings(states: np.ndarray, physics: BallPhysicsParams | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) x, y (m) and (N,) times (s) of each (N, 9) ball's first table contact if that is on
+    the robot's half (x < 0) before any floor contact (net touches allowed); NaN otherwise."""
+    states = np.asarray(states, dtype=float).reshape(-1, 9)
+    points, times = np.full((len(states), 2), np.nan), np.full(len(states), np.nan)
+    if len(states) == 0:
+        return points, times
+    trajectory = simulate(states, physics or BallPhysicsParams(), LANDING_FLIGHT_DURATION,
+                          stop_on=(ContactKind.TABLE, ContactKind.FLOOR), record=False)
+    for i, event in enumerate(trajectory.stop_events):
+        if event is not None and event.kind == ContactKind.TABLE and event.state_pre[0] < 0.0:
+            points[i], times[i] = event.state_pre[:2], event.time
+    return points, times
+
+
+def free_flight_positions(states: np.ndarray, times: np.ndarray, physics: BallPhysicsParams, dt: float = 1e-3) -> np.ndarray:
+    """(N, 3) positions (m) of the (N, 9) balls at ``times`` (N,) s in free flight (eq. (1), no
+    contacts): ``simulate``'s RK4 grid, cubic Hermite between its samples."""
+    states = np.asarray(states, dtype=float).reshape(-1, 9)
+    trajectory = simulate(states, physics, float(np.max(times)) + dt, dt=dt, kinds=())
+    grid, samples = trajectory.times, trajectory.states
+    k = np.clip(np.searchsorted(grid, times, side="right") - 1, 0, len(grid) - 2)
+    rows = np.arange(len(states))
+    h = grid[k + 1] - grid[k]
+    u = ((times - grid[k]) / h)[:, None]
+    p0, p1 = samples[k, rows, :3], samples[k + 1, rows, :3]
+    v0, v1 = samples[k, rows, 3:6] * h[:, None], samples[k + 1, rows, 3:6] * h[:, None]
+    return ((2 * u**3 - 3 * u**2 + 1) * p0 + (u**3 - 2 * u**2 + u) * v0 + (-2 * u**3 + 3 * u**2) * p1 + (u**3 - u**2) * v1)
+
+
+def retarget_returns(returns: np.ndarray, positions: np.ndarray, physics: BallPhysicsParams | None = None,
+                     landings: np.ndarray | None = None, iterations: int = 8, tolerance: float = 1e-3) -> np.ndarray:
+    """The (N, 9) post-hit states ``returns`` struck from ``positions`` (N, 3) m instead of their
+    own: a return that lands on the robot's half, at ``landings`` (N, 3) [x (m), y (m), time
+    after the hit (s)] (default: where the ball model lands it, ``first_landings``), gets the
+    velocity whose free flight (``free_flight_positions``) has the ball's centre one radius above
+    that point at that time (Newton's method on the three velocity components from the drag-free
+    answer, the Jacobian by finite differences; stops within ``tolerance`` m), its spin kept. One
+    without a landing (NaN), or whose solve does not converge, keeps its velocity. The human's
+    placement and pace stay the recorded ones wherever the match's ball meets the racket (the net
+    and the table's edges still stop what they stop)."""
+    physics = physics or BallPhysicsParams()
+    returns = np.asarray(returns, dtype=float).reshape(-1, 9)
+    out = returns.copy()
+    out[:, :3] = np.asarray(positions, dtype=float).reshape(-1, 3)
+    if landings is None:
+        target_points, target_times = first_landings(returns, physics)
+    else:
+        landings = np.asarray(landings, dtype=float).reshape(-1, 3)
+        target_points, target_times = landings[:, :2], landings[:, 2]
+    solve = np.flatnonzero(np.isfinite(target_times) & (target_times > 0.0))
+    if solve.size == 0:
+        return out
+    target = np.column_stack([target_points[solve], np.full(solve.size, physics.aero.ball_radius)])
+    flight = target_times[solve]
+    states = out[solve].copy()
+    states[:, 3:6] = (target - states[:, :3]) / flight[:, None] + 0.5 * physics.aero.gravity * flight[:, None] * np.array([0.0, 0.0, 1.0])
+    step = 1e-3  # m/s, the finite differences' step
+    converged = np.zeros(solve.size, dtype=bool)
+    for _ in range(iterations):
+        probes = np.repeat(states[:, None, :], 4, axis=1)
+        probes[:, 1:, 3:6] += step * np.eye(3)
+        reached = free_flight_positions(probes.reshape(-1, 9), np.repeat(flight, 4), physics).reshape(-1, 4, 3)
+        residual = reached[:, 0] - target
+        converged = np.all(np.abs(residual) < tolerance, axis=1)
+        if converged.all():
+            break
+        jacobian = np.transpose(reached[:, 1:] - reached[:, :1], (0, 2, 1)) / step  # d position / d v
+        states[~converged, 3:6] -= np.linalg.solve(jacobian[~converged], residual[~converged][..., None])[..., 0]
+    out[solve[converged]] = states[converged]
+    return out
 
 
 def compare_samples(recorded: np.ndarray, sampled: np.ndarray) -> dict:

@@ -245,6 +245,12 @@ class Umpire:
             return None
         return self.server if self._striker is None else opponent(self._striker)
 
+    @property
+    def bounced(self) -> bool:
+        """The ball has bounced correctly on the court of the player to play (``to_play``), who
+        may strike it now; False once decided."""
+        return self.decision is None and self._phase == _Phase.BOUNCED
+
     def observe(self, event: RallyEvent) -> PointDecision | None:
         """Takes the rally's next contact; returns the decision if the rally is over."""
         if event.time < self._last_time:
@@ -367,11 +373,17 @@ class Umpire:
         return self._point(striker, f"the {to_play} did not return the ball: it touched the table again", "2.10.1.3", event)
 
 
-def judge_rally(server: str, events: Iterable[RallyEvent], toss: Toss | None = None, court: Court | None = None) -> PointDecision | None:
-    """The decision on a rally from its contacts in time order (module docstring), or None if the
-    events run out while the ball is still in play."""
+def umpire_after(server: str, events: Iterable[RallyEvent], toss: Toss | None = None, court: Court | None = None) -> Umpire:
+    """The Umpire of a rally served by ``server`` after it observed ``events`` (in time order; it
+    stops at the decision)."""
     umpire = Umpire(server, toss, court)
     for event in events:
         if umpire.observe(event) is not None:
             break
-    return umpire.decision
+    return umpire
+
+
+def judge_rally(server: str, events: Iterable[RallyEvent], toss: Toss | None = None, court: Court | None = None) -> PointDecision | None:
+    """The decision on a rally from its contacts in time order (module docstring), or None if the
+    events run out while the ball is still in play."""
+    return umpire_after(server, events, toss, court).decision

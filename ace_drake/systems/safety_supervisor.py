@@ -25,7 +25,9 @@ class SupervisorState:
     plan: the committed command stream, row 0 at global sample ``plan_start`` (time
     plan_start * period); stopped: a protective stop is in force (no new segments); accepted,
     rejected: segments executed and refused (refusals with a reason: infeasible, QP, reset,
-    collision); last_reason: why the last proposal was refused or the stop was taken.
+    collision); last_reason: why the last proposal was refused or the stop was taken;
+    hold_until: no new segment starts before this sample (a planned start's held plan, e.g. a
+    serve; the segment-stepped supervisor's, in episode samples).
     """
 
     plan: JointTrajectory
@@ -34,6 +36,7 @@ class SupervisorState:
     accepted: int = 0
     rejected: int = 0
     last_reason: str = ""
+    hold_until: int | None = None
 
     def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
         return self

@@ -79,9 +79,11 @@ class SegmentJointPlant(LeafSystem):
         """The JointPlantState in this system's ``context``."""
         return context.get_abstract_state(self._state_index).get_value()
 
-    def StartEpisodes(self, context, rows, q, v=None) -> None:
+    def StartEpisodes(self, context, rows, q, v=None, planned=None) -> None:
         """Sets environments ``rows`` (k,) at joint positions q (k, 8), velocities v (default 0),
-        with a command history of q (joints at rest with command q stay exactly there)."""
+        with a command history of q (joints at rest with command q stay exactly there).
+        ``planned`` (k,) of ``control.serve_execution.PlannedStart`` or None: those rows are set
+        where that plan's executed commands have them at the first tick's start (q, v unused)."""
         rows = np.asarray(rows, dtype=int)
         q = np.asarray(q, dtype=float).reshape(rows.size, -1)
         v = np.zeros_like(q) if v is None else np.asarray(v, dtype=float).reshape(q.shape)
@@ -91,6 +93,9 @@ class SegmentJointPlant(LeafSystem):
         zeta, commands = current.zeta.copy(), current.commands.copy()
         zeta[rows, :, 0], zeta[rows, :, 1] = q, v
         commands[rows] = q[:, None, :]
+        for k, row in enumerate(rows):
+            if planned is not None and planned[k] is not None:
+                zeta[row], commands[row] = planned[k].joint_state(self.params, int(self.timing.first_sample(0)), self.history)
         context.SetAbstractState(self._state_index, JointPlantState(zeta, commands))
 
     # ------------------------------------------------------------------------------ motion

@@ -26,8 +26,9 @@ class SegmentSafetySupervisor(LeafSystem):
     """The continuous-time ``SafetySupervisor`` for B environments, deciding once per tick: a
     protective stop while the light curtain is broken (the fastest stop within the command
     limits, if collision-free, else the committed plan; no new segments until it clears),
-    otherwise, from tick 1 on, the new segment and its reset if both exist and are collision-free
-    (``control.stack.decide_segment``), else the committed plan. Its plan's samples at 1 kHz are
+    otherwise, from tick 1 on (and once a planned start's hold is over), the new segment and its
+    reset if both exist and are collision-free (``control.stack.decide_segment``), else the
+    committed plan. Its plan's samples at 1 kHz are
     the joints' commands.
 
     Differences from the reference: the light curtain is read at the ticks (every 32 ms, not
@@ -95,19 +96,38 @@ class SegmentSafetySupervisor(LeafSystem):
         """The B SupervisorStates in this system's ``context``."""
         return context.get_abstract_state(self._state_index).get_value()
 
-    def StartEpisodes(self, context, rows, q, v=None, a=None) -> None:
+    def StartEpisodes(self, context, rows, q, v=None, a=None, planned=None) -> None:
         """Starts the episodes of environments ``rows`` (k,) from joint states q, v, a (k, 8)
         each (v, a default zero): at rest the plan is to stand still; moving, the reset from
-        there, starting at the first tick's start. Raises ValueError if a plan is not
-        collision-free."""
+        there, starting at the first tick's start. ``planned`` (k,) of
+        ``control.serve_execution.PlannedStart`` or None: those rows commit to that plan instead
+        (its start_sample at the episode's time 0; no new segment within its hold; q, v, a
+        unused). Raises ValueError if a plan is not collision-free."""
         rows = np.asarray(rows, dtype=int)
         states = list(self.supervisor_states(context))
         start = int(self.timing.first_sample(0))
         for k, row in enumerate(rows):
-            plan, free = self.stack.initial_plan(q[k], None if v is None else v[k], None if a is None else a[k])
+            given = None if planned is None else planned[k]
+            if given is not None:
+                plan, free = given.plan, self.stack.check(given.plan).ok
+                states[row] = SupervisorState(plan, -given.start_sample, hold_until=given.hold_samples)
+            else:
+                plan, free = self.stack.initial_plan(q[k], None if v is None else v[k], None if a is None else a[k])
+                states[row] = SupervisorState(plan, start)
             if not free:
-                raise ValueError(f"SegmentSafetySupervisor.StartEpisodes: the initial plan of environment {row} from q={np.asarray(q[k])} is not collision-free")
-            states[row] = SupervisorState(plan, start)
+                raise ValueError(f"SegmentSafetySupervisor.StartEpisodes: the initial plan of environment {row} is not collision-free")
+        context.SetAbstractState(self._state_index, tuple(states))
+
+    def ContinueEpisodes(self, context, rows, shifts) -> None:
+        """Restarts the episode clocks of environments ``rows`` (k,) without touching their robots:
+        each committed plan goes on, re-timed to the new episode (``shifts`` (k,): the old episode's
+        sample that becomes the new one's sample 0, a whole number of segments); counts and any
+        protective stop carry over. For the next shot of a rally the robot is in the middle of."""
+        states = list(self.supervisor_states(context))
+        for row, shift in zip(np.asarray(rows, dtype=int), np.asarray(shifts, dtype=np.int64)):
+            state = states[row]
+            hold = None if state.hold_until is None else int(state.hold_until - shift)
+            states[row] = dataclasses.replace(state, plan_start=int(state.plan_start - shift), hold_until=hold)
         context.SetAbstractState(self._state_index, tuple(states))
 
     # ------------------------------------------------------------------------------ decision
@@ -129,7 +149,7 @@ class SegmentSafetySupervisor(LeafSystem):
                     updated = dataclasses.replace(state, stopped=True, last_reason="protective stop would collide: keeping the checked plan")
             elif not curtain[row] and state.stopped:
                 updated = dataclasses.replace(state, stopped=False)
-            elif not curtain[row] and ticks[row] >= 1:
+            elif not curtain[row] and ticks[row] >= 1 and (state.hold_until is None or self.timing.boundary_sample(ticks[row]) >= state.hold_until):
                 if segments is None:
                     segments, resets = self.segment_port.Eval(context), self.reset_port.Eval(context)
                 decision = decide_segment(self.stack, segments[row], resets[row])
