@@ -1,13 +1,14 @@
 """Mirror across the XZ plane: involution, the joint mirror by forward kinematics, actions through
-the feasible sets, and the shipped robot's asymmetry."""
+the feasible sets (with and without a joint offset), and the shipped robot's asymmetry."""
 
+import dataclasses
 import shutil
 
 import numpy as np
 import pytest
 
 from ace_drake.config import MODELS_DIR
-from ace_drake.contracts import ObservationLayout
+from ace_drake.contracts import ObservationLayout, privileged_slice
 from ace_drake.control.action_mapping import map_action
 from ace_drake.control.feasible_set import feasible_sets, in_invariant_set
 from ace_drake.control.params import ControlParams
@@ -18,6 +19,9 @@ from ace_drake.robot.model import RobotModel, load_scenario
 LAYOUT = ObservationLayout(3, 2)
 # gantry_x, gantry_y, shoulder_yaw, shoulder_pitch, elbow, wrist_1, wrist_2, wrist_3
 EXPECTED_SIGNS = [1, -1, -1, 1, 1, -1, 1, -1]
+# The arm's shoulder_pitch pivot 0.15 m along the shoulder's +y (ace_robot.sdf): gantry_y's offset -0.3 m.
+ARM_OFFSET = 0.15
+EXPECTED_OFFSETS = [0, -2 * ARM_OFFSET, 0, 0, 0, 0, 0, 0]
 
 
 @pytest.fixture(scope="module")
@@ -45,11 +49,29 @@ def symmetric_sdf(model) -> str:
 
 
 def test_joint_mirror_from_the_axes(shipped):
+    """Signs from the axes; gantry_y offset so that the racket at q = 0 (0.15 m off the plane)
+    mirrors onto itself. gantry_y's limits [-1.3, 1.3] are symmetric about 0, not about c / 2 =
+    -0.15: 0.3 m off; every other mirrored joint's limits are symmetric about 0 (c = 0)."""
     joints = JointMirror.from_model(shipped)
     np.testing.assert_array_equal(joints.signs, EXPECTED_SIGNS)
-    np.testing.assert_array_equal(joints.offsets, 0.0)
-    # The mirrored joints' position limits are symmetric about zero.
-    np.testing.assert_array_equal(joints.limit_mismatch(shipped.lower, shipped.upper), 0.0)
+    np.testing.assert_allclose(joints.offsets, EXPECTED_OFFSETS, atol=1e-12)
+    np.testing.assert_allclose(joints.limit_mismatch(shipped.lower, shipped.upper), [0, 0.3, 0, 0, 0, 0, 0, 0], atol=1e-12)
+    # The ready pose (gantry_y -0.15, the racket on the plane) is its own mirror.
+    np.testing.assert_allclose(joints.positions(shipped.ready_pose), shipped.ready_pose, atol=1e-12)
+    assert joints.racket_error(shipped, shipped.ready_pose)[0] < 1e-12
+    # Mirrors of states with gantry_y > 1.0 m lie beyond its lower limit.
+    q = shipped.ready_pose.copy()
+    q[1] = 1.05
+    assert not joints.within_limits(q, shipped.lower, shipped.upper)
+    q[1] = 0.95
+    assert joints.within_limits(q, shipped.lower, shipped.upper)
+
+
+def test_a_joint_mirror_is_an_involution_by_construction():
+    with pytest.raises(ValueError, match="shift"):
+        JointMirror(np.ones(8), np.r_[0.1, np.zeros(7)])
+    with pytest.raises(ValueError, match="signs"):
+        JointMirror(np.r_[0.5, np.ones(7)], np.zeros(8))
 
 
 def test_forward_kinematics_mirror_the_racket_pose_on_a_symmetric_robot(symmetric):
@@ -61,13 +83,37 @@ def test_forward_kinematics_mirror_the_racket_pose_on_a_symmetric_robot(symmetri
 
 
 def test_the_shipped_robot_is_not_mirror_symmetric(shipped):
-    """The arm sits 0.15 m to the +y side of the column: the mirrored joint state puts the racket
-    0.3 m (twice the offset) from the mirrored racket pose, whatever q; orientations do mirror."""
-    position_error, angle_error = JointMirror.from_model(shipped).fk_error(shipped, samples=20)
-    assert position_error == pytest.approx(0.3, abs=1e-9)
-    assert angle_error < 1e-7
-    with pytest.raises(ValueError, match="not symmetric"):
+    """The arm's pivot sits 0.15 m along the shoulder's +y, off the yaw axis: with gantry_y's
+    offset -0.3 m the mirrored joint state puts the racket e(psi) = 0.3 (sin psi, cos psi - 1, 0)
+    from the mirrored racket pose, |e| = 0.6 |sin(psi / 2)| (mirror docstring): exact at yaw 0
+    only; orientations mirror for every q."""
+    joints = JointMirror.from_model(shipped)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = rng.uniform(shipped.lower, shipped.upper)
+        position_error, angle_error = joints.racket_error(shipped, q)
+        assert position_error == pytest.approx(4 * ARM_OFFSET * abs(np.sin(q[2] / 2)), abs=1e-9)
+        assert angle_error < 1e-7
+        q[2] = 0.0
+        assert joints.racket_error(shipped, q)[0] < 1e-12
+    with pytest.raises(ValueError, match="not symmetric.*gantry_y"):
         Mirror.from_robot(shipped, LAYOUT)
+    assert not Mirror.from_robot(shipped, LAYOUT, exact=False).exact
+
+
+def test_the_exact_mirror_of_the_shipped_arm_moves_the_gantry_with_the_yaw(shipped):
+    """No per-joint map mirrors the shipped arm; the yaw-coupled one (q_x - 0.3 sin psi,
+    -q_y - 0.3 cos psi, -psi, the rest by their signs) does, exactly (mirror docstring)."""
+    joints = JointMirror.from_model(shipped)
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        q = rng.uniform(shipped.lower, shipped.upper)
+        coupled = joints.signs * q
+        coupled[0] = q[0] - 2 * ARM_OFFSET * np.sin(q[2])
+        coupled[1] = -q[1] - 2 * ARM_OFFSET * np.cos(q[2])
+        X, X_mirrored = shipped.racket_pose(q), shipped.racket_pose(coupled)
+        np.testing.assert_allclose(X_mirrored.translation(), np.diag([1, -1, 1]) @ X.translation(), atol=1e-12)
+        np.testing.assert_allclose(X_mirrored.rotation().matrix(), np.diag([1, -1, 1]) @ X.rotation().matrix() @ np.diag([1, -1, 1]), atol=1e-12)
 
 
 def make_mirror(model):
@@ -75,18 +121,54 @@ def make_mirror(model):
 
 
 def test_mirroring_twice_is_the_identity(shipped):
+    """States, actions, actor and critic observations, rewards; with gantry_y's offset (the
+    affine parts to round-off), in float64 and float32."""
     mirror = make_mirror(shipped)
+    assert np.any(mirror.joints.offsets != 0.0)
     rng = np.random.default_rng(0)
-    obs, privileged, action = rng.normal(size=(5, LAYOUT.size)), rng.normal(size=(5, 28)), rng.uniform(-1, 1, (5, 16))
-    np.testing.assert_array_equal(mirror.observation(mirror.observation(obs)), obs)
-    np.testing.assert_array_equal(mirror.privileged(mirror.privileged(privileged)), privileged)
-    np.testing.assert_array_equal(mirror.action(mirror.action(action)), action)
-    transitions = {"obs": obs, "next_obs": obs, "privileged": privileged, "next_privileged": privileged,
-                   "action": action, "reward": rng.normal(size=5), "done": np.zeros(5)}
-    twice = mirror.transitions(mirror.transitions(transitions))
-    for key, value in transitions.items():
-        np.testing.assert_array_equal(twice[key], value)
-    np.testing.assert_array_equal(mirror.transitions(transitions)["reward"], transitions["reward"])
+    q, v = rng.uniform(shipped.lower, shipped.upper, (5, 8)), rng.normal(size=(5, 8))
+    np.testing.assert_allclose(mirror.joints.positions(mirror.joints.positions(q)), q, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(mirror.joints.rates(mirror.joints.rates(v)), v)
+    for dtype, atol in ((np.float64, 1e-15), (np.float32, 1e-7)):
+        obs = rng.normal(size=(5, LAYOUT.size)).astype(dtype)
+        privileged, action = rng.normal(size=(5, 28)).astype(dtype), rng.uniform(-1, 1, (5, 16)).astype(dtype)
+        assert mirror.observation(obs).dtype == dtype and mirror.privileged(privileged).dtype == dtype
+        np.testing.assert_allclose(mirror.observation(mirror.observation(obs)), obs, rtol=0, atol=atol)
+        np.testing.assert_allclose(mirror.privileged(mirror.privileged(privileged)), privileged, rtol=0, atol=atol)
+        np.testing.assert_array_equal(mirror.action(mirror.action(action)), action)
+        transitions = {"obs": obs, "next_obs": obs, "privileged": privileged, "next_privileged": privileged,
+                       "action": action, "reward": rng.normal(size=5), "done": np.zeros(5)}
+        twice = mirror.transitions(mirror.transitions(transitions))
+        for key, value in transitions.items():
+            np.testing.assert_allclose(twice[key], value, rtol=0, atol=atol)
+        np.testing.assert_array_equal(mirror.transitions(transitions)["reward"], transitions["reward"])
+
+
+def test_joint_positions_mirror_affinely_in_both_observations(shipped):
+    mirror = make_mirror(shipped)
+    obs, privileged = np.zeros(LAYOUT.size), np.zeros(28)
+    q = np.arange(1.0, 9.0)
+    obs[LAYOUT.slice("robot_state")] = np.r_[q, q, q]  # [q, v, a]
+    privileged[privileged_slice("joint_state")] = np.r_[q, q]  # [q, v]
+    robot_state = LAYOUT.part(mirror.observation(obs), "robot_state")
+    np.testing.assert_allclose(robot_state, np.r_[mirror.joints.positions(q), mirror.joints.rates(q), mirror.joints.rates(q)])
+    np.testing.assert_allclose(mirror.privileged(privileged)[privileged_slice("joint_state")],
+                               np.r_[mirror.joints.positions(q), mirror.joints.rates(q)])
+    assert robot_state[1] == pytest.approx(-2.0 - 0.3)
+
+
+def test_the_mirrored_end_effector_quaternion_keeps_the_canonical_sign(shipped):
+    """At the ready pose the blade is a half turn (w = 0): the canonical quaternion (largest
+    component positive) of the mirrored pose is the negated [w, -x, y, -z]."""
+    from ace_drake.robot.kinematics import RacketKinematics
+
+    mirror, kinematics = make_mirror(shipped), RacketKinematics.for_scenario(load_scenario())
+    rng = np.random.default_rng(5)
+    for q in [shipped.ready_pose, *(rng.uniform(shipped.lower, shipped.upper) * [1, 1, 0, 1, 1, 1, 1, 1] for _ in range(5))]:
+        obs = np.zeros(LAYOUT.size)
+        obs[LAYOUT.slice("end_effector")] = kinematics.end_effector_state(q, np.zeros(8))
+        expected = kinematics.end_effector_state(mirror.joints.positions(q), np.zeros(8))  # yaw 0: exact
+        np.testing.assert_allclose(LAYOUT.part(mirror.observation(obs), "end_effector"), expected, atol=1e-12)
 
 
 def test_observation_parts_mirror_by_their_vector_kind(shipped):
@@ -143,6 +225,88 @@ def test_negating_a_mirrored_joints_action_mirrors_its_terminal_state(shipped):
         checked += 1
 
 
+def action_mapping_case(joints, mirror, limits, seed: int, starts: int = 5):
+    """map(mirror(action), mirror(start)) against mirror(map(action, start)) for random invariant
+    starts and actions: the largest differences (position, velocity)."""
+    control, period = ControlParams(), 0.001
+    rng = np.random.default_rng(seed)
+    worst = np.zeros(2)
+    checked = 0
+    while checked < starts:
+        q0 = rng.uniform(limits.lower, limits.upper)
+        v0 = rng.uniform(-0.3, 0.3, 8) * limits.velocity
+        a0 = rng.uniform(-0.3, 0.3, 8) * limits.acceleration
+        if not (np.all(in_invariant_set(q0, v0, limits, control, period)) and np.all(in_invariant_set(joints.positions(q0), -v0, limits, control, period))):
+            continue
+        sets = feasible_sets(q0, v0, a0, limits, control, period)
+        sets_mirrored = feasible_sets(joints.positions(q0), joints.rates(v0), joints.rates(a0), limits, control, period)
+        action = rng.uniform(-1, 1, (20, 16))
+        q_T, v_T = map_action(action, sets)
+        q_T_mirrored, v_T_mirrored = map_action(mirror.action(action), sets_mirrored)
+        worst = np.maximum(worst, [np.max(np.abs(q_T_mirrored - joints.positions(q_T))), np.max(np.abs(v_T_mirrored - joints.rates(v_T)))])
+        checked += 1
+    return worst
+
+
+def test_the_action_mirror_is_exact_for_an_offset_joint_with_limits_symmetric_about_half_its_offset(shipped):
+    """gantry_y maps q -> -q - 0.3: with its command limits centred on -0.15 (here [-1.28, 0.98],
+    the shipped ones' largest such part) negating the action is exact through eq. (12) (mirror
+    docstring, *Actions*); ``action_exact`` agrees."""
+    joints, mirror = JointMirror.from_model(shipped), make_mirror(shipped)
+    shipped_limits = CommandLimits.from_config(load_scenario().limits, ControlParams())
+    lower, upper = shipped_limits.lower.copy(), shipped_limits.upper.copy()
+    upper[1] = joints.offsets[1] - lower[1]  # l + u = c
+    limits = dataclasses.replace(shipped_limits, lower=lower, upper=upper)
+    np.testing.assert_allclose(joints.limit_mismatch(limits.lower, limits.upper), 0.0, atol=1e-12)
+    assert np.all(action_mapping_case(joints, mirror, limits, seed=6) < 1e-9)
+    rng = np.random.default_rng(7)
+    q0 = rng.uniform(limits.lower, limits.upper, (50, 8))
+    assert np.all(mirror.action_exact(q0, np.zeros((50, 8)), np.zeros((50, 8)), limits, ControlParams(), 0.001) | ~in_invariant_set(q0, np.zeros((50, 8)), limits, ControlParams(), 0.001).all(-1))
+
+
+def test_with_the_shipped_limits_the_action_mirror_is_exact_away_from_gantry_y_ends(shipped):
+    """Starts with gantry_y in the middle (rally states lie within [-0.48, 0.48] m): exact;
+    near gantry_y's upper limit, where the limit shapes the feasible set and not its mirror's: not."""
+    joints, mirror = JointMirror.from_model(shipped), make_mirror(shipped)
+    limits = CommandLimits.from_config(load_scenario().limits, ControlParams())
+    middle = dataclasses.replace(limits, lower=np.r_[limits.lower[0], -0.6, limits.lower[2:]], upper=np.r_[limits.upper[0], 0.6, limits.upper[2:]])
+
+    class Middle:  # draws starts from the middle, maps with the shipped limits
+        lower, upper, velocity, acceleration = middle.lower, middle.upper, limits.velocity, limits.acceleration
+
+    worst = np.zeros(2)
+    control, period = ControlParams(), 0.001
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        q0 = rng.uniform(Middle.lower, Middle.upper)
+        v0, a0 = rng.uniform(-0.3, 0.3, 8) * limits.velocity, np.zeros(8)
+        assert mirror.action_exact(q0, v0, a0, limits, control, period)
+        sets = feasible_sets(q0, v0, a0, limits, control, period)
+        sets_mirrored = feasible_sets(joints.positions(q0), joints.rates(v0), a0, limits, control, period)
+        action = rng.uniform(-1, 1, (20, 16))
+        q_T, v_T = map_action(action, sets)
+        q_T_m, v_T_m = map_action(mirror.action(action), sets_mirrored)
+        worst = np.maximum(worst, [np.max(np.abs(q_T_m - joints.positions(q_T))), np.max(np.abs(v_T_m - joints.rates(v_T)))])
+    assert np.all(worst < 1e-9)
+    q0 = shipped.ready_pose.copy()
+    q0[1] = 0.97  # its mirror -1.27 is 0.01 m from the lower limit -1.28
+    assert not mirror.action_exact(q0, np.zeros(8), np.zeros(8), limits, control, period)
+
+
+def test_the_hit_state_action_mirrors_by_its_signs_whatever_the_offset(shipped):
+    """y_q = (q_hit - q0) / half-range: the offset cancels (mirror docstring)."""
+    from ace_drake.control.hit_state import HitStateAction
+
+    mirror = make_mirror(shipped)
+    parameterisation = HitStateAction.from_limits(CommandLimits.from_config(load_scenario().limits, ControlParams()))
+    rng = np.random.default_rng(9)
+    y, q0 = rng.uniform(-1, 1, (10, 16)), rng.uniform(shipped.lower, shipped.upper, (10, 8))
+    q_hit, v_hit = parameterisation.hit_state(y, q0)
+    q_hit_m, v_hit_m = parameterisation.hit_state(mirror.action(y), mirror.joints.positions(q0))
+    np.testing.assert_allclose(q_hit_m, mirror.joints.positions(q_hit), atol=1e-12)
+    np.testing.assert_allclose(v_hit_m, mirror.joints.rates(v_hit), atol=1e-12)
+
+
 def test_the_environment_is_mirror_symmetric_with_a_symmetric_robot_and_quiet_sensors(symmetric, tmp_path):
     """RallyEnv reset with a shot, a robot state and a skill, and again with their mirrors and the
     same seed: the first observations (27 ms in: ball histories, spins, robot and end-effector
@@ -192,3 +356,59 @@ def test_the_environment_is_mirror_symmetric_with_a_symmetric_robot_and_quiet_se
     for part, atol in ((slice(2, 5), 2e-3), (slice(5, 8), 0.02), (slice(8, 11), 0.05)):  # p, v, w
         np.testing.assert_allclose(hit[part], hit_m[part], atol=atol, rtol=1e-4, err_msg="hit_prediction")
     np.testing.assert_allclose(mirror.privileged(info["privileged"]), info_m["privileged"], rtol=1e-6, atol=1e-6)
+
+
+def test_a_rally_on_the_shipped_robot_mirrors_until_the_racket_meets_the_ball(shipped):
+    """One episode and its mirror on the segment-stepped diagram (B = 2): the returner, and the
+    mirrored returner (M_a . returner . M_o) from the mirrored shot and skill, the same seed, the
+    ready pose (its own mirror), quiet sensors. The balls mirror each other to sensor noise until
+    a racket touches one; the robots do not quite (the racket is 0.6 |sin(yaw / 2)| m off its mirror,
+    mirror docstring), so from the hit on the episodes differ."""
+    from ace_drake.control.params import RallyParams
+    from ace_drake.diagrams import build_segment_rally_diagram, make_segment_simulator, start_segment_episodes
+    from ace_drake.evaluation.controllers import diagram_params_for, make_controller
+    from ace_drake.learning.mirror import BALL_STATE
+    from ace_drake.perception.params import PerceptionParams, PositionSensorParams, SpinSensorParams
+    from ace_drake.physics.flight import make_state
+
+    perception = PerceptionParams(
+        positions="statistical", position=PositionSensorParams(noise_std=1e-5),
+        spin=SpinSensorParams(magnitude_noise_std=1e-3, axis_noise_std=1e-5, magnitude_bias_std=1e-3, axis_bias_std=1e-5),
+    )
+    params = RallyParams(perception=perception, stepping="segment", perturb=False)
+    returners = [make_controller("returner", params) for _ in range(2)]
+    params = diagram_params_for(returners[0], params)
+    mirror = Mirror.from_robot(shipped, ObservationLayout(params.position_history, params.spin_history), exact=False)
+
+    class Mirrored:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def reset(self):
+            self.inner.reset()
+
+        def __call__(self, observation):
+            action = self.inner(mirror.observation(observation))
+            return None if action is None else mirror.action(action)
+
+    diagram = build_segment_rally_diagram(params, [returners[0], Mirrored(returners[1])], 2)
+    simulator = make_segment_simulator(diagram)
+    context = simulator.get_mutable_context()
+    diagram.GetInputPort("light_curtain").FixValue(context, np.zeros(2))
+    shot = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (40.0, -80.0, 25.0))
+    skill = np.array([0.3, 1.0, 0.5])
+    q0 = shipped.ready_pose
+    start_segment_episodes(diagram, context, [0, 1], np.stack([shot, shot * BALL_STATE]), [7, 7],
+                           np.stack([skill, skill * [-1, 1, 1]]), q=np.stack([q0, mirror.joints.positions(q0)]))
+    simulator.Initialize()
+    ball = diagram.GetSubsystemByName("ball")
+    period = diagram.GetSubsystemByName("episode_clock").timing.duration
+    ticks = 0
+    for tick in range(1, 30):
+        simulator.AdvanceTo(tick * period)
+        state = ball.plant_state(ball.GetMyContextFromRoot(context))
+        if any(event.kind.name == "RACKET" for events in state.events for event in events):
+            break
+        np.testing.assert_allclose(state.balls[1], state.balls[0] * BALL_STATE, atol=1e-6, err_msg=f"tick {tick}")
+        ticks += 1
+    assert ticks >= 10  # the incoming flight and bounce, before any hit
