@@ -24,7 +24,8 @@ DEFAULT_FITTED_PARAMS = MODELS_DIR / "ball_physics_fitted.yaml"
 # command runs and not at the top of this module: these modules load Drake, torch or Ray (seconds
 # each), and ``ace-drake --help``, an input error or ``ace-drake results`` need none of them.
 WORK = {
-    "rally": "ace_drake.evaluation.rallies:run_rallies",
+    "rally": "ace_drake.evaluation.match:run_match",
+    "match replay": "ace_drake.analysis.match_replay:write_match_replay",
     "evaluate": "ace_drake.evaluation.evaluate:evaluate_controller",
     "evaluate --skill sampled": "ace_drake.training.env:SkillSampling",
     "physics-validate": "ace_drake.analysis.physics_validation:validate_file",
@@ -47,6 +48,8 @@ WORK = {
     "cameras optimize": "ace_drake.perception.placement:optimize_and_write",
     "diagrams": "ace_drake.analysis.graphs:write_graphs",
     "train": "ace_drake.training.export:train_and_export",
+    "serves search": "ace_drake.analysis.serve_search:search_serves",
+    "serves evaluate": "ace_drake.evaluation.serves:evaluate_library",
 }
 
 
@@ -71,24 +74,45 @@ def emit_json(payload: dict) -> None:
 
 
 def cmd_rally(args) -> int:
-    """The main job: rallies of the best shipped controller against the launcher opponent."""
-    if args.batch < 1:
-        raise ConfigError(f"rally: --batch must be >= 1, got {args.batch}")
-    result = work("rally")(args.controller, args.rallies, args.sensors, args.seed, args.params, args.html, batch=args.batch, progress=log)
-    rows, returned, playable = result["rallies"], result["returned"], result["played"]
+    """The main job: a match under ITTF rules of the best shipped controller and its serves against
+    a simulated opponent fitted to a recorded player (``evaluation.match.run_match``)."""
+    html = Path(args.html) if args.html else None
+    if html is not None and html.suffix != ".html":
+        raise ConfigError(f"rally: --html must name an .html file (or '' for none), got {args.html}")
+    result, track = work("rally")(args.controller, args.opponent, args.data, args.best_of, args.golden_point, args.matches, args.sensors,
+                                  args.seed, args.params, args.serves, batch=args.batch, record=html is not None, progress=log)
+    if html is not None:
+        html.parent.mkdir(parents=True, exist_ok=True)
+        partial = html.with_name(html.name + ".partial")
+        work("match replay")(track, partial, progress=log)
+        partial.replace(html)
+        log(f"wrote the Meshcat replay of the first match: {html} ({html.stat().st_size / 1e6:.1f} MB; open it in any browser, its points are listed on the right)")
     if args.json:
-        emit_json({"command": "rally", "controller": args.controller, "returned": returned, "played": playable, "rallies": rows, "html": args.html})
+        emit_json({"command": "rally", **result, "html": None if html is None else str(html)})
         return 0
-    print(f"{'#':>3} {'shot':<7}{'speed in':>9}{'spin in':>9}  {'outcome':<13}{'speed out':>10}{'lands at (x, y) m':>19}  reason")
-    for index, row in enumerate(rows, start=1):
-        out = "-" if row["outgoing_speed_m_s"] is None else f"{row['outgoing_speed_m_s']:.1f}"
-        landing = "-" if row["landing_m"] is None else "({:+.2f}, {:+.2f})".format(*row["landing_m"])
-        print(
-            f"{index:>3} {row['shot']:<7}{row['incoming_speed_m_s']:>9.1f}{row['incoming_spin_rad_s']:>9.0f}  "
-            f"{row['outcome']:<13}{out:>10}{landing:>19}  {row['reason']}"
-        )
-    print(f"returned {returned} of {playable} playable shots ({len(rows) - playable} invalid)")
+    _print_match(result)
     return 0
+
+
+def _print_match(result: dict) -> None:
+    """The text of ``rally`` without ``--json``: the first match point by point, then the
+    figures of all matches."""
+    print(f"{'#':>3} {'game':>4} {'score':>6}  {'server':<7}{'serve':<18}{'strikes':>8}  {'point to':<9}how it ended")
+    for index, row in enumerate(result["points"], start=1):
+        robot, human = row["score"]
+        winner = "let" if row["winner"] is None else row["winner"]
+        serve = row["serve"] or "-"
+        law = f" ({row['law']})" if row["law"] else ""
+        print(f"{index:>3} {row['game']:>4} {robot:>3}-{human:<2}  {row['server']:<7}{serve:<18}{row['strikes']:>8}  {winner:<9}{row['reason']}{law}")
+    for number, match in enumerate(result["matches"], start=1):
+        games = ", ".join(f"{r}-{h}" for r, h in match["games"])
+        print(f"match {number}: {match['winner']} won {games} against {result['opponent']}: points {match['points_won']}-"
+              f"{match['points_played'] - match['points_won']}, rally length {match['rally_length_mean']:.1f} +- {match['rally_length_std']:.1f} strikes, "
+              f"aces {match['aces']}, service faults {match['service_faults']}, lets {match['lets']}")
+    total = result["match"]
+    if total["matches"] > 1:
+        print(f"all {total['matches']} matches: won {total['matches_won']}, games {total['games_won']} of {len(total['games'])}, points "
+              f"{total['points_won']} of {total['points_played']}, rally length {total['rally_length_mean']:.1f} +- {total['rally_length_std']:.1f}")
 
 
 def cmd_evaluate(args) -> int:
@@ -403,6 +427,51 @@ def cmd_results(args) -> int:
     return 0
 
 
+def cmd_serves(args) -> int:
+    """The serve library: ``serves search`` (the GA, the robot's plans, noisy repeats on the
+    segment-stepped diagram; writes the library) and ``serves evaluate`` (measures a library)."""
+    if args.repeats < 1 or args.batch < 1:
+        raise ConfigError(f"serves {args.action}: need --repeats >= 1 and --batch >= 1, got {args.repeats} and {args.batch}")
+    if args.action == "search":
+        kinds = [kind.strip() for kind in args.kinds.split(",") if kind.strip()]
+        seeds = _integers(args.seeds, "--seeds")
+        if args.generations < 1:
+            raise ConfigError(f"serves search: --generations must be >= 1, got {args.generations}")
+        if Path(args.out).suffix != ".npz":
+            raise ConfigError(f"serves search: --out must name a .npz file, got {args.out}")
+        library, summary = work("serves search")(kinds, seeds, repeats=args.repeats, seed=args.seed, generations=args.generations,
+                                                 batch=args.batch, out=args.out, extend=args.extend, progress=log)
+        figures = {"library": args.out, **{key: value for key, value in summary.items() if key != "candidates"},
+                   "serves": [{"name": serve.name, "kind": serve.kind, **serve.stats.as_dict()} for serve in library.serves]}
+    else:
+        figures = work("serves evaluate")(args.library, repeats=args.repeats, seed=args.seed, batch=args.batch, progress=log)
+    if args.json:
+        emit_json(figures)
+        return 0
+    print(f"{'serve':<22}{'legal':>7}{'lets':>7}{'faults':>8}  {'lands at (x, y) m':<24}{'speed m/s':>10}{'topspin':>9}{'sidespin':>9}")
+    for row in figures["serves"]:
+        mean, std = row["landing_mean_m"], row["landing_std_m"]
+        landing = "-" if mean[0] is None else f"({mean[0]:+.2f}, {mean[1]:+.2f}) +-{max(std):.2f}"
+        speed = "-" if row["speed_mean_m_s"] is None else f"{row['speed_mean_m_s']:.1f}"
+        spins = ["-" if row[key] is None else f"{row[key]:.0f}" for key in ("topspin_mean_rad_s", "sidespin_mean_rad_s")]
+        print(f"{row['name']:<22}{row['legal_fraction']:>7.0%}{row['let_fraction']:>7.0%}{row['fault_fraction']:>8.0%}  {landing:<24}{speed:>10}{spins[0]:>9}{spins[1]:>9}")
+    return 0
+
+
+def _integers(text: str, option: str) -> list[int]:
+    """A comma-separated list of integers or ranges "a-b" (inclusive), e.g. "0-9,20"."""
+    values = []
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        try:
+            low, _, high = part.partition("-") if not part.startswith("-") else (part, "", "")
+            values += list(range(int(low), int(high) + 1)) if high else [int(low)]
+        except ValueError:
+            raise ConfigError(f"{option}: expected integers or ranges like 0-9, got {part!r}") from None
+    if not values:
+        raise ConfigError(f"{option}: expected at least one integer, got {text!r}")
+    return values
+
+
 # ------------------------------------------------------------------------------ parser
 
 
@@ -418,11 +487,16 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
         command.add_argument("--json", action="store_true")
 
-    rally = commands.add_parser("rally", help="the main job: rallies of the best shipped controller against the launcher; Meshcat replay")
+    rally = commands.add_parser("rally", help="the main job: a best-of-3 match under ITTF rules against a simulated recorded player; Meshcat replay")
     add_rally_options(rally, DEFAULT_CONTROLLER)
-    rally.add_argument("--rallies", type=int, default=5, help="how many rallies (default: %(default)s)")
-    rally.add_argument("--html", default="out/rally.html", help="Meshcat replay to write (on the continuous-time diagram, one rally after another); '' for none: the rallies then play on the segment-stepped diagram, --batch at a time")
-    rally.add_argument("--batch", type=int, default=8, help="without --html: rallies played at once (default: %(default)s)")
+    rally.add_argument("--opponent", default="Elite C", help="the recorded player whose fitted model plays the robot (default: %(default)s)")
+    rally.add_argument("--data", help="match-data CSV the opponent is fitted on (default: ../shared/data/ace_match_events_elite.csv beside the project)")
+    rally.add_argument("--best-of", type=int, default=3, help="games in the longest match, a positive odd number (default: %(default)s)")
+    rally.add_argument("--golden-point", action="store_true", help="at 10-10 the next point wins the game (the paper's matches; not ITTF)")
+    rally.add_argument("--matches", type=int, default=1, help="matches to play (default: %(default)s)")
+    rally.add_argument("--serves", help="serve library (default: models/serve_library.npz)")
+    rally.add_argument("--html", default="out/match.html", help="Meshcat replay of the first match to write (default: %(default)s); '' for none")
+    rally.add_argument("--batch", type=int, default=8, help="matches played at once on the batched diagram (default: %(default)s)")
     rally.set_defaults(run=cmd_rally)
 
     evaluate = commands.add_parser("evaluate", help="return-rate evaluation of a controller (paper Fig. 3c-g)")
@@ -515,6 +589,20 @@ def build_parser() -> argparse.ArgumentParser:
     graphs = commands.add_parser("diagrams", help="render every diagram's graph into diagrams/")
     graphs.add_argument("--out", default=str(REPO_ROOT / "diagrams"))
     graphs.set_defaults(run=cmd_diagrams)
+
+    serves = commands.add_parser("serves", help="the serve library: `serves search` (GA, robot plans, noisy repeats) and `serves evaluate`")
+    serves.add_argument("action", choices=("search", "evaluate"))
+    serves.add_argument("--library", default=str(MODELS_DIR / "serve_library.npz"), help="evaluate: the library (default: %(default)s)")
+    serves.add_argument("--kinds", default="short_backspin,long_topspin,long_sidespin,fast_long,long_backspin", help="search: serve kinds, comma-separated (default: %(default)s)")
+    serves.add_argument("--seeds", default="0-3", help="search: GA seeds, comma-separated integers or ranges (default: %(default)s)")
+    serves.add_argument("--generations", type=int, default=100, help="search: GA generations at most (the authors': %(default)s)")
+    serves.add_argument("--repeats", type=int, default=50, help="noisy executions of each serve on the diagram (default: %(default)s)")
+    serves.add_argument("--seed", type=int, default=0, help="the executions' noise and ball perturbations")
+    serves.add_argument("--batch", type=int, default=32, help="executions played at once on the segment-stepped diagram (default: %(default)s)")
+    serves.add_argument("--out", default=str(MODELS_DIR / "serve_library.npz"), help="search: the library to write (+ .json sidecar; default: %(default)s)")
+    serves.add_argument("--extend", help="search: keep this library's serves and add the new ones (it may be --out)")
+    serves.add_argument("--json", action="store_true")
+    serves.set_defaults(run=cmd_serves)
 
     results = commands.add_parser("results", help="regenerate the README's results table from the sidecars and stored JSON")
     results.add_argument("--check", action="store_true", help="only check: exit 1 if README.md or docs/benchmarks.md is stale")

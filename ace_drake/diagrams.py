@@ -307,6 +307,31 @@ def add_robot(builder: DiagramBuilder, scenario: RobotScenario, meshcat: Meshcat
     return RobotSystems(plant, scene_graph, joint_plant, kinematics)
 
 
+@dataclasses.dataclass(frozen=True)
+class RobotView:
+    """A diagram that only draws the robot and the court in Meshcat (``build_robot_view_diagram``):
+    pose the robot with ``plant.SetPositions`` in its context, then ``visualizer.ForcedPublish``."""
+
+    diagram: Diagram
+    plant: MultibodyPlant
+    visualizer: MeshcatVisualizer
+
+
+def build_robot_view_diagram(scenario: RobotScenario, meshcat: Meshcat) -> RobotView:
+    """The robot of ``scenario`` with the court, in a MultibodyPlant and SceneGraph drawn by a
+    MeshcatVisualizer (illustration geometry) into ``meshcat``: for replays that set the joint
+    positions frame by frame (``analysis.match_replay``). No dynamics run in it."""
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=0.0)
+    robot = add_robot_to_plant(plant, scenario)
+    plant.Finalize()
+    check_joint_order(plant, robot)
+    visualizer = MeshcatVisualizer.AddToBuilder(builder, scene_graph, meshcat, MeshcatVisualizerParams(role=Role.kIllustration))
+    diagram = builder.Build()
+    diagram.set_name("robot_view_diagram")
+    return RobotView(diagram, plant, visualizer)
+
+
 def build_swing_diagram(
     command: Trajectory,
     scenario: RobotScenario | None = None,

@@ -31,22 +31,40 @@ def run_json(capsys, *argv):
     return json.loads(out)  # --json prints exactly one JSON object on stdout
 
 
-def test_rally_plays_rallies_and_writes_a_replay(capsys, tmp_path):
-    html = tmp_path / "rally.html"
-    result = run_json(capsys, "rally", "--controller", "still", "--rallies", "2", "--sensors", "statistical", "--json", "--html", str(html))
-    assert result["controller"] == "still" and len(result["rallies"]) == 2
-    # A robot that never moves returns nothing: every playable shot is missed.
-    assert result["returned"] == 0
-    assert all(row["outcome"] in ("missed", "invalid") for row in result["rallies"])
-    assert all(5.0 < row["incoming_speed_m_s"] < 25.0 for row in result["rallies"])
-    assert html.stat().st_size > 100_000 and "meshcat" in html.read_text()[:200_000].lower()
+MATCH_KEYS = ("points_played", "points_won", "games", "rally_length_mean", "rally_length_std", "aces", "service_faults")
 
 
-def test_rally_without_a_replay_plays_in_batches_on_the_segment_diagram(capsys):
-    result = run_json(capsys, "rally", "--controller", "still", "--rallies", "3", "--batch", "2", "--sensors", "statistical", "--json", "--html", "")
-    assert len(result["rallies"]) == 3 and result["returned"] == 0
-    assert all(row["outcome"] in ("missed", "invalid") for row in result["rallies"])
-    assert main(["rally", "--html", "", "--batch", "0"]) == 2
+@needs_data
+def test_rally_plays_a_match_and_writes_a_replay_of_it(capsys, tmp_path):
+    """A still robot against Elite C's model, first to 11: it can win points only on its own
+    serves (the human missing or erring); the summary adds up and the replay lists every point."""
+    html = tmp_path / "match.html"
+    result = run_json(capsys, "rally", "--controller", "still", "--best-of", "1", "--sensors", "statistical", "--json", "--html", str(html))
+    match = result["match"]
+    assert result["command"] == "rally" and result["opponent"] == "Elite C" and all(key in match for key in MATCH_KEYS)
+    (robot, human), = match["games"]
+    assert max(robot, human) >= 11 and robot + human == match["points_played"] and match["points_won"] == robot
+    assert all(row["winner"] in ("robot", None) for row in result["points"] if row["server"] == "human" and row["strikes"] >= 2)
+    decided = [row for row in result["points"] if row["winner"] is not None]
+    assert match["rally_length_mean"] == pytest.approx(np.mean([row["strikes"] for row in decided]))
+    text = html.read_text()
+    assert "meshcat" in text[:200_000].lower() and all(f"Point {k}, game 1" in text for k in range(1, len(result["points"]) + 1))
+
+
+@needs_data
+def test_rally_refuses_bad_input_and_writes_nothing(capsys, tmp_path):
+    html = tmp_path / "match.html"
+    for argv, message in (
+        (["--opponent", "Elite Z"], "Elite Z"),
+        (["--best-of", "2"], "odd"),
+        (["--serves", str(tmp_path / "missing.npz")], "missing.npz"),
+        (["--matches", "0"], "matches"),
+    ):
+        assert main(["rally", "--html", str(html), *argv]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["rally", "--html", str(tmp_path / "match.txt")]) == 2
+    assert ".html" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
 
 
 def test_evaluate_in_batches_and_on_the_reference_diagram_play_the_same_shots(capsys):
@@ -94,16 +112,22 @@ def test_evaluate_plays_the_human_shots_of_a_match_file(capsys):
     assert "Elite Z" in capsys.readouterr().err
 
 
+@needs_data
 def test_the_main_job_runs_on_its_defaults_through_the_console_script():
+    """``ace-drake rally`` as the README runs it, one game instead of three and no replay: the
+    returner and the shipped serves against Elite C's model, with the nine cameras."""
     completed = subprocess.run(
-        [str(Path(sys.executable).with_name("ace-drake")), "rally", "--rallies", "2", "--json", "--html", ""],
-        capture_output=True, text=True, timeout=600,
+        [str(Path(sys.executable).with_name("ace-drake")), "rally", "--best-of", "1", "--json", "--html", ""],
+        capture_output=True, text=True, timeout=900,
     )
     assert completed.returncode == 0, completed.stderr
     result = json.loads(completed.stdout)
-    assert result["command"] == "rally" and result["controller"] == "returner" and len(result["rallies"]) == 2
-    # The shipped controller hits what it can play (seed 0's two launcher shots are playable).
-    assert all(row["outgoing_speed_m_s"] is not None for row in result["rallies"] if row["outcome"] != "invalid")
+    assert result["command"] == "rally" and result["controller"] == "returner" and result["sensors"] == "cameras"
+    match = result["match"]
+    assert all(key in match for key in MATCH_KEYS) and match["points_played"] >= 11
+    # The robot plays back: rallies of more than a serve and its return are common.
+    assert match["rally_length_mean"] > 2.0 and any(row["strikes"] >= 4 for row in result["points"])
+    assert "point 1:" in completed.stderr  # the score as it goes
 
 
 @needs_data

@@ -1,6 +1,8 @@
 """Matches on the segment-stepped rally diagram: a serve's planned start, a rally's continuing robot,
 the diagram's umpire, and whole (short) matches against the recorded players' opponent model."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -18,7 +20,8 @@ from ace_drake.play.scoring import HUMAN, ROBOT, Match, MatchRules
 from ace_drake.play.umpire import RallyEvent, judge_rally
 from ace_drake.robot.model import RobotModel
 
-from test_cli import DATA, needs_data
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ace_match_events_elite.csv"
+needs_data = pytest.mark.skipif(not DATA.is_file(), reason=f"shared match data not found at {DATA}")
 
 PARAMS = RallyParams(perception=PerceptionParams(positions="statistical"), hit_prediction=False, stepping="segment")
 LAYOUT = ObservationLayout(PARAMS.position_history, PARAMS.spin_history)
@@ -187,3 +190,21 @@ def test_short_matches_are_scored_by_the_rules_and_reproducible(serve):
     assert [m.points for m in together] == [m.points for m in alone]
     assert len(track.points) == len(together[1].points) and track.times.size > 100
     assert episode_seed(5, 0, 1, 2) != episode_seed(5, 0, 2, 1)
+
+
+def test_a_points_strikes_errors_aces_and_faults_are_read_from_its_ending():
+    """PointResult's bookkeeping on hand-made points: strikes alternate from the server; the last
+    striker losing after the service made a return error; a one-strike point is an ace or a
+    service fault."""
+    from ace_drake.evaluation.match import PointResult
+
+    def point(server, winner, shots):
+        return PointResult(1, (0, 0), server, None, winner, "", "", shots, 1.0)
+
+    long_rally = point(ROBOT, ROBOT, 5)  # robot, human, robot, human, robot: the human missed
+    assert (long_rally.strikes_by(ROBOT), long_rally.strikes_by(HUMAN), long_rally.last_striker) == (3, 2, ROBOT)
+    assert long_rally.return_error is None and not long_rally.ace and not long_rally.service_fault
+    out = point(HUMAN, HUMAN, 4)  # human, robot, human, robot: the robot's return went out
+    assert out.last_striker == ROBOT and out.return_error == ROBOT
+    assert point(ROBOT, ROBOT, 1).ace and point(ROBOT, HUMAN, 1).service_fault
+    assert point(ROBOT, None, 1).return_error is None and not point(ROBOT, None, 1).service_fault  # a let

@@ -89,6 +89,9 @@ def test_extraction_finds_the_incoming_balls_returns_misses_and_serves():
     assert np.all(np.isnan(dut.returns[[1, 3]]))
     np.testing.assert_allclose(dut.hit_delays[[0, 2]], [0.1, 0.1])
     np.testing.assert_array_equal(dut.return_landed, [True, False, False, False])
+    # Return a landed at x = -0.6, y = 0, 0.1 s after the hit; the others did not land.
+    np.testing.assert_allclose(dut.return_landings[0], [-0.6, 0.0, 0.1])
+    assert np.all(np.isnan(dut.return_landings[1:]))
     np.testing.assert_array_equal(dut.robot_serve, [True, False, False, True])
     np.testing.assert_array_equal(dut.via_net, [False, False, True, False])
     np.testing.assert_array_equal(dut.serves, s["serves"])
@@ -99,6 +102,7 @@ def test_extraction_finds_the_incoming_balls_returns_misses_and_serves():
     q = everyone.of_players(["Q"])
     np.testing.assert_array_equal(q.returns, [s["return_z"]])
     assert q.return_landed.tolist() == [True] and len(q.serves) == 0
+    np.testing.assert_allclose(q.return_landings, [[-0.4, 0.0, 0.2]])  # after a net touch
 
 
 def test_unknown_player_raises_naming_the_recorded_players(tmp_path):
@@ -199,6 +203,25 @@ def test_ball_at_hit_flies_the_incoming_ball_for_the_hit_delay():
     # Half way between the 1 ms steps at 100 and 101 ms: the mean of the two states.
     np.testing.assert_allclose(at_hit[1], flight.states[[100, 101], 1].mean(axis=0), atol=1e-9)
     np.testing.assert_allclose(opponent_model.ball_at_hit(incoming, 0.0, physics), incoming)
+
+
+def test_a_return_struck_from_elsewhere_lands_where_it_was_recorded_landing():
+    """``retarget_returns``: returns struck 10-20 cm away from where they were recorded land (ball
+    model, table and net included) within 2 mm of the recorded landing point, at its time, with
+    their spin kept; a return with no recorded landing keeps its velocity."""
+    physics = BallPhysicsParams()
+    recorded = np.array([ball(1.6, 0.2, v_x=-9.0, v_y=-1.0, v_z=1.5, w_y=-150.0), ball(1.8, -0.3, v_x=-7.0, v_y=0.8, v_z=2.2, w_y=60.0, w_z=40.0),
+                         ball(1.5, 0.0, v_x=-8.0, v_z=1.0)])
+    recorded[:, 2] = [0.25, 0.30, 0.20]
+    landings = np.array([[-0.8, -0.1, 0.40], [-0.5, 0.2, 0.55], [np.nan, np.nan, np.nan]])
+    moved = recorded[:, :3] + np.array([[0.15, -0.1, -0.05], [-0.2, 0.1, 0.08], [0.1, 0.1, 0.0]])
+    out = opponent_model.retarget_returns(recorded, moved, physics, landings)
+    np.testing.assert_array_equal(out[:, :3], moved)
+    np.testing.assert_array_equal(out[:, 6:], recorded[:, 6:])
+    points, times = opponent_model.first_landings(out[:2], physics)
+    np.testing.assert_allclose(points, landings[:2, :2], atol=2e-3)
+    np.testing.assert_allclose(times, landings[:2, 2], atol=2e-3)
+    np.testing.assert_array_equal(out[2, 3:6], recorded[2, 3:6])
 
 
 def test_wilson_interval_matches_hand_worked_values():

@@ -113,3 +113,22 @@ def test_collection_rows_name_the_best_batch_and_nothing_without_a_measurement()
     assert rows[0].figure == "1400 steps per second (B = 64 each); RallyEnv: 140"
     assert rows[1].figure.startswith("61 per second")
     assert collection_rows(None, "x") == [] and collection_rows({**train, "vector_env_steps_per_s": {}}, "x") == []
+
+
+def test_stored_matches_make_one_row_each_beside_the_papers(tmp_path):
+    """A stored ``ace-drake rally --json`` becomes a row of matches, games and points won, rally
+    length and the returns in play; the paper's Fig. 3a follows."""
+    (tmp_path / "docs/results/matches").mkdir(parents=True)
+    stored = {"controller": "returner", "opponent": "Elite A", "best_of": 3, "golden_point": True, "sensors": "cameras", "seed": 0, "date": "2026-12-06",
+              "opponent_recorded": {"returns_landed": 0.772},
+              "match": {"matches": 5, "matches_won": 4, "games": [[11, 5]] * 9 + [[5, 11]] * 2, "games_won": 9, "points_won": 150, "points_played": 230,
+                        "rally_length_mean": 4.31, "rally_length_std": 3.02, "robot_returns": 200, "robot_return_errors": 10,
+                        "human_returns": 180, "human_return_errors": 45}}
+    (tmp_path / "docs/results/matches/elite_a.json").write_text(json.dumps(stored))
+    rows = results.match_rows(tmp_path)
+    assert [row.what for row in rows] == ["`returner` against Elite A's model", "the paper's matches"]
+    assert rows[0].figure == ("won 4 of 5 matches, 9 of 11 games, 150 of 230 points; rally length 4.3 +- 3.0 strikes; "
+                              "the robot's returns in play 95.0%, the human's 75.0% (recorded 77.2%)")
+    assert rows[0].measured_on == "5 matches (best of 3, golden point), cameras, seed 0, 2026-12-06"
+    assert "3 of 5 matches, 7 of 13 games" in rows[1].figure
+    assert results.match_rows(tmp_path / "nowhere") == []

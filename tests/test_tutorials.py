@@ -146,3 +146,23 @@ def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):
     for name in ("tutorial.pt", "tutorial.json", "tutorial_curve.png"):
         assert (tmp_path / "policies" / name).is_file()
     assert (tmp_path / "run" / "checkpoint.pt").is_file()
+
+
+def test_tutorial_07_match_judges_plays_a_game_and_writes_its_files(tmp_path):
+    run = run_tutorial("07_match.py", tmp_path)
+    # Part 1: the umpire's decisions on the hand-built rallies.
+    assert "a good service, the human misses" in run.stdout and "point to the robot" in run.stdout
+    assert "-> let: service touched the net" in run.stdout and "Law 2.6.3" in run.stdout
+    if not DATA.is_file():
+        assert "skipping parts 2-4" in run.stdout
+        return
+    # Parts 2-3: the opponent, the serve library and one game to 11, point by point.
+    assert re.search(r"returned with p = 0\.\d\d", run.stdout) and "legal" in run.stdout
+    game = re.search(r"the (robot|human) won the game (\d+)-(\d+); rally length ([\d.]+)", run.stdout)
+    assert game, run.stdout
+    robot, human = int(game[2]), int(game[3])
+    assert max(robot, human) >= 11 and abs(robot - human) >= 2 and float(game[4]) >= 1.0
+    assert len(re.findall(r"^   point \d+: ", run.stdout, flags=re.M)) >= robot + human
+    assert (tmp_path / "match.png").stat().st_size > 30_000
+    html = tmp_path / "match.html"
+    assert html.stat().st_size > EMPTY_MESHCAT_HTML and "Point 1, game 1" in html.read_text()

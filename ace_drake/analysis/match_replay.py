@@ -1,8 +1,8 @@
 """A self-contained Meshcat HTML replay of a whole match, with its points listed and navigable.
 
 ``write_match_replay`` draws a ``MatchTrack`` (evaluation.match_track): the court and the robot
-from the scenario's model files (``robot.model.add_robot_to_plant``, drawn by a MeshcatVisualizer
-as in ``diagrams.add_robot``) posed by the track's joint positions, and the ball, hidden while the
+from the scenario's model files (``diagrams.build_robot_view_diagram``) posed by the track's joint
+positions, and the ball, hidden while the
 track has no ball in play. Everything is one Meshcat animation over the match's time line, saved
 with ``Meshcat.StaticHtml()``. A panel lists the points; clicking one seeks the animation to the
 point's start time and plays from there (``window.matchReplay.jumpTo(seconds)`` does the same from
@@ -17,14 +17,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role, Sphere
+from pydrake.geometry import Meshcat, Sphere
 from pydrake.math import RigidTransform
-from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
-from pydrake.systems.framework import DiagramBuilder
 
 from ace_drake.evaluation.match_track import MatchTrack, TrackPoint
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.robot.model import add_robot_to_plant, check_joint_order, load_scenario
+from ace_drake.diagrams import build_robot_view_diagram
+from ace_drake.robot.model import load_scenario
 from ace_drake.robot.params import RobotScenario
 from ace_drake.systems.ball_visualizer import BALL_COLOR, set_court_view
 
@@ -51,13 +50,8 @@ def write_match_replay(
     report = progress or (lambda line: None)
     meshcat = Meshcat()
     set_court_view(meshcat)
-    builder = DiagramBuilder()
-    plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=0.0)
-    robot = add_robot_to_plant(plant, scenario)
-    plant.Finalize()
-    check_joint_order(plant, robot)
-    visualizer = MeshcatVisualizer.AddToBuilder(builder, scene_graph, meshcat, MeshcatVisualizerParams(role=Role.kIllustration))
-    diagram = builder.Build()
+    view = build_robot_view_diagram(scenario, meshcat)
+    diagram, plant, visualizer = view.diagram, view.plant, view.visualizer
     context = diagram.CreateDefaultContext()
     plant_context = plant.GetMyMutableContextFromRoot(context)
     visualizer_context = visualizer.GetMyContextFromRoot(context)

@@ -9,7 +9,9 @@ Sources, all relative to the repository root:
   and the fitted racket model's ``models/racket_fitted.json`` (``ace-drake physics-fit-racket``);
 - stored evaluations ``docs/results/<controller>.json`` (``ace-drake evaluate ... --json``
   redirected there; the default controller's row says "not measured" until its file exists);
-- stored benchmarks ``docs/benchmarks/<name>.json`` (``ace-drake bench <name> --json``).
+- stored benchmarks ``docs/benchmarks/<name>.json`` (``ace-drake bench <name> --json``);
+- stored matches ``docs/results/matches/<opponent>.json`` (``ace-drake rally --opponent ...
+  --matches N --json`` redirected there), set beside the paper's Fig. 3a (``PAPER_MATCHES``).
 
 ``render_results`` turns them into the README's table, ``render_benchmarks`` into the table of
 docs/benchmarks.md; ``replace_block`` puts a table between its markers and ``stale_files`` says
@@ -38,6 +40,8 @@ BENCHMARKS_PAGE = "docs/benchmarks.md"
 EVALUATE_COMMAND = "ace-drake evaluate --controller {controller} --data ../shared/data/ace_match_events_elite.csv --json"
 BENCHMARK_COMMANDS = {"sim": "ace-drake bench sim --json", "train": "ace-drake bench train --json"}  # what made a stored bench JSON that does not record its command
 NOT_MEASURED = "not measured"
+# The paper's matches (main text, Fig. 3a, and the rally length of its *Results*): against five elite players.
+PAPER_MATCHES = "paper (Fig. 3a, real robot against 5 elite players, golden point): 3 of 5 matches, 7 of 13 games; rally length 5.0 +- 3.0 shots"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,6 +144,29 @@ def ball_fit_row(sidecar: dict | None, source: str) -> Row:
     return Row(what, figure, measured_on, _source(source))
 
 
+def match_row(result: dict, source: str) -> Row:
+    """A stored ``ace-drake rally --json``: matches, games and points won, rally length, and how
+    often the simulated human's returns landed against how often the recorded player's did."""
+    match, recorded = result["match"], result["opponent_recorded"]
+    what = f"`{result['controller']}` against {result['opponent']}'s model"
+    games = len(match["games"])
+    figure = (f"won {match['matches_won']} of {match['matches']} matches, {match['games_won']} of {games} games, "
+              f"{match['points_won']} of {match['points_played']} points; rally length {match['rally_length_mean']:.1f} +- "
+              f"{match['rally_length_std']:.1f} strikes; the robot's returns in play {percent(1 - match['robot_return_errors'] / max(match['robot_returns'], 1))}, "
+              f"the human's {percent(1 - match['human_return_errors'] / max(match['human_returns'], 1))} (recorded {percent(recorded['returns_landed'])})")
+    rules = f"best of {result['best_of']}" + (", golden point" if result["golden_point"] else "")
+    measured_on = f"{match['matches']} matches ({rules}), {result['sensors']}, seed {result['seed']}" + (f", {result['date']}" if result.get("date") else "")
+    return Row(what, figure, measured_on, _source(source))
+
+
+def match_rows(root: Path) -> list[Row]:
+    """One row per stored match result (``docs/results/matches/*.json``), then the paper's."""
+    paths = sorted((root / "docs/results/matches").glob("*.json"))
+    if not paths:
+        return []
+    return [match_row(read_json(path), f"docs/results/matches/{path.name}") for path in paths] + [Row("the paper's matches", PAPER_MATCHES, "-", "the paper")]
+
+
 def speed_rows(sim: dict | None, source: str) -> list[Row]:
     """Real-time factors of the rally diagram and its ceilings, and RallyEnv steps/s (bench sim)."""
     if sim is None:
@@ -195,6 +222,7 @@ def result_rows(root: Path) -> list[Row]:
         rows.append(policy_row(name, read_json(root / source), source))
     rows.append(ball_fit_row(read_json(root / "models/ball_physics_fitted.json"), "models/ball_physics_fitted.json"))
     rows.append(racket_fit_row(read_json(root / "models/racket_fitted.json"), "models/racket_fitted.json"))
+    rows.extend(match_rows(root))
     rows.extend(speed_rows(read_json(root / "docs/benchmarks/sim.json"), "docs/benchmarks/sim.json"))
     rows.extend(collection_rows(read_json(root / "docs/benchmarks/train.json"), "docs/benchmarks/train.json"))
     return rows

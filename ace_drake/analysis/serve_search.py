@@ -17,12 +17,22 @@ selection (steady state), crossover and elitism (the best solution kept) are PyG
 the population (``population``, default ``POPULATION``) the paper does not give. ``random_seed``
 seeds PyGAD's generators, and the simulation is deterministic: the same seed gives the same genes
 bit for bit.
+
+``search_serves`` makes the serve library (``evaluation.serves``) from these searches: the robot
+plans each legal result after one toss and the segment-stepped diagram executes it with noise; the
+serves failing less than 5% of the time (the paper's bar), distinct in their measured landing,
+speed and spin, are kept (``ace-drake serves search``). It lives here, above the evaluation layer
+it calls.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import time
+from collections import Counter
 from collections.abc import Callable, Iterable
+from pathlib import Path
 
 import numpy as np
 import pygad
@@ -36,7 +46,27 @@ from ace_drake.control.serve import (
     serve_weights,
     strike_from_genes,
 )
+from ace_drake.artefacts import sidecar_path
+from ace_drake.config import MODELS_DIR, InputError
+from ace_drake.control.params import RallyParams
+from ace_drake.control.serve_execution import plan_toss
+from ace_drake.control.stack import make_control_stack
+from ace_drake.evaluation.serves import (
+    FEATURE_SCALES,
+    MAX_FAILURE,
+    ExecutionNoise,
+    LibraryServe,
+    ServeLibrary,
+    execute_serves,
+    passing,
+    plan_serve,
+    load_serve_library,
+    save_serve_library,
+    scenario_record,
+    serve_rally_params,
+)
 from ace_drake.physics.params import BallPhysicsParams
+from ace_drake.robot.model import RobotModel, load_scenario
 
 GENERATIONS = 100  # the authors' setting
 PARENTS_MATING = 6  # the authors' setting
@@ -160,3 +190,119 @@ def search_library(
                 kept.append(result)
         library += kept
     return library
+
+
+# ---------------------------------------------------------------------------------- the library
+FEATURE_DISTANCE_MIN = 1.0  # search_serves: kept serves differ by at least this (scaled features, evaluation.serves)
+
+
+def search_serves(
+    kinds: Iterable[str],
+    seeds: Iterable[int],
+    repeats: int = 50,
+    seed: int = 0,
+    generations: int = GENERATIONS,
+    population: int = POPULATION,
+    toss: TossState | None = None,
+    params: RallyParams | None = None,
+    noise: ExecutionNoise | None = None,
+    max_failure: float = MAX_FAILURE,
+    batch: int = 32,
+    out=None,
+    extend=None,
+    progress: Callable[[str], None] | None = print,
+) -> tuple[ServeLibrary, dict]:
+    """The serve library (paper, Methods *Serve design*, with the simulation in place of the
+    real robot's trials): the GA for every kind and GA seed (``search_library``: the legal best
+    serves, distinct in genes within a kind), each made by the robot after one planned toss
+    (``evaluation.serves.plan_serve``; those it cannot make are dropped and counted by reason),
+    executed ``repeats`` times with noise on the segment-stepped diagram (``execute_serves``,
+    ``seed``), and kept if it fails less than ``max_failure`` of the time and its measured
+    landing, speed and spin lie at least ``FEATURE_DISTANCE_MIN`` (scaled by
+    ``FEATURE_SCALES``) from every better-scoring kept serve. Writes the library to ``out``
+    (``save_serve_library``) when given. ``extend``: a saved library whose serves come first and
+    stay (as measured then), the new ones distinct from them too, and any new serve of the same
+    name (kind and GA seed) skipped. Returns it and a summary (counts at each stage, the planning
+    failures' reasons, every candidate's figures)."""
+    kinds, seeds = list(kinds), list(seeds)
+    if not kinds:
+        raise InputError("search_serves: at least one serve kind is needed")
+    for kind in kinds:
+        try:
+            serve_weights(kind)  # a bad name fails before any search
+        except ValueError as error:
+            raise InputError(f"search_serves: {error}") from None
+    if repeats < 1:
+        raise InputError(f"search_serves: repeats must be >= 1, got {repeats}")
+    if generations < 1:
+        raise InputError(f"search_serves: generations must be >= 1, got {generations}")
+    if not seeds:
+        raise InputError("search_serves: at least one GA seed is needed")
+    if out is not None and Path(out).suffix != ".npz":
+        raise InputError(f"search_serves: the library is written as a .npz file, got {out}")
+    params = serve_rally_params() if params is None else params
+    noise = ExecutionNoise() if noise is None else noise
+    toss = TossState() if toss is None else toss
+    say = progress if progress is not None else (lambda message: None)
+    started = time.perf_counter()
+    model = RobotModel(load_scenario(MODELS_DIR / params.scenario))
+    base = None if extend is None else load_serve_library(extend, model.scenario)  # a bad file fails before the search
+    if base is not None and (base.repeats, base.seed, base.noise) != (repeats, seed, noise):
+        raise InputError(f"search_serves: the library to extend was measured with {base.repeats} repeats, seed {base.seed} and {base.noise}; "
+                         f"this search uses {repeats}, {seed} and {noise}")
+    results = search_library(kinds, seeds, toss, params.physics, generations, population, progress=None if progress is None else _every(10, say))
+    say(f"serves: the GA found {len(results)} distinct legal serves ({len(kinds)} kinds x {len(seeds)} seeds, {time.perf_counter() - started:.0f} s)")
+    stack = make_control_stack(model.scenario, params.control)
+    toss_plan = plan_toss(model, stack, toss, physics=params.physics)
+    candidates, unplanned = [], Counter()
+    for result in results:
+        name = f"{result.kind}_{result.seed}"
+        if base is not None and name in base.names:
+            say(f"serves: {name} is in the library already; skipped")
+            continue
+        try:
+            candidates.append(plan_serve(model, stack, toss_plan, name, result.kind, result.genes, result.seed, result.fitness, params.physics))
+        except RuntimeError as error:
+            unplanned[str(error).split(":")[0]] += 1
+            say(f"serves: {name}: the robot cannot make it: {error}")
+    say(f"serves: the robot made {len(candidates)} of them; executing each {repeats} times")
+    measured = execute_serves(ServeLibrary(tuple(candidates), scenario_record(model.scenario)), repeats, seed, params, noise, batch, say)
+    kept: list[LibraryServe] = [] if base is None else list(base.serves)
+    for serve in sorted(measured.serves, key=lambda s: (s.stats.failure_fraction, -s.fitness)):
+        if serve.stats.failure_fraction >= max_failure:
+            continue
+        features = np.nan_to_num(serve.stats.features) / FEATURE_SCALES
+        if all(np.linalg.norm(features - np.nan_to_num(other.stats.features) / FEATURE_SCALES) >= FEATURE_DISTANCE_MIN for other in kept):
+            kept.append(serve)
+    kept_names = {serve.name for serve in kept}
+    library = measured.subset([serve.name for serve in measured.serves if serve.name in kept_names])
+    if base is not None:
+        library = ServeLibrary(base.serves + library.serves, library.scenario, repeats, seed, noise)
+    for serve in measured.serves:
+        s = serve.stats
+        say(f"serves: {serve.name:<20} legal {s.legal_fraction:6.1%}  lets {s.let_fraction:5.1%}  faults {s.fault_fraction:5.1%}  "
+            f"{'kept' if serve.name in kept_names else 'dropped'}")
+    summary = {
+        "kinds": kinds, "ga_seeds": seeds, "generations": generations, "population": population, "repeats": repeats, "seed": seed,
+        "max_failure": max_failure, "ga_legal": len(results), "planned": len(candidates), "unplanned_reasons": dict(unplanned),
+        "extended": None if extend is None else str(extend), "passed": len(passing(measured, max_failure)), "kept": len(library), "wall_time_s": time.perf_counter() - started,
+        "candidates": {serve.name: serve.stats.as_dict() for serve in measured.serves},
+    }
+    if out is not None:
+        summary_fields = {key: value for key, value in summary.items() if key != "candidates"}
+        previous = {}
+        if extend is not None and sidecar_path(Path(extend).with_suffix(".npz")).is_file():
+            record = json.loads(sidecar_path(Path(extend).with_suffix(".npz")).read_text())
+            previous = {"extends": {key: record.get(key) for key in ("command", "date", "search", "extends")}}
+        save_serve_library(library, out, seed=seed, search=summary_fields, candidates=summary["candidates"], **previous)
+        say(f"serves: wrote {out} ({len(library)} serves) and its sidecar")
+    return library, summary
+
+
+def _every(generations: int, say: Callable[[str], None]) -> Callable[[str], None]:
+    """A GA progress callback passing on every ``generations``-th generation's line."""
+    def report(line: str) -> None:
+        number = int(line.split("generation")[1].split()[0])
+        if number % generations == 0:
+            say(line)
+    return report

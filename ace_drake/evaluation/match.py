@@ -13,7 +13,7 @@ Each environment of the diagram plays one match. A point is a chain of episodes 
   ``hit_delay`` after the bounce (the recorded neighbour's, rounded up to the next 32 ms tick:
   the episode of the robot's reply starts there, ``lead`` into that tick), at the place the ball
   has reached then (``ball_at_hit``), leaving with the recorded return's spin and the velocity
-  that lands it where the recorded return was recorded landing, after the same flight time
+  that lands it where the recorded return was seen to land, after the same flight time
   (``retarget_returns``; a recorded return that did not land keeps its velocity). The
   new episode starts with the robot as it is (``start_segment_episodes(..., continuing=True)``:
   its joints and committed plan go on) and the policy told that an episode starts, as in training.
@@ -35,22 +35,29 @@ misses from where our ball is, with its recorded velocity.
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import math
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
+from ace_drake.config import MODELS_DIR, ConfigError
 from ace_drake.contracts import DEFAULT_CONTROLLER
 from ace_drake.control.params import RallyParams
 from ace_drake.control.serve_execution import ServeStart
 from ace_drake.diagrams import build_segment_rally_diagram, make_segment_simulator, start_segment_episodes
-from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller
+from ace_drake.evaluation.controllers import diagram_params_for, hit_state_controller, make_controller, rally_params
 from ace_drake.evaluation.match_track import MatchTrack, TrackPoint
+from ace_drake.evaluation.serves import DEFAULT_LIBRARY, ExecutionNoise, ServeLibrary, choose_serve, load_serve_library
+from ace_drake.match_data import load_match_events
+from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
-from ace_drake.play.opponent_model import OpponentModel, ball_at_hit, retarget_returns
+from ace_drake.play.opponent_model import OpponentModel, ball_at_hit, require_players, retarget_returns
 from ace_drake.play.scoring import HUMAN, ROBOT, Match, MatchRules, opponent
 from ace_drake.play.umpire import PointDecision
+from ace_drake.robot.model import load_scenario
 
 EPISODE_LIMIT = 3.0  # s of one episode without a decision before the point goes against the player to play
 PAUSE = 0.6  # s between two points in the replay's time line
@@ -63,6 +70,22 @@ class RobotServes(Protocol):
     drawn from ``rng``."""
 
     def start(self, rng: np.random.Generator, recent: Sequence[str]) -> tuple[str, ServeStart]: ...
+
+
+class LibraryServes:
+    """The robot's serves from a serve library (``evaluation.serves``): each point's serve chosen
+    by dissimilarity to the recent ones (``choose_serve``), its release perturbed by the
+    execution noise the library was measured with."""
+
+    def __init__(self, library: ServeLibrary, physics: BallPhysicsParams, noise: ExecutionNoise | None = None):
+        if len(library) == 0:
+            raise ConfigError("the serve library is empty: the robot has nothing to serve")
+        self.library, self.physics = library, physics
+        self.noise = noise if noise is not None else (library.noise or ExecutionNoise())
+
+    def start(self, rng: np.random.Generator, recent: Sequence[str]) -> tuple[str, ServeStart]:
+        serve = choose_serve(self.library, recent, rng)
+        return serve.name, serve.episode_start(self.physics, self.noise.perturb(serve.release, rng))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +113,26 @@ class PointResult:
         """A service the receiver never touched that won the point."""
         return self.winner == self.server and self.shots == 1
 
+    def strikes_by(self, player: str) -> int:
+        """How many times ``player`` struck the ball in the point (the service included)."""
+        first = self.shots - self.shots // 2  # the server strikes first, then they alternate
+        return first if player == self.server else self.shots // 2
+
+    @property
+    def last_striker(self) -> str | None:
+        """Who struck the ball last (None: nobody did)."""
+        if self.shots == 0:
+            return None
+        return self.server if self.shots % 2 == 1 else opponent(self.server)
+
+    @property
+    def return_error(self) -> str | None:
+        """The player whose return (a stroke after the service) lost the point by going out, into
+        the net or onto their own court; None otherwise."""
+        if self.let or self.shots < 2 or self.winner == self.last_striker:
+            return None
+        return self.last_striker
+
     @property
     def service_fault(self) -> bool:
         """The server lost the point before the receiver struck: the service failed."""
@@ -110,7 +153,8 @@ class MatchResult:
     def summary(self) -> dict:
         """The ``match.*`` figures (robot's view): points played (lets excluded) and won, games'
         scores, rally length (strikes per point) mean and standard deviation, the robot's aces
-        and service faults, and the human's."""
+        and service faults, and the human's; each player's returns (strokes after the service)
+        and how many of them lost the point (``PointResult.return_error``)."""
         decided = [p for p in self.points if not p.let]
         lengths = np.array([p.shots for p in decided], dtype=float)
         robot_serves = [p for p in decided if p.server == ROBOT]
@@ -131,7 +175,20 @@ class MatchResult:
             "human_service_faults": sum(p.service_fault for p in human_serves),
             "points_won_serving": sum(p.winner == ROBOT for p in robot_serves),
             "points_won_receiving": sum(p.winner == ROBOT for p in human_serves),
+            **{f"{player}_returns": sum(p.strikes_by(player) - (p.server == player) for p in decided) for player in (ROBOT, HUMAN)},
+            **{f"{player}_return_errors": sum(p.return_error == player for p in decided) for player in (ROBOT, HUMAN)},
         }
+
+
+@dataclasses.dataclass(frozen=True)
+class _HumanStroke:
+    """The human's answer to a ball on the human's court: missed, or struck when the episode clock
+    reaches ``tick`` with the ball in state ``before`` and leaving in state ``after`` (9,) each."""
+
+    missed: bool
+    tick: int = 0
+    before: np.ndarray | None = None
+    after: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -148,7 +205,7 @@ class _Row:
     serve: str | None = None
     point_ticks: int = 0  # ticks the point has run
     episode_offset: float = 0.0  # point time of the current episode's time 0, s
-    pending: tuple | None = None  # the human's stroke: (tick, ball before, ball after) or ("miss",)
+    stroke: _HumanStroke | None = None  # the human's answer to the ball in play, once decided
     done: bool = False
 
 
@@ -212,7 +269,10 @@ class MatchRunner:
             next_match(row)
         self.simulator.Initialize()
         tick = 0
-        recording_row = lambda: next((r for r, state in enumerate(rows) if state is not None and state.index == record), None)  # noqa: E731
+
+        def recording_row() -> int | None:
+            return next((r for r, state in enumerate(rows) if state is not None and state.index == record), None)
+
         if track is not None and recording_row() is not None:
             track.mark(self.context.get_time(), rows[recording_row()])
         while any(state is not None for state in rows):
@@ -248,7 +308,7 @@ class MatchRunner:
 
     # ------------------------------------------------------------------------------ points
     def _start_point(self, state: _Row, row: int, opponent_model: OpponentModel, serves: RobotServes, seed: int) -> None:
-        state.shot_index, state.pending, state.serve = 0, None, None
+        state.shot_index, state.stroke, state.serve = 0, None, None
         state.point_ticks, state.episode_offset = 0, 0.0
         server = state.match.server
         episode = episode_seed(seed, state.index, state.point_index, 0)
@@ -263,6 +323,8 @@ class MatchRunner:
             ball = opponent_model.sample_serve(state.rng)
             start_segment_episodes(self.diagram, self.context, [row], ball[None], [episode])
             self.umpire.StartPoints(umpire_context, [row], [HUMAN], None)
+            # The human's toss is not simulated: the strike's velocity before is unknown, and the
+            # umpire judges it only with a Toss.
             self.umpire.HumanStrikes(umpire_context, [row], [0.0], [np.concatenate([ball[:3], np.zeros(3)])])
 
     def _step_row(self, state: _Row, row: int, umpire, ticks: int, opponent_model: OpponentModel, seed: int):
@@ -270,19 +332,19 @@ class MatchRunner:
         None while it goes on (the human's stroke is decided or made here)."""
         if umpire.decision is not None:
             return umpire.decision, None
-        if state.pending is not None and state.pending[0] != "miss" and ticks >= state.pending[0]:
-            _, before, after = state.pending
-            state.pending = None
+        stroke = state.stroke
+        if stroke is not None and not stroke.missed and ticks >= stroke.tick:
+            state.stroke = None
             state.shot_index += 1
             hit_time = state.episode_offset + ticks * self.timing.duration
             state.episode_offset = hit_time
             episode = episode_seed(seed, state.index, state.point_index, state.shot_index)
-            start_segment_episodes(self.diagram, self.context, [row], after[None], [episode], continuing=True)
-            self.umpire.HumanStrikes(self._context(self.umpire), [row], [hit_time], [before])
+            start_segment_episodes(self.diagram, self.context, [row], stroke.after[None], [episode], continuing=True)
+            self.umpire.HumanStrikes(self._context(self.umpire), [row], [hit_time], [stroke.before])
             return None
-        if state.pending is None and umpire.bounced and umpire.to_play == HUMAN:
-            self._human_response(state, row, ticks, opponent_model)
-            if state.pending is not None and state.pending[0] != "miss" and ticks >= state.pending[0]:
+        if stroke is None and umpire.bounced and umpire.to_play == HUMAN:
+            state.stroke = self._human_response(state, row, ticks, opponent_model)
+            if not state.stroke.missed and ticks >= state.stroke.tick:  # a stroke due now
                 return self._step_row(state, row, umpire, ticks, opponent_model, seed)
             return None
         episode_time = float(self.timing.tick_time(ticks))
@@ -290,20 +352,19 @@ class MatchRunner:
             return None, f"time limit: the {umpire.to_play} did not play the ball within {EPISODE_LIMIT} s"
         return None
 
-    def _human_response(self, state: _Row, row: int, ticks: int, opponent_model: OpponentModel) -> None:
+    def _human_response(self, state: _Row, row: int, ticks: int, opponent_model: OpponentModel) -> _HumanStroke:
         """The human's answer to the ball that just bounced on the human's court."""
         events = self.ball.plant_state(self._context(self.ball)).events[row]
         bounce = next(e for e in reversed(events) if ContactKind(e.kind) == ContactKind.TABLE)
         incoming = np.asarray(bounce.state_post, dtype=float)
         if state.rng.random() >= opponent_model.return_probability(incoming)[0]:
-            state.pending = ("miss",)
-            return
+            return _HumanStroke(missed=True)
         states, delays, landings = opponent_model.draw_returns(incoming, state.rng, landings=True)
         period = self.timing.duration
         tick = max(int(math.ceil((bounce.time + float(delays[0])) / period - 1e-9)), ticks)
         before = ball_at_hit(incoming, np.array([tick * period - bounce.time]), self.params.physics)[0]
         after = retarget_returns(states[0], before[:3], self.params.physics, landings)[0]
-        state.pending = (tick, before, after)
+        return _HumanStroke(False, tick, before, after)
 
     def _finish_point(self, state: _Row, umpire, decision: PointDecision | None, reason: str | None) -> PointResult:
         """Records the point (the umpire's ``decision``, or a time-limit end with ``reason``
@@ -365,3 +426,67 @@ class _TrackRecorder:
 
     def finish(self) -> MatchTrack:
         return MatchTrack(np.asarray(self.times), np.asarray(self.ball), np.asarray(self.q), tuple(self.points))
+
+
+DEFAULT_MATCH_DATA = MODELS_DIR.parent.parent / "shared" / "data" / "ace_match_events_elite.csv"  # the recorded matches, beside the project
+DEFAULT_OPPONENT = "Elite C"
+
+
+def point_rows(result: MatchResult) -> list[dict]:
+    """One row per point of ``result``: game, score (robot, human) before it, server, serve,
+    winner (None: a let), strikes, how it ended (the umpire's reason and law), duration (s)."""
+    return [{"game": p.game, "score": list(p.score), "server": p.server, "serve": p.serve, "winner": p.winner, "strikes": p.shots,
+             "reason": p.reason, "law": p.law, "duration_s": round(p.duration, 3)} for p in result.points]
+
+
+def aggregate(results: Sequence[MatchResult]) -> dict:
+    """The ``match.*`` figures over several matches: sums of points, games, aces and faults, the
+    rally length over all their decided points, and the matches won."""
+    summaries = [r.summary() for r in results]
+    lengths = np.array([p.shots for r in results for p in r.points if not p.let], dtype=float)
+    total = {key: sum(s[key] for s in summaries) for key in ("points_played", "points_won", "games_won", "aces", "service_faults", "lets",
+                                                             "human_aces", "human_service_faults", "points_won_serving", "points_won_receiving",
+                                                             "robot_returns", "human_returns", "robot_return_errors", "human_return_errors")}
+    total.update(matches=len(results), matches_won=sum(r.winner == ROBOT for r in results),
+                 games=[game for s in summaries for game in s["games"]],
+                 rally_length_mean=float(lengths.mean()) if lengths.size else 0.0,
+                 rally_length_std=float(lengths.std()) if lengths.size else 0.0)
+    return total
+
+
+def run_match(controller: str = DEFAULT_CONTROLLER, opponent_name: str = DEFAULT_OPPONENT, data=None, best_of: int = 3,
+              golden_point: bool = False, matches: int = 1, sensors: str = "cameras", seed: int = 0, ball_params=None,
+              serves=None, batch: int = 8, record: bool = True, progress: Callable[[str], None] = print) -> tuple[dict, MatchTrack | None]:
+    """``ace-drake rally``: ``matches`` best-of-``best_of`` matches of the controller named
+    ``controller`` (``make_controller``) and the serve library ``serves`` (default the shipped
+    one) against the opponent model of the recorded player ``opponent_name`` fitted on the
+    match data ``data`` (default the recorded matches beside the project), on the segment-stepped
+    rally diagram of ``rally_params`` (``batch`` matches at once). Every input is checked before
+    anything is simulated. Returns the summary (``match``: ``aggregate``; ``matches``: each
+    match's ``summary``; ``points``: the first match's ``point_rows``) and, with ``record``, the
+    first match's replay track."""
+    rules = MatchRules(best_of=best_of, golden_point=golden_point)
+    if matches < 1 or batch < 1:
+        raise ConfigError(f"rally: the number of matches and --batch must be >= 1, got {matches} and {batch}")
+    params = rally_params(ball_params, sensors, seed, "segment")
+    first = make_controller(controller, params)
+    library = load_serve_library(DEFAULT_LIBRARY if serves is None else serves, load_scenario(MODELS_DIR / params.scenario))
+    robot_serves = LibraryServes(library, params.physics)
+    data = DEFAULT_MATCH_DATA if data is None else data
+    if not Path(data).is_file():
+        raise ConfigError(f"rally: no match data at {data}: the opponent is fitted on recorded matches (pass --data FILE)")
+    events = load_match_events(data)
+    require_players(events, [opponent_name], str(data))
+    opponent_model = OpponentModel.fit(events, [opponent_name])
+    batch = min(batch, matches)
+    controllers = [first] + [make_controller(controller, params) for _ in range(batch - 1)] if callable(getattr(first, "reset", None)) else first
+    progress(f"rally: {matches} best-of-{best_of} match(es) of '{controller}' against {opponent_name} ({sensors} sensors, seed {seed}, "
+             f"{len(library)} serves)")
+    runner = MatchRunner(controllers, params, batch)
+    results, track = runner.play(opponent_model, robot_serves, matches, rules, seed, opponent_name, record=0 if record else None, progress=progress)
+    recorded = opponent_model.data
+    return {"controller": controller, "opponent": opponent_name, "best_of": best_of, "golden_point": golden_point, "seed": seed,
+            "sensors": sensors, "date": datetime.date.today().isoformat(), "data": str(data), "serves": str(DEFAULT_LIBRARY if serves is None else serves),
+            "opponent_recorded": {"balls_in": len(recorded), "return_rate": recorded.return_rate,
+                                  "returns_landed": float(recorded.return_landed[recorded.returned].mean())},
+            "match": aggregate(results), "matches": [r.summary() for r in results], "points": point_rows(results[0])}, track
