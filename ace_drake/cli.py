@@ -440,7 +440,7 @@ def cmd_serves(args) -> int:
         if Path(args.out).suffix != ".npz":
             raise ConfigError(f"serves search: --out must name a .npz file, got {args.out}")
         library, summary = work("serves search")(kinds, seeds, repeats=args.repeats, seed=args.seed, generations=args.generations,
-                                                 batch=args.batch, out=args.out, extend=args.extend, progress=log)
+                                                 batch=args.batch, out=args.out, extend=args.extend, progress=log, executed=args.executed)
         figures = {"library": args.out, **{key: value for key, value in summary.items() if key != "candidates"},
                    "serves": [{"name": serve.name, "kind": serve.kind, **serve.stats.as_dict()} for serve in library.serves]}
     else:
@@ -601,6 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
     serves.add_argument("--batch", type=int, default=32, help="executions played at once on the segment-stepped diagram (default: %(default)s)")
     serves.add_argument("--out", default=str(MODELS_DIR / "serve_library.npz"), help="search: the library to write (+ .json sidecar; default: %(default)s)")
     serves.add_argument("--extend", help="search: keep this library's serves and add the new ones (it may be --out)")
+    serves.add_argument("--executed", action="store_true", help="search: the GA scores the strikes the robot makes (its planning in the fitness, the paper's; ~25 x slower) instead of the ball-level ones")
     serves.add_argument("--json", action="store_true")
     serves.set_defaults(run=cmd_serves)
 

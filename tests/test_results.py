@@ -123,12 +123,13 @@ def test_stored_matches_make_one_row_each_beside_the_papers(tmp_path):
               "opponent_recorded": {"returns_landed": 0.772},
               "match": {"matches": 5, "matches_won": 4, "games": [[11, 5]] * 9 + [[5, 11]] * 2, "games_won": 9, "points_won": 150, "points_played": 230,
                         "rally_length_mean": 4.31, "rally_length_std": 3.02, "robot_returns": 200, "robot_return_errors": 10,
-                        "human_returns": 180, "human_return_errors": 45}}
+                        "human_returns": 180, "human_return_errors": 45,
+                        "service_faults": 2, "points_served": 115, "human_service_faults": 9, "human_points_served": 115}}
     (tmp_path / "docs/results/matches/elite_a.json").write_text(json.dumps(stored))
     rows = results.match_rows(tmp_path)
     assert [row.what for row in rows] == ["`returner` against Elite A's model", "the paper's matches"]
     assert rows[0].figure == ("won 4 of 5 matches, 9 of 11 games, 150 of 230 points; rally length 4.3 +- 3.0 strikes; "
-                              "the robot's returns in play 95.0%, the human's 75.0% (recorded 77.2%)")
+                              "the robot's returns in play 95.0%, the human's 75.0% (recorded 77.2%); service faults: the robot's 2 of 115, the human's 9 of 115")
     assert rows[0].measured_on == "5 matches (best of 3, golden point), cameras, seed 0, 2026-12-06"
     assert "3 of 5 matches, 7 of 13 games" in rows[1].figure
     assert results.match_rows(tmp_path / "nowhere") == []

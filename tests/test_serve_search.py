@@ -45,3 +45,31 @@ def test_the_library_keeps_legal_distinct_serves():
     library = search_library(["long_topspin"], [1, 1], progress=None, **SHORT)
     assert len(library) == 1  # the same seed twice: one serve
     assert library[0].legal and library[0].kind == "long_topspin"
+
+
+def test_the_ga_can_score_the_strikes_the_robot_makes():
+    """``ExecutedStrikes``: a solution's fitness is that of the serve of the racket state the
+    robot executes (``plan_strike`` after the planned toss), from the executed release; a short
+    search on it is reproducible and its best serve is the executed one."""
+    from ace_drake.analysis.serve_search import ExecutedStrikes
+    from ace_drake.control.params import ControlParams
+    from ace_drake.control.serve import TossState, simulate_serve, strike_from_genes
+    from ace_drake.control.serve_execution import plan_strike, plan_toss
+    from ace_drake.control.stack import make_control_stack
+    from ace_drake.physics.params import BallPhysicsParams
+    from ace_drake.robot.model import RobotModel
+
+    model, physics = RobotModel(), BallPhysicsParams()
+    stack = make_control_stack(model.scenario, ControlParams())
+    toss = plan_toss(model, stack)
+    robot = ExecutedStrikes(model, stack, toss, physics)
+    genes = np.array([[0.3484, 0.4033, 0.0354, 0.1761, 0.4367, 0.8722, 0.3, 0.2475, 0.7888]])
+    weights = serve_weights("short_backspin")
+    fitness, (outcome,) = robot.evaluate(genes, weights)
+    plan = plan_strike(model, stack, toss, strike_from_genes(genes[0], TossState(), physics))
+    expected = simulate_serve(plan.executed_strike, toss.release, physics)
+    assert fitness[0] == serve_fitness(expected, weights) and outcome.legal == expected.legal
+    runs = [search_serve("long_backspin", seed=3, progress=None, generations=2, population=8, robot=robot) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].genes, runs[1].genes)
+    again, (best,) = robot.evaluate(runs[0].genes[None], serve_weights("long_backspin"))
+    assert runs[0].fitness == again[0] and runs[0].outcome.legal == best.legal

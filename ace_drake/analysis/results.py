@@ -153,7 +153,8 @@ def match_row(result: dict, source: str) -> Row:
     figure = (f"won {match['matches_won']} of {match['matches']} matches, {match['games_won']} of {games} games, "
               f"{match['points_won']} of {match['points_played']} points; rally length {match['rally_length_mean']:.1f} +- "
               f"{match['rally_length_std']:.1f} strikes; the robot's returns in play {percent(1 - match['robot_return_errors'] / max(match['robot_returns'], 1))}, "
-              f"the human's {percent(1 - match['human_return_errors'] / max(match['human_returns'], 1))} (recorded {percent(recorded['returns_landed'])})")
+              f"the human's {percent(1 - match['human_return_errors'] / max(match['human_returns'], 1))} (recorded {percent(recorded['returns_landed'])}); "
+              f"service faults: the robot's {match['service_faults']} of {match['points_served']}, the human's {match['human_service_faults']} of {match['human_points_served']}")
     rules = f"best of {result['best_of']}" + (", golden point" if result["golden_point"] else "")
     measured_on = f"{match['matches']} matches ({rules}), {result['sensors']}, seed {result['seed']}" + (f", {result['date']}" if result.get("date") else "")
     return Row(what, figure, measured_on, _source(source))

@@ -173,6 +173,8 @@ class MatchResult:
             "lets": sum(p.let for p in self.points),
             "human_aces": sum(p.ace for p in human_serves),
             "human_service_faults": sum(p.service_fault for p in human_serves),
+            "points_served": len(robot_serves),
+            "human_points_served": len(human_serves),
             "points_won_serving": sum(p.winner == ROBOT for p in robot_serves),
             "points_won_receiving": sum(p.winner == ROBOT for p in human_serves),
             **{f"{player}_returns": sum(p.strikes_by(player) - (p.server == player) for p in decided) for player in (ROBOT, HUMAN)},
@@ -445,7 +447,7 @@ def aggregate(results: Sequence[MatchResult]) -> dict:
     summaries = [r.summary() for r in results]
     lengths = np.array([p.shots for r in results for p in r.points if not p.let], dtype=float)
     total = {key: sum(s[key] for s in summaries) for key in ("points_played", "points_won", "games_won", "aces", "service_faults", "lets",
-                                                             "human_aces", "human_service_faults", "points_won_serving", "points_won_receiving",
+                                                             "points_served", "human_points_served", "human_aces", "human_service_faults", "points_won_serving", "points_won_receiving",
                                                              "robot_returns", "human_returns", "robot_return_errors", "human_return_errors")}
     total.update(matches=len(results), matches_won=sum(r.winner == ROBOT for r in results),
                  games=[game for s in summaries for game in s["games"]],
