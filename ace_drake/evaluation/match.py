@@ -37,6 +37,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import math
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Protocol
@@ -456,6 +457,12 @@ def aggregate(results: Sequence[MatchResult]) -> dict:
     return total
 
 
+def _project_relative(path) -> str:
+    """``path`` relative to the project's root (e.g. ``../shared/data/...``), so that a stored
+    summary names no machine's directories."""
+    return os.path.relpath(Path(path).resolve(), MODELS_DIR.parent.resolve())
+
+
 def run_match(controller: str = DEFAULT_CONTROLLER, opponent_name: str = DEFAULT_OPPONENT, data=None, best_of: int = 3,
               golden_point: bool = False, matches: int = 1, sensors: str = "cameras", seed: int = 0, ball_params=None,
               serves=None, batch: int = 8, record: bool = True, progress: Callable[[str], None] = print) -> tuple[dict, MatchTrack | None]:
@@ -488,7 +495,8 @@ def run_match(controller: str = DEFAULT_CONTROLLER, opponent_name: str = DEFAULT
     results, track = runner.play(opponent_model, robot_serves, matches, rules, seed, opponent_name, record=0 if record else None, progress=progress)
     recorded = opponent_model.data
     return {"controller": controller, "opponent": opponent_name, "best_of": best_of, "golden_point": golden_point, "seed": seed,
-            "sensors": sensors, "date": datetime.date.today().isoformat(), "data": str(data), "serves": str(DEFAULT_LIBRARY if serves is None else serves),
+            "sensors": sensors, "date": datetime.date.today().isoformat(), "data": _project_relative(data),
+            "serves": _project_relative(DEFAULT_LIBRARY if serves is None else serves),
             "opponent_recorded": {"balls_in": len(recorded), "return_rate": recorded.return_rate,
                                   "returns_landed": float(recorded.return_landed[recorded.returned].mean())},
             "match": aggregate(results), "matches": [r.summary() for r in results], "points": point_rows(results[0])}, track
