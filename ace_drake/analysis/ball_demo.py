@@ -1,9 +1,8 @@
 """The ball demo: one launch with topspin, no spin and backspin, simulated through the BallPlant.
 
-Until the rally diagram exists this is what ``ace-drake rally`` runs: every shot goes through the
-same Diagram and Simulator (the context is reset between shots), the contacts come from the
-BallPlant's contact_events port, and an optional Meshcat recording shows the three flights one
-after the other.
+Tutorial 01 runs it: every shot goes through the same Diagram and Simulator (the context is reset
+between shots), the contacts come from the BallPlant's contact_events port, and an optional
+Meshcat recording shows the three flights one after the other.
 """
 
 from __future__ import annotations

@@ -28,8 +28,7 @@ class SegmentSafetySupervisor(LeafSystem):
     limits, if collision-free, else the committed plan; no new segments until it clears),
     otherwise, from tick 1 on (and once a planned start's hold is over), the new segment and its
     reset if both exist and are collision-free (``control.stack.decide_segment``), else the
-    committed plan. Its plan's samples at 1 kHz are
-    the joints' commands.
+    committed plan. Its plan's samples at 1 kHz are the joints' commands.
 
     Differences from the reference: the light curtain is read at the ticks (every 32 ms, not
     every 1 ms), so a stop may start up to 32 ms later; an episode's start plan begins at the
