@@ -10,7 +10,7 @@ from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from ace_drake.physics.propagate import ContactKind
 from ace_drake.play.scoring import HUMAN, ROBOT, require_player
-from ace_drake.play.umpire import Court, PointDecision, RallyEvent, Toss, Umpire, umpire_after
+from ace_drake.play.umpire import Court, RallyEvent, Toss, umpire_after
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,7 +119,3 @@ class SegmentUmpire(LeafSystem):
             updated[row] = dataclasses.replace(record, events=record.events + new, seen=len(events[row]))
         state.get_mutable_abstract_state(self._state_index).set_value(tuple(updated))
 
-
-def decisions(umpires) -> list[PointDecision | None]:
-    """Each environment's decision from the ``umpires`` port's value (None: open or no point)."""
-    return [None if umpire is None else umpire.decision for umpire in umpires]
