@@ -340,10 +340,11 @@ def test_a_batched_run_collects_on_vector_workers_and_evaluates_on_the_segment_d
     assert state.evaluations and state.evaluations[-1][2]["played"] + state.evaluations[-1][2].get("invalid", 0) <= 4
 
 
-def test_batched_workers_refuse_the_modes_they_do_not_play():
-    for overrides in ({"demonstrations": 1}, {"learn_mode": "dagger"}, {"sac": dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))}):
-        with pytest.raises(ConfigError, match="batched workers play the paper's modes only"):
-            _config(batch=2, **{"demonstrations": 0, **overrides})
+def test_batched_workers_refuse_the_hit_state_action():
+    hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
+    with pytest.raises(ConfigError, match="batched workers play the eq. \\(12\\) action"):
+        _config(batch=2, demonstrations=0, sac=hit_state)
+    assert _config(batch=2, demonstrations=1, learn_mode="dagger").batch == 2  # the returner demonstrates and labels batched too
     with pytest.raises(ConfigError, match="batch must be >= 0"):
         _config(batch=-1)
 

@@ -103,7 +103,7 @@ def test_a_vector_worker_returns_whole_episodes(distribution):
     from ace_drake.training.rollout import VectorRolloutWorker
 
     dut = VectorRolloutWorker(3, PARAMS, distribution=distribution, seed=2)
-    episodes = dut.collect(4, "ou") + dut.collect(1, "policy")
+    episodes = dut.collect(4, "ou") + dut.collect(6, "policy")  # the running OU episodes end as OU ones
     assert len(episodes) >= 5 and {e.mode for e in episodes} == {"ou", "policy"}
     for episode in episodes:
         t = episode.transitions
@@ -112,4 +112,67 @@ def test_a_vector_worker_returns_whole_episodes(distribution):
         assert episode.end in ("out_of_play", "hit", "passed", "collision", "time_limit")
         assert episode.summary.closest_approach is not None and episode.summary.closest_approach >= 0.0
     with pytest.raises(ValueError, match="mode"):
-        dut.collect(1, "demonstrator")
+        dut.collect(1, "teleport")
+
+
+def test_hold_actions_continue_the_plan_from_the_segment_the_next_step_decides(distribution):
+    """The hold action of an environment starts where its observation says the next segment
+    starts (the plan at the boundary the next step decides), and a step with it commands the plan
+    on: the same joint commands as a step that asks for no segment."""
+    from ace_drake.control.action_mapping import map_action
+    from ace_drake.control.feasible_set import feasible_sets
+
+    dut = RallyVectorEnv(3, PARAMS, distribution)
+    obs, _ = dut.reset(seed=4)
+    rng = np.random.default_rng(1)
+    checked = 0
+    for _ in range(5):
+        holds = dut.hold_actions()
+        for row, state in enumerate(dut._supervisor_states()):
+            q0, v0, a0 = np.split(dut.layout.part(obs[row].astype(float), "robot_state"), 3)
+            boundary = int(dut.timing.boundary_sample(dut._clock.ticks(dut._clock.GetMyContextFromRoot(dut.context)))[row])
+            plan_q0, plan_v0, _ = state.plan.state(int(np.clip(boundary - state.plan_start, 0, state.plan.samples)))
+            np.testing.assert_allclose(q0, plan_q0, atol=1e-6)  # float32 observation
+            np.testing.assert_allclose(v0, plan_v0, atol=1e-5)
+            first = int(np.clip(boundary - state.plan_start, 0, state.plan.samples))
+            sets = feasible_sets(*state.plan.state(first), dut.stack.limits, dut.stack.control, dut.stack.period)
+            q1, v1 = map_action(holds[row], sets)
+            target_q, target_v, _ = state.plan.state(min(first + dut.stack.control.segment_samples, state.plan.samples))
+            n = target_q.size
+            inside = np.all(np.abs(holds[row]).reshape(2, n) < 1.0 - 1e-9, axis=0)  # a joint outside the box maps onto its boundary
+            np.testing.assert_allclose(q1[inside], target_q[inside], atol=1e-9)
+            np.testing.assert_allclose(v1[inside], target_v[inside], atol=1e-9)
+            checked += inside.sum()
+        obs, *_ = dut.step(rng.uniform(-0.5, 0.5, (3, 16)))
+    assert checked > 0.5 * 5 * 3 * 8  # most joints are inside: a reset plan brakes within the mapped set
+    with pytest.raises(IndexError):
+        dut.hold_actions([3])
+
+
+def test_a_vector_worker_demonstrates_and_labels_with_one_returner_per_environment(distribution):
+    """Demonstrator episodes: the returner acts (its label, or its label with DART noise) and every
+    step is labelled; DAgger episodes: the actor acts and the returner labels; an episode started
+    in one mode finishes in it after the mode changes; the returner returns balls."""
+    from ace_drake.training.rollout import ExplorationParams, VectorRolloutWorker
+
+    dut = VectorRolloutWorker(3, PARAMS, distribution=distribution, seed=5, exploration=ExplorationParams(demo_noise_fraction=0.5))
+    demonstrated = dut.collect(6, "demonstrator")
+    running = int((~dut._restarting).sum())  # episodes under way at the change of mode
+    later = dut.collect(6, "dagger")
+    assert len({id(r.model) for r in dut.returners}) == 1 and len({id(r) for r in dut.returners}) == 3
+    assert {e.mode for e in demonstrated} == {"demonstrator"}
+    still = sum(mode == "demonstrator" and not restarting for mode, restarting in zip(dut._modes, dut._restarting))
+    assert [e.mode for e in later].count("demonstrator") + still == running  # the running ones go on (or finished) as begun
+    assert later[-1].mode == "dagger"
+    noisy = exact = 0
+    for episode in demonstrated + later:
+        t = episode.transitions
+        assert t["demo_action"].shape == t["action"].shape and np.isfinite(t["demo_action"]).all()
+        assert np.all(np.abs(t["demo_action"]) <= 1.0)
+        if episode.mode == "demonstrator":
+            same = np.all(t["action"] == t["demo_action"], axis=1)
+            exact += same.sum()
+            noisy += (~same).sum()
+            assert np.abs(t["action"] - t["demo_action"]).max() < 0.5  # DART noise of std 0.05, clipped into the box
+    assert exact > 0 and noisy > 0
+    assert sum(e.returned for e in demonstrated) >= 2, [e.outcome for e in demonstrated]

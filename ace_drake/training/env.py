@@ -190,6 +190,24 @@ class RallyEnvParams:
             raise ConfigError(f"pass_margin must be >= 0, got {self.pass_margin}")
 
 
+def hold_action(stack, plan, start: int) -> np.ndarray:
+    """The action (16,) whose segment continues ``plan`` (a ``JointTrajectory``) from its row
+    ``start`` (the next segment boundary, in plan samples) through one segment, as near as the
+    action mapping reaches: eq. (12) inverted at the plan's state a segment later, clipped onto the
+    box. Zeros when that start lies outside the control-invariant set. What "no new segment" does,
+    as an action to learn from (``RallyEnv.hold_action``, ``RallyVectorEnv.hold_actions``)."""
+
+    first = int(np.clip(start, 0, plan.samples))
+    last = int(np.clip(start + stack.control.segment_samples, 0, plan.samples))
+    q0, v0, a0 = plan.state(first)
+    q1, v1, _ = plan.state(last)
+    try:
+        sets = feasible_sets(q0, v0, a0, stack.limits, stack.control, stack.period)
+    except InfeasibleStartError:
+        return np.zeros(ACTION_SIZE)
+    return np.clip(inverse_map_action(q1, v1, sets), -1.0, 1.0)
+
+
 def draw_robot_start(stack, params: RallyEnvParams, rng: np.random.Generator, start: str):
     """(q, v, a, kind) of a drawn initial robot state (module docstring); v and a are None for a
     static start; ``start`` "static" or "dynamic" (a dynamic start that finds no collision-free
@@ -407,17 +425,8 @@ class RallyEnv(gymnasium.Env):
         control-invariant set."""
 
         status = self._supervisor_state()
-        plan = status.plan
-        start = round((self.context.get_time() + self.stack.control.observation_lead) / plan.period) - status.plan_start
-        first = int(np.clip(start, 0, plan.samples))
-        last = int(np.clip(start + self.stack.control.segment_samples, 0, plan.samples))
-        q0, v0, a0 = plan.state(first)
-        q1, v1, _ = plan.state(last)
-        try:
-            sets = feasible_sets(q0, v0, a0, self.stack.limits, self.stack.control, self.stack.period)
-        except InfeasibleStartError:
-            return np.zeros(ACTION_SIZE)
-        return np.clip(inverse_map_action(q1, v1, sets), -1.0, 1.0)
+        start = round((self.context.get_time() + self.stack.control.observation_lead) / status.plan.period) - status.plan_start
+        return hold_action(self.stack, status.plan, start)
 
     # ------------------------------------------------------------------------------ helpers
     def _observation(self) -> np.ndarray:

@@ -81,11 +81,14 @@ class TrainConfig:
     episodes_per_task: int = 4  # per worker task; with batch, per environment of the worker's batch
     # Environments per rollout worker: 0 plays one RallyEnv (the continuous-time reference
     # diagram) per worker; B >= 1 a RallyVectorEnv of B environments on the segment-stepped
-    # diagram (issue 29; the paper's modes, policy and OU, with the eq. (12) action), and the
-    # evaluations run on the segment-stepped diagram too, EVALUATION_BATCH episodes at a time.
+    # diagram (issue 29; every mode, with the eq. (12) action), and the evaluations run on the
+    # segment-stepped diagram too, EVALUATION_BATCH episodes at a time.
     batch: int = 0
     demonstrations: int = 0  # returner episodes before learning (this project's; the paper: 0)
     demonstration_files: tuple[str, ...] = ()  # rollout.save_episodes files to use instead
+    # Labelled transitions the cloning term keeps (demonstrations and DAgger labels; the oldest
+    # go first). A row of the default layout is ~0.8 kB.
+    demonstration_capacity: int = 200_000
     ou_episodes: int = 100  # OU exploration before learning starts (paper; count not public)
     pretrain_updates: int = 0
     # Cloning updates between evaluations of the actor during pretraining (0: one, after it), so
@@ -133,7 +136,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         for name in ("env_steps", "workers", "episodes_per_task", "update_chunk", "checkpoint_every",
-                     "evaluate_every", "evaluation_episodes", "torch_threads"):
+                     "evaluate_every", "evaluation_episodes", "torch_threads", "demonstration_capacity"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch"):
@@ -150,10 +153,8 @@ class TrainConfig:
             raise ConfigError(f"TrainConfig.backend must be 'ray' or 'local', got {self.backend!r}")
         if self.backend == "local" and self.workers != 1:
             raise ConfigError("TrainConfig: the local backend runs one worker (workers: 1)")
-        if self.batch and (self.demonstrations or self.learn_mode != "policy" or self.sac.action != "terminal"):
-            raise ConfigError("TrainConfig.batch: batched workers play the paper's modes only (policy and OU, the eq. (12) action 'terminal'); "
-                              f"got demonstrations {self.demonstrations}, learn_mode {self.learn_mode!r}, sac.action {self.sac.action!r} "
-                              "(returner demonstrations can come from demonstration_files)")
+        if self.batch and self.sac.action != "terminal":
+            raise ConfigError(f"TrainConfig.batch: batched workers play the eq. (12) action ('terminal') only, got sac.action {self.sac.action!r}")
         if self.evaluation_sensors not in ("cameras", "statistical"):
             raise ConfigError(f"TrainConfig.evaluation_sensors must be 'cameras' or 'statistical', got {self.evaluation_sensors!r}")
         if self.evaluation_players and not self.evaluation_data:
@@ -218,7 +219,7 @@ class Trainer(Checkpointing):
         if config.mirror:
             augment = (Mirror.from_robot().transitions,)
         self.replay = EventReplay(dataclasses.replace(config.replay, seed=config.seed), config.sac.layout, config.env.reward, augment)
-        self.demonstrations = DemonstrationBuffer(seed=config.seed + 1)
+        self.demonstrations = DemonstrationBuffer(config.demonstration_capacity, seed=config.seed + 1)
         self.state = Progress(next_checkpoint=config.checkpoint_every, next_evaluation=config.evaluate_every)
         self._recent = deque(maxlen=100)  # outcomes of the latest policy episodes
         self._losses: dict[str, list[float]] = {}

@@ -314,24 +314,27 @@ class RolloutWorker:
         return closest_approach(previous, self.env.ball_from_blade())
 
 
-VECTOR_MODES = ("policy", "ou")
+VECTOR_MODES = MODES
 
 
 class VectorRolloutWorker:
     """B environments stepped together (``RallyVectorEnv`` on the segment-stepped diagram),
     returning whole episodes as ``RolloutWorker`` does: ``collect(episodes, mode)`` steps the
     batch until at least ``episodes`` episodes have ended and returns those that did (episodes
-    still running go on in the next call). The modes of the paper's method: ``"policy"`` (the
-    actor, sampled; one batched forward pass per step) and ``"ou"`` (one Ornstein-Uhlenbeck
-    process per environment); the eq. (12) action only. The demonstrator, DAgger and the hit-state
-    action play on ``RolloutWorker``.
+    still running go on in the next call). Every mode of ``RolloutWorker`` with the eq. (12)
+    action: ``"policy"`` (the actor, sampled; one batched forward pass per step), ``"ou"`` (one
+    Ornstein-Uhlenbeck process per environment), ``"demonstrator"`` and ``"dagger"`` (one
+    model-based returner per environment, all sharing one robot model and control stack, each
+    reset when its environment's episode starts). An episode is played to its end by the mode it
+    started in: after a change of mode, the running episodes finish in theirs (so that an
+    episode's labels are all its mode's). The hit-state action plays on ``RolloutWorker``.
 
     Worker ``index`` of a run with seed ``s`` steps environments index * B ... index * B + B - 1
     (``RallyVectorEnv.first_index``), so the episodes are a function of the seed and the
     environment's number, whatever the number of workers.
 
     Args: batch, B; the others as ``RolloutWorker``'s (env_params, sac, seed, index, exploration,
-    distribution, play).
+    distribution, returner, play).
     """
 
     def __init__(self, batch: int, env_params: RallyEnvParams | None = None, sac=None, seed: int = 0, index: int = 0,
@@ -351,7 +354,10 @@ class VectorRolloutWorker:
         self.learner = SacLearner(dataclasses.replace(config, seed=int(torch_seed) % 2**31), self.env.params.rally, play=play)
         self.generator = torch.Generator().manual_seed(int(torch_seed) % 2**63)
         self.noises = [OrnsteinUhlenbeck(self.exploration.ou_theta, self.exploration.ou_sigma, self.env.timing.duration) for _ in range(batch)]
+        self._returner_params = returner
+        self._returners: list[ModelBasedReturner] | None = None
         self._obs, self._info = self.env.reset(seed=int(env_seed) % 2**31)
+        self._modes: list[str | None] = [None] * batch  # the mode each environment's running episode plays
         self._rows = [self._empty_rows() for _ in range(batch)]
         self._started = [time.perf_counter()] * batch
         self._closest = [closest_approach(None, relative) for relative in self.env.ball_from_blade()]
@@ -364,27 +370,38 @@ class VectorRolloutWorker:
         """Installs actor weights (``SacLearner.actor.state_dict()``)."""
         self.learner.actor.load_state_dict(state_dict)
 
+    @property
+    def returners(self) -> list[ModelBasedReturner]:
+        """One model-based returner per environment (built at first use), sharing the robot model
+        and the checking control stack of the first."""
+        if self._returners is None:
+            first = ModelBasedReturner.for_rally(self.env.params.rally, self._returner_params)
+            self._returners = [first] + [ModelBasedReturner(physics=first.physics, params=first.params, layout=first.layout, model=first.model,
+                                                            stack=first.stack) for _ in range(self.batch - 1)]
+        return self._returners
+
     def collect(self, episodes: int, mode: str = "policy") -> list[Episode]:
-        """Steps all B environments with ``mode`` (VECTOR_MODES) until at least ``episodes``
-        episodes have ended; returns the ended ones."""
+        """Steps all B environments until at least ``episodes`` episodes have ended, starting new
+        ones in ``mode`` (VECTOR_MODES); returns the ended ones."""
         if mode not in VECTOR_MODES:
             raise ValueError(f"VectorRolloutWorker.collect: mode must be one of {VECTOR_MODES}, got {mode!r}")
         ended: list[Episode] = []
         while len(ended) < episodes:
             for row in np.flatnonzero(self._fresh):
+                self._modes[row] = mode
+                self._rows[row] = self._empty_rows(mode)
                 if mode == "ou":
                     self.noises[row].reset(self.rng)
-            if mode == "policy":
-                actions = self.learner.act(self._obs, generator=self.generator, std_scale=self.exploration.policy_std_scale)
-            else:
-                actions = np.array([noise.sample(self.rng) for noise in self.noises])
+                if mode in ("demonstrator", "dagger"):
+                    self.returners[row].reset()
+            actions, labels = self._actions()
             obs, rewards, terminated, _, info = self.env.step(actions)
             self._fresh[:] = False
             relative = self.env.ball_from_blade()  # every environment's at once (the kinematics of all B)
             for row in range(self.batch):
                 if self._restarting[row]:
                     # NEXT_STEP autoreset: this step started the row's next episode; its action was ignored
-                    self._rows[row], self._started[row] = self._empty_rows(), time.perf_counter()
+                    self._started[row] = time.perf_counter()
                     self._closest[row] = closest_approach(None, relative[row])
                     self._fresh[row] = True
                     continue
@@ -393,17 +410,66 @@ class VectorRolloutWorker:
                                    ("reward", rewards[row]), ("next_obs", obs[row]), ("next_privileged", info["privileged"][row]),
                                    ("done", float(terminated[row]))):
                     self._rows[row][key].append(value)
+                if "demo_action" in self._rows[row]:
+                    self._rows[row]["demo_action"].append(labels[row])
                 if terminated[row]:
                     transitions = {key: np.asarray(value, dtype=np.float32) for key, value in self._rows[row].items()}
-                    ended.append(Episode(transitions, EpisodeSummary(info["result"][row], self._closest[row][0]), mode, str(info["outcome"][row]),
-                                         str(info["end"][row]), info["skill"][row].copy(), time.perf_counter() - self._started[row]))
+                    ended.append(Episode(transitions, EpisodeSummary(info["result"][row], self._closest[row][0]), self._modes[row],
+                                         str(info["outcome"][row]), str(info["end"][row]), info["skill"][row].copy(),
+                                         time.perf_counter() - self._started[row]))
                     self.episodes += 1
                     self.steps += len(transitions["reward"])
             self._restarting = terminated.copy()
             self._obs, self._info = obs, info
+        if self._returners is not None:
+            for returner in self._returners:
+                returner.call_seconds.clear()  # kept per call for analysis; a long run must not keep them all
         return ended
 
-    @staticmethod
-    def _empty_rows() -> dict:
-        return {key: [] for key in TRANSITION_KEYS}
+    def _actions(self) -> tuple[np.ndarray, np.ndarray]:
+        """(this step's actions (B, 16), the returner's labels (B, 16), NaN where there is none):
+        each running environment's by the mode its episode plays (``RolloutWorker._action``'s
+        rules); a restarting environment's action is ignored (zeros)."""
+        actions = np.zeros((self.batch, ACTION_SIZE))
+        labels = np.full((self.batch, ACTION_SIZE), np.nan)
+        running = ~self._restarting
+        modes = np.array([m if r else "" for m, r in zip(self._modes, running)])
+        sampled = np.flatnonzero((modes == "policy") | (modes == "dagger"))
+        if sampled.size:
+            actions[sampled] = self.learner.act(self._obs[sampled], generator=self.generator, std_scale=self.exploration.policy_std_scale)
+        for row in np.flatnonzero(modes == "ou"):
+            actions[row] = self.noises[row].sample(self.rng)
+        for row in np.flatnonzero((modes == "demonstrator") | (modes == "dagger")):
+            labels[row] = self._label(row)
+            if modes[row] == "demonstrator":
+                actions[row] = self._demonstrate(row, labels[row])
+        return actions, labels
 
+    def _label(self, row: int) -> np.ndarray:
+        """Environment ``row``'s returner's action for its observation; when it has none, continuing
+        the plan or else heading for the reset pose, whichever the stack accepts first (the plan if
+        neither): ``RolloutWorker._label``."""
+        returner, obs = self.returners[row], np.asarray(self._obs[row], dtype=float)
+        label = returner(obs)
+        if label is not None:
+            return label
+        q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
+        hold = lambda: self.env.hold_actions([row])[0]  # noqa: E731 (computed only if tried)
+        label = returner.driver.first_safe(q0, v0, a0, [hold, lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
+        return hold() if label is None else label
+
+    def _demonstrate(self, row: int, label: np.ndarray) -> np.ndarray:
+        """The demonstrator's action: the label, with DART noise on a share of the steps where the
+        noisy segment would be accepted (``RolloutWorker._action``)."""
+        if self.rng.random() < self.exploration.demo_noise_fraction:
+            noisy = np.clip(label + self.rng.normal(0.0, self.exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
+            returner = self.returners[row]
+            q0, v0, a0 = np.split(returner.layout.part(np.asarray(self._obs[row], dtype=float), "robot_state"), 3)
+            if returner.stack.propose(q0, v0, a0, noisy).safe:  # noise that would collide is not explored
+                return noisy
+        return label
+
+    @staticmethod
+    def _empty_rows(mode: str = "policy") -> dict:
+        keys = (*TRANSITION_KEYS, "demo_action") if mode in ("demonstrator", "dagger") else TRANSITION_KEYS
+        return {key: [] for key in keys}

@@ -37,7 +37,7 @@ from ace_drake.learning.rewards import terminal_reward
 from ace_drake.physics.propagate import ContactKind, simulate
 from ace_drake.play.episode import classify, timed_out
 from ace_drake.play.shots import make_distribution
-from ace_drake.training.env import UNHIT_REASONS, RallyEnvParams, draw_robot_start, end_condition, pass_distance
+from ace_drake.training.env import UNHIT_REASONS, RallyEnvParams, draw_robot_start, end_condition, hold_action, pass_distance
 
 SHOT_STREAM = 0  # the third key of an environment's shot stream; episode k's own draws use [seed, index, k, 1]
 
@@ -188,6 +188,15 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
         joints = self._joints.joint_state_port.Eval(self._joints.GetMyContextFromRoot(self.context))
         n = joints.shape[1] // 2
         return self._ball_states()[:, :3] - self._kinematics.racket_pose(joints[:, :n])[0]
+
+    def hold_actions(self, rows=None) -> np.ndarray:
+        """The actions (k, 16) that continue the committed plans of environments ``rows`` (default
+        all) through the segment the next step decides (``training.env.hold_action``): what "no new
+        segment" does, as an action a demonstrator without one can be labelled with."""
+        rows = np.arange(self.num_envs) if rows is None else np.asarray(rows, dtype=int).reshape(-1)
+        states = self._supervisor_states()
+        boundaries = self.timing.boundary_sample(self._clock.ticks(self._clock.GetMyContextFromRoot(self.context)))
+        return np.array([hold_action(self.stack, states[row].plan, int(boundaries[row] - states[row].plan_start)) for row in rows]).reshape(-1, ACTION_SIZE)
 
     # ------------------------------------------------------------------------------ helpers
     def _start(self, rows: np.ndarray) -> None:
