@@ -25,6 +25,7 @@ DEFAULT_FITTED_PARAMS = MODELS_DIR / "ball_physics_fitted.yaml"
 # each), and ``ace-drake --help``, an input error or ``ace-drake results`` need none of them.
 WORK = {
     "rally": "ace_drake.evaluation.match:run_match",
+    "rally controller": "ace_drake.evaluation.controllers:best_controller",
     "match replay": "ace_drake.analysis.match_replay:write_match_replay",
     "evaluate": "ace_drake.evaluation.evaluate:evaluate_controller",
     "evaluate --skill sampled": "ace_drake.training.env:SkillSampling",
@@ -79,7 +80,11 @@ def cmd_rally(args) -> int:
     html = Path(args.html) if args.html else None
     if html is not None and html.suffix != ".html":
         raise ConfigError(f"rally: --html must name an .html file (or '' for none), got {args.html}")
-    result, track = work("rally")(args.controller, args.opponent, args.data, args.best_of, args.golden_point, args.matches, args.sensors,
+    controller = args.controller
+    if controller is None:
+        controller, rate = work("rally controller")()
+        log(f"rally: controller {controller}" + ("" if rate is None else f" (returned {rate:.1%} of the held-out players' playable shots)"))
+    result, track = work("rally")(controller, args.opponent, args.data, args.best_of, args.golden_point, args.matches, args.sensors,
                                   args.seed, args.params, args.serves, batch=args.batch, record=html is not None, progress=log)
     if html is not None:
         html.parent.mkdir(parents=True, exist_ok=True)
@@ -481,14 +486,16 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     def add_rally_options(command, controller_default):
-        command.add_argument("--controller", default=controller_default, help="still, returner or policy:<name>, a shipped policy of models/policies (default: %(default)s)")
+        default_text = "%(default)s" if controller_default else "the controller that returned the most of the held-out players' shots (docs/results/heldout/)"
+        command.add_argument("--controller", default=controller_default,
+                             help=f"still, returner or policy:<name>, a shipped policy of models/policies (default: {default_text})")
         command.add_argument("--sensors", choices=("cameras", "statistical"), default="cameras", help="ball positions from the nine cameras + triangulator, or the training sensor model")
         command.add_argument("--seed", type=int, default=0)
         command.add_argument("--params", help="ball-model parameter YAML (default: the paper's model)")
         command.add_argument("--json", action="store_true")
 
     rally = commands.add_parser("rally", help="the main job: a best-of-3 match under ITTF rules against a simulated recorded player; Meshcat replay")
-    add_rally_options(rally, DEFAULT_CONTROLLER)
+    add_rally_options(rally, None)
     rally.add_argument("--opponent", default="Elite C", help="the recorded player whose fitted model plays the robot (default: %(default)s)")
     rally.add_argument("--data", help="match-data CSV the opponent is fitted on (default: ../shared/data/ace_match_events_elite.csv beside the project)")
     rally.add_argument("--best-of", type=int, default=3, help="games in the longest match, a positive odd number (default: %(default)s)")

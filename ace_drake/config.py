@@ -25,6 +25,9 @@ T = TypeVar("T")
 # The repository's models/ folder: robot, table and camera files, scenario and training YAMLs, and
 # the shipped artefacts with their sidecars.
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+# Measured results the product reads: the held-out evaluations that choose ``ace-drake rally``'s
+# controller (``evaluation.controllers.best_controller``), beside the other stored results.
+RESULTS_DIR = Path(__file__).resolve().parent.parent / "docs" / "results"
 
 
 class InputError(ValueError):

@@ -83,3 +83,45 @@ def test_run_episodes_plays_each_shot_with_its_skill_and_refuses_a_wrong_shape()
     assert runner.skills[-1] is None  # the diagram's default
     with pytest.raises(ValueError, match="one per shot"):
         run_episodes(runner, np.stack([SHOT, SHOT]), np.zeros(2, dtype=bool), skills=skills[:1])
+
+
+def _heldout(directory, controller, rate, **conditions):
+    import json
+
+    evaluation = {"controller": controller, "return_rate": {"rate": rate, "returned": 0, "played": 0, "ci95": [0, 1]},
+                  "data_sha256": "abc", "players": ["Elite D", "Elite E"], "sensors": "cameras", "seed": 0, "skills": "default",
+                  "ball_params": None, "action_noise": 0.0, **conditions}
+    directory.mkdir(exist_ok=True)
+    (directory / f"{controller.replace(':', '_')}.json").write_text(json.dumps(evaluation))
+
+
+def test_the_main_jobs_controller_is_the_best_measured_on_the_heldout_players(tmp_path):
+    from ace_drake.config import ConfigError
+    from ace_drake.evaluation.controllers import best_controller, controller_names
+
+    assert best_controller(tmp_path / "none") == ("returner", None)  # nothing measured
+    _heldout(tmp_path / "a", "policy:rally_sac", 0.95)
+    assert best_controller(tmp_path / "a") == ("returner", None)  # nothing to beat: the returner is not measured
+    _heldout(tmp_path / "a", "returner", 0.91)
+    _heldout(tmp_path / "a", "policy:rally_skill", 0.80)
+    assert "policy:rally_sac" in controller_names()
+    assert best_controller(tmp_path / "a") == ("policy:rally_sac", 0.95)
+    _heldout(tmp_path / "b", "returner", 0.91)
+    _heldout(tmp_path / "b", "policy:rally_sac", 0.91)  # a tie keeps the returner
+    _heldout(tmp_path / "b", "policy:not_shipped", 0.99)  # a policy this checkout does not have is not chosen
+    assert best_controller(tmp_path / "b") == ("returner", 0.91)
+    _heldout(tmp_path / "c", "returner", 0.91)
+    _heldout(tmp_path / "c", "policy:rally_sac", 0.95, sensors="statistical")
+    with pytest.raises(ConfigError, match="other conditions.*sensors"):
+        best_controller(tmp_path / "c")
+
+
+def test_the_stored_heldout_evaluations_are_comparable_and_name_the_controller_the_main_job_plays():
+    from ace_drake.evaluation.controllers import best_controller
+    from ace_drake.evaluation.heldout import HELDOUT_DIR, heldout_evaluations
+
+    evaluations = heldout_evaluations()
+    assert "returner" in evaluations and {tuple(e["players"]) for e in evaluations.values()} == {("Elite D", "Elite E")}
+    name, rate = best_controller()
+    assert rate == max(e["return_rate"]["rate"] for e in evaluations.values())
+    assert (HELDOUT_DIR / "README.md").is_file()

@@ -176,3 +176,36 @@ def test_a_vector_worker_demonstrates_and_labels_with_one_returner_per_environme
             assert np.abs(t["action"] - t["demo_action"]).max() < 0.5  # DART noise of std 0.05, clipped into the box
     assert exact > 0 and noisy > 0
     assert sum(e.returned for e in demonstrated) >= 2, [e.outcome for e in demonstrated]
+
+
+def test_a_short_run_on_the_batched_diagram_lowers_the_critic_loss(distribution):
+    """SAC on episodes collected batched (OU exploration on 8 environments, the event tables with
+    hindsight relabelling): the critic's loss on one fixed batch of those transitions falls."""
+    import torch
+
+    from ace_drake.learning.replay import EventReplay, ReplayConfig
+    from ace_drake.learning.sac import SacConfig, SacLearner
+    from ace_drake.training.rollout import VectorRolloutWorker
+
+    torch.set_num_threads(1)
+    config = SacConfig(batch_size=64, actor_hidden=(64, 64), embedding_size=32, decoder_hidden=(32,), critic_hidden=(64, 64),
+                       critic_lr=1e-3, seed=3)
+    worker = VectorRolloutWorker(8, PARAMS, sac=config, distribution=distribution, seed=3)
+    replay = EventReplay(ReplayConfig(seed=3), config.layout, PARAMS.reward)
+    for episode in worker.collect(48, "ou"):
+        replay.add_episode(episode.transitions, episode.summary)
+    learner = SacLearner(config, PARAMS.rally)
+    fixed = replay.sample(256)
+
+    def critic_loss() -> float:
+        with torch.no_grad():
+            b = learner._tensors(fixed)
+            y = learner.target(b)
+            q1, q2 = learner.critic(learner.critic_features(b["privileged"], b["obs"]), b["action"])
+            return float(torch.mean((q1 - y) ** 2) + torch.mean((q2 - y) ** 2))
+
+    before = critic_loss()
+    for _ in range(300):
+        learner.update(replay.sample(config.batch_size))
+    after = critic_loss()
+    assert len(replay) > 200 and after < 0.5 * before, (len(replay), before, after)

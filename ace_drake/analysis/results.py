@@ -10,13 +10,15 @@ Sources, all relative to the repository root:
 - stored evaluations ``docs/results/<controller>.json`` (``ace-drake evaluate ... --json``
   redirected there; the default controller's row says "not measured" until its file exists);
 - stored benchmarks ``docs/benchmarks/<name>.json`` (``ace-drake bench <name> --json``);
+- stored held-out evaluations ``docs/results/heldout/<controller>.json`` (``evaluation.heldout``:
+  they choose the main job's controller);
 - stored matches ``docs/results/matches/<opponent>.json`` (``ace-drake rally --opponent ...
   --matches N --json`` redirected there), set beside the paper's Fig. 3a (``PAPER_MATCHES``).
 
 ``render_results`` turns them into the README's table, ``render_benchmarks`` into the table of
 docs/benchmarks.md; ``replace_block`` puts a table between its markers and ``stale_files`` says
 which document no longer shows what its sources hold. No figure in either table is typed by hand.
-Plain Python: no Drake, no NumPy.
+Plain Python: no Drake, no torch.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import json
 from pathlib import Path
 
 from ace_drake.contracts import DEFAULT_CONTROLLER  # the row the table starts with
+from ace_drake.evaluation.heldout import choose_controller, heldout_evaluations
 
 SHIPPED_POLICIES = ("rally_hit_state_braking", "rally_sac", "rally_skill")
 POLICY_ROLES = {
@@ -144,6 +147,23 @@ def ball_fit_row(sidecar: dict | None, source: str) -> Row:
     return Row(what, figure, measured_on, _source(source))
 
 
+def heldout_row(root: Path) -> list[Row]:
+    """The controllers measured on the held-out players (``evaluation.heldout``), best first, and
+    the one ``ace-drake rally`` plays; none when nothing is stored."""
+    directory = root / "docs/results/heldout"
+    evaluations = heldout_evaluations(directory)
+    if not evaluations:
+        return []
+    available = {"returner", "still", *(f"policy:{path.stem}" for path in (root / "models/policies").glob("*.pt"))}
+    chosen, _ = choose_controller(evaluations, available)
+    ranked = sorted(evaluations.items(), key=lambda item: -(item[1]["return_rate"]["rate"] or 0.0))
+    figure = "; ".join(f"`{name}` {return_rate_text(evaluation['return_rate'])}" for name, evaluation in ranked)
+    some = ranked[0][1]
+    what = f"the main job's controller, chosen on the held-out players: `{chosen}`"
+    measured_on = f"all recorded shots of {', '.join(some['players'])}, {some['sensors']}, seed {some['seed']}, the {some.get('stepping', 'segment')} diagram"
+    return [Row(what, figure, measured_on, "`docs/results/heldout/`")]
+
+
 def match_row(result: dict, source: str) -> Row:
     """A stored ``ace-drake rally --json``: matches, games and points won, rally length, and how
     often the simulated human's returns landed against how often the recorded player's did."""
@@ -221,6 +241,7 @@ def result_rows(root: Path) -> list[Row]:
     for name in SHIPPED_POLICIES:
         source = f"models/policies/{name}.json"
         rows.append(policy_row(name, read_json(root / source), source))
+    rows.extend(heldout_row(root))
     rows.append(ball_fit_row(read_json(root / "models/ball_physics_fitted.json"), "models/ball_physics_fitted.json"))
     rows.append(racket_fit_row(read_json(root / "models/racket_fitted.json"), "models/racket_fitted.json"))
     rows.extend(match_rows(root))

@@ -20,6 +20,7 @@ from ace_drake.contracts import DEFAULT_CONTROLLER, ObservationLayout  # noqa: F
 from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
 from ace_drake.control.params import RallyParams
 from ace_drake.control.returner import ModelBasedReturner
+from ace_drake.evaluation.heldout import choose_controller, heldout_evaluations
 from ace_drake.learning.networks import DeterministicPolicy
 from ace_drake.learning.sac import load_policy
 from ace_drake.perception.params import PerceptionParams
@@ -120,6 +121,13 @@ def make_controller(name: str, params: RallyParams):
             raise ConfigError(f"policy {name} reads the observation's hit_prediction part: build its diagram with RallyParams.hit_prediction true")
         return hit_state_controller(policy, params)
     raise ConfigError(f"unknown controller {name!r}; choose one of {', '.join(controller_names())}")
+
+
+def best_controller(directory=None) -> tuple[str, float | None]:
+    """The main job's controller and its held-out return rate (``evaluation.heldout``): of the
+    controllers this checkout can build (``controller_names``), the best measured on the held-out
+    players (the stored evaluations in ``directory``, default ``heldout.HELDOUT_DIR``)."""
+    return choose_controller(heldout_evaluations(directory), controller_names())
 
 
 def _observation_size(params: RallyParams) -> int:
