@@ -14,6 +14,9 @@ from ace_drake.diagrams import add_ball, add_random_sources, make_simulator
 from ace_drake.perception.camera_segment import (
     CameraSegment,
     _CameraStack,
+    _triangulate_compiled,
+    _triangulate_rounds,
+    _visible,
     draw_detection_noise,
     triangulate_frames,
     trigger_times,
@@ -159,8 +162,8 @@ def test_noise_is_default_rng_bit_for_bit():
     seeds = np.concatenate([rng.integers(0, 2**64, 40, dtype=np.uint64), np.array([0, 1, 2**32 - 1, 2**32, 2**64 - 1], dtype=np.uint64)])
     sequences = rng.integers(1, 2**32, len(seeds))
     sequences[:3] = [1, 2, 3]
-    noise, uniforms = draw_detection_noise(seeds, sequences, C)  # seeded in one vectorised pass
-    few_noise, few_uniforms = draw_detection_noise(seeds[-8:], sequences[-8:], C)  # seeded one by one
+    noise, uniforms = draw_detection_noise(seeds, sequences, C)
+    few_noise, few_uniforms = draw_detection_noise(seeds[-8:], sequences[-8:], C)
     np.testing.assert_array_equal(few_noise, noise[-8:])
     np.testing.assert_array_equal(few_uniforms, uniforms[-8:])
     for index, (seed, sequence) in enumerate(zip(seeds.tolist(), sequences.tolist())):
@@ -185,6 +188,34 @@ def test_batched_triangulation_with_other_thresholds():
     frames = noisy_frames(150, seed=8)
     batch = triangulate_frames(CAMERAS, frames, 1.5, outlier_threshold_px=4.0, min_views=3)
     assert_same_triangulations(batch, frames, outlier_threshold_px=4.0, min_views=3)
+
+
+def test_compiled_triangulation_equals_the_vectorised_rounds():
+    frames = noisy_frames(300, seed=12)
+    stack = _CameraStack(CAMERAS)
+    usable = np.all(np.isfinite(frames), axis=2)
+    normalised = stack.normalised(frames, usable)
+    for threshold, min_views in ((8.0, 2), (4.0, 3)):
+        compiled = _triangulate_compiled(stack, frames, normalised, usable, 1.5, threshold, min_views, (len(frames),))
+        rounds = _triangulate_rounds(stack, frames, normalised, usable, 1.5, threshold, min_views, (len(frames),))
+        np.testing.assert_array_equal(compiled.valid, rounds.valid)
+        np.testing.assert_array_equal(compiled.views, rounds.views)
+        np.testing.assert_allclose(compiled.position, rounds.position, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(compiled.covariance, rounds.covariance, rtol=1e-9, atol=1e-18)
+        np.testing.assert_allclose(compiled.rms_residual_px, rounds.rms_residual_px, rtol=1e-9, atol=1e-12)
+        assert 50 < compiled.valid.sum() < len(frames)
+
+
+def test_compiled_visibility_equals_visibility():
+    rng = np.random.default_rng(13)
+    points = np.concatenate([points_in_play_volume(300, seed=13), rng.uniform([-6.0, -4.0, -1.0], [6.0, 4.0, 4.0], size=(300, 3))])
+    dut = CameraSegment(CAMERAS)
+    pixels, _ = project_points(CAMERAS, points)
+    seen = np.empty((C, len(points)), dtype=bool)
+    _visible(points, pixels, dut._stack.R_CW, dut._stack.tvec, dut._focal_px, dut._image_size, dut._origins, *dut._boxes, dut.ball_radius, seen)
+    expected = visibility(CAMERAS, points, (table_occluder(),), dut.ball_radius, pixels=pixels)
+    np.testing.assert_array_equal(seen, expected)
+    assert 0.1 < expected.mean() < 0.9
 
 
 def test_stacked_projection_equals_opencv():

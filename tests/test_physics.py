@@ -18,7 +18,7 @@ from ace_drake.physics.flight import (
     rk4_trajectory,
 )
 from ace_drake.physics.params import AeroParams, BallPhysicsParams
-from ace_drake.physics.propagate import ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, simulate
+from ace_drake.physics.propagate import ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, simulate, simulate_ball
 
 PARAMS = BallPhysicsParams()
 AERO = PARAMS.aero
@@ -409,6 +409,38 @@ def test_simulate_rejects_bad_input():
         simulate(np.full(9, np.nan), PARAMS, 1.0)
     with pytest.raises(ValueError, match="dt"):
         simulate(np.zeros(9), PARAMS, 1.0, dt=0.0)
+
+
+def test_compiled_one_ball_simulation_equals_simulate_bit_for_bit():
+    # Random balls over and around the table with every static kind, stopping or not, and
+    # steps from 3 to 50 ms: the same steps, contacts (kinds, times, states) and stops.
+    rng = np.random.default_rng(11)
+    cases = [((ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR), (ContactKind.TABLE_PLANE, ContactKind.FLOOR)),
+             ((ContactKind.NET, ContactKind.FLOOR), (ContactKind.FLOOR,)),
+             ((ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR), ()),
+             ((ContactKind.TABLE,), (ContactKind.TABLE,))]
+    contacts = 0
+    for index in range(400):
+        kinds, stop_on = cases[index % len(cases)]
+        state = np.concatenate([rng.uniform([-1.6, -0.9, -0.05], [1.6, 0.9, 0.6]), rng.uniform([-12.0, -3.0, -4.0], [12.0, 3.0, 4.0]),
+                                rng.uniform(-500.0, 500.0, 3)])
+        duration, dt = rng.uniform(0.01, 0.6), (0.032, 0.01, 0.003, 0.05)[index % 4]
+        expected = simulate(state, PARAMS, duration, dt=dt, kinds=kinds, stop_on=stop_on)
+        actual = simulate_ball(state, PARAMS, duration, dt=dt, kinds=kinds, stop_on=stop_on)
+        np.testing.assert_array_equal(actual.times, expected.times)
+        np.testing.assert_array_equal(actual.states, expected.states)
+        np.testing.assert_array_equal(actual.final_state, expected.final_state)
+        assert len(actual.events[0]) == len(expected.events[0])
+        for mine, theirs in zip(actual.events[0], expected.events[0]):
+            assert mine.kind == theirs.kind and mine.time == theirs.time
+            np.testing.assert_array_equal(mine.state_pre, theirs.state_pre)
+            np.testing.assert_array_equal(mine.state_post, theirs.state_post)
+        stopped = expected.stop_events[0]
+        assert (actual.stop_events[0] is None) == (stopped is None)
+        if stopped is not None:
+            assert actual.stop_events[0].time == stopped.time
+        contacts += len(expected.events[0])
+    assert contacts > 100
 
 
 def test_ball_entering_the_table_footprint_below_the_surface_is_no_table_contact():

@@ -37,7 +37,7 @@ from ace_drake.physics.propagate import (
     first_contact_time,
     guard_gaps,
     is_contact,
-    simulate,
+    simulate_ball,
 )
 from ace_drake.robot.params import RobotScenario
 
@@ -171,14 +171,14 @@ class HitPredictor:
             upcoming = first_sample + self._step * len(times)
             lead_in = upcoming - now
             duration = lead_in + 8 * self.segment
-            leg = simulate(state, self.physics, lead_in, dt=lead_in, kinds=kinds, stop_on=stops) if lead_in > 1e-9 else None
+            leg = simulate_ball(state, self.physics, lead_in, dt=lead_in, kinds=kinds, stop_on=stops) if lead_in > 1e-9 else None
             if leg is None or leg.stop_events[0] is None:
                 if leg is not None:
                     state, now = leg.final_state[0], upcoming
                     contacts += [(now - lead_in + e.time, e.kind, e.state_pre) for e in leg.events[0]]
                     times.append(now)
                     states.append(state)
-                leg = simulate(state, self.physics, duration - lead_in, dt=self._step, kinds=kinds, stop_on=stops)
+                leg = simulate_ball(state, self.physics, duration - lead_in, dt=self._step, kinds=kinds, stop_on=stops)
                 offset = now
                 stopped = leg.stop_events[0]
                 kept = leg.times[1:] if stopped is None else leg.times[1:][leg.times[1:] < stopped.time]

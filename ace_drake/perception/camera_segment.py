@@ -29,12 +29,14 @@ measurements of those triggers (``SegmentMeasurements``).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import cv2
+import numba
 import numpy as np
 
-from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, project_points, segments_blocked, table_occluder, visibility
+from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, OccluderBox, segments_blocked, table_occluder, visibility
 from ace_drake.perception.measurements import Measurement
 from ace_drake.perception.params import CameraParams
 from ace_drake.perception.triangulation import GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, inverse_or_inf
@@ -230,7 +232,9 @@ def triangulate_frames(
     """``triangulation.triangulate`` for a batch of frames: the detections ``pixels`` S + (C, 2),
     px, of the C ``cameras`` (NaN rows: no detection) for any leading shape S. Each frame gets
     the views, outlier rejection, position and covariance that ``triangulate`` gives it (to
-    rounding, ~1e-12 m), computed in rounds vectorised over the frames still in play."""
+    rounding, ~1e-12 m): frame by frame in one compiled call when the stacked projection covers
+    the lenses (``_triangulate_compiled``), else in rounds vectorised over the frames still in
+    play (``_triangulate_rounds``)."""
     if min_views < 2:
         raise ValueError(f"triangulate_frames: min_views must be >= 2, got {min_views}")
     pixels = np.asarray(pixels, dtype=float)
@@ -239,10 +243,19 @@ def triangulate_frames(
         raise ValueError(f"triangulate_frames: pixels must have shape (..., {C}, 2) for {C} cameras, got {pixels.shape}")
     shape = pixels.shape[:-2]
     flat = pixels.reshape(-1, C, 2)
-    N = len(flat)
     stack = cameras if isinstance(cameras, _CameraStack) else _CameraStack(cameras)
     usable = np.all(np.isfinite(flat), axis=2)
     normalised = stack.normalised(flat, usable)
+    triangulate = _triangulate_compiled if stack.stacked else _triangulate_rounds
+    return triangulate(stack, flat, normalised, usable, pixel_noise_sigma, outlier_threshold_px, min_views, shape)
+
+
+def _triangulate_rounds(stack: _CameraStack, flat: np.ndarray, normalised: np.ndarray, usable: np.ndarray, pixel_noise_sigma: float,
+                        outlier_threshold_px: float, min_views: int, shape: tuple) -> FrameTriangulations:
+    """``triangulate_frames``' rounds (DLT, Gauss-Newton, outlier rejection) vectorised over the
+    frames still in play, for frames (N, C, 2), px, with their normalised points (N, C, 2) and
+    usable views (N, C); results reshaped to the leading shape ``shape``."""
+    N, C = usable.shape
     views = usable.copy()
     valid = np.zeros(N, dtype=bool)
     position = np.full((N, 3), np.nan)
@@ -286,6 +299,246 @@ def triangulate_frames(
     )
 
 
+def _triangulate_compiled(stack: _CameraStack, flat: np.ndarray, normalised: np.ndarray, usable: np.ndarray, pixel_noise_sigma: float,
+                          outlier_threshold_px: float, min_views: int, shape: tuple) -> FrameTriangulations:
+    """``triangulate_frames``' rounds frame by frame in one compiled call (``_triangulate_frames``),
+    for arrays whose lens models the stacked projection covers: the same views, rejections and
+    results to round-off (the SVDs, eigenvalues and sums are LAPACK's and loops' rather than
+    NumPy's batched ones; tests/test_camera_segment.py)."""
+    N, C = usable.shape
+    valid = np.zeros(N, dtype=np.bool_)
+    position = np.full((N, 3), np.nan)
+    covariance = np.full((N, 3, 3), np.nan)
+    views = usable.copy()
+    rms = np.full(N, np.nan)
+    _triangulate_frames(np.ascontiguousarray(flat), np.ascontiguousarray(normalised), stack.projection, stack.R_CW, stack.tvec, stack.focal,
+                        stack.centre, stack.distortion, float(pixel_noise_sigma), float(outlier_threshold_px), int(min_views),
+                        GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, valid, position, covariance, views, rms)
+    return FrameTriangulations(
+        valid=valid.reshape(shape),
+        position=position.reshape(shape + (3,)),
+        covariance=covariance.reshape(shape + (3, 3)),
+        views=views.reshape(shape + (C,)),
+        rms_residual_px=rms.reshape(shape),
+    )
+
+
+@numba.njit(cache=True)
+def _project_one(p, R_CW, tvec, focal, centre, distortion, used, residual_to, residuals, jacobians):
+    """``_CameraStack.project_with_jacobian`` of one position p (3,) in the cameras ``used`` (C,):
+    residuals (C, 2), px (the projection less ``residual_to`` (C, 2)), and Jacobians (C, 2, 3),
+    px/m (zero for the other cameras), in that method's order of operations."""
+    dx_dp_C, dy_dp_C = np.empty(3), np.empty(3)
+    for c in range(R_CW.shape[0]):
+        if not used[c]:
+            residuals[c, 0] = residuals[c, 1] = 0.0
+            jacobians[c] = 0.0
+            continue
+        R = R_CW[c]
+        p_C0 = R[0, 0] * p[0] + R[0, 1] * p[1] + R[0, 2] * p[2] + tvec[c, 0]
+        p_C1 = R[1, 0] * p[0] + R[1, 1] * p[1] + R[1, 2] * p[2] + tvec[c, 1]
+        p_C2 = R[2, 0] * p[0] + R[2, 1] * p[1] + R[2, 2] * p[2] + tvec[c, 2]
+        inverse_depth = 1.0 / p_C2
+        a, b = p_C0 * inverse_depth, p_C1 * inverse_depth
+        k1, k2, p1, p2, k3, k4, k5, k6 = distortion[c]
+        r2 = a * a + b * b
+        numerator = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = numerator / denominator
+        d_radial = ((k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)) * denominator - (k4 + r2 * (2.0 * k5 + 3.0 * r2 * k6)) * numerator) / denominator**2
+        x = a * radial + 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a)
+        y = b * radial + p1 * (r2 + 2.0 * b * b) + 2.0 * p2 * a * b
+        residuals[c, 0] = x * focal[c, 0] + centre[c, 0] - residual_to[c, 0]
+        residuals[c, 1] = y * focal[c, 1] + centre[c, 1] - residual_to[c, 1]
+        da = (inverse_depth, 0.0, -a * inverse_depth)  # d(a, b) / d p_C, then the chain rule
+        db = (0.0, inverse_depth, -b * inverse_depth)
+        ax, bx, rx = radial + 2.0 * p1 * b + 4.0 * p2 * a, 2.0 * p1 * a, a * d_radial + p2
+        by, ay, ry = radial + 2.0 * p2 * a + 4.0 * p1 * b, 2.0 * p2 * b, b * d_radial + p1
+        for j in range(3):  # d pixel / d p_C
+            dr2 = 2.0 * (a * da[j] + b * db[j])
+            dx_dp_C[j] = (ax * da[j] + bx * db[j] + rx * dr2) * focal[c, 0]
+            dy_dp_C[j] = (by * db[j] + ay * da[j] + ry * dr2) * focal[c, 1]
+        for i in range(3):  # d pixel / d p_W = d pixel / d p_C R_CW
+            jacobians[c, 0, i] = dx_dp_C[0] * R[0, i] + dx_dp_C[1] * R[1, i] + dx_dp_C[2] * R[2, i]
+            jacobians[c, 1, i] = dy_dp_C[0] * R[0, i] + dy_dp_C[1] * R[1, i] + dy_dp_C[2] * R[2, i]
+
+
+@numba.njit(cache=True)
+def _gauss_newton_step(jacobians, residuals, used, step):
+    """``_least_squares_steps`` of one frame into step (3,): the normal equations' closed-form
+    solution, or the minimum-norm least-squares solution (SVD) when they are near singular."""
+    C = jacobians.shape[0]
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    for c in range(C):
+        if not used[c]:
+            continue
+        for k in range(2):
+            for i in range(3):
+                g[i] += jacobians[c, k, i] * -residuals[c, k]
+                for j in range(3):
+                    H[i, j] += jacobians[c, k, i] * jacobians[c, k, j]
+    cofactor = np.empty((3, 3))
+    cofactor[0, 0] = H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]
+    cofactor[0, 1] = H[0, 2] * H[2, 1] - H[0, 1] * H[2, 2]
+    cofactor[0, 2] = H[0, 1] * H[1, 2] - H[0, 2] * H[1, 1]
+    cofactor[1, 0] = H[1, 2] * H[2, 0] - H[1, 0] * H[2, 2]
+    cofactor[1, 1] = H[0, 0] * H[2, 2] - H[0, 2] * H[2, 0]
+    cofactor[1, 2] = H[0, 2] * H[1, 0] - H[0, 0] * H[1, 2]
+    cofactor[2, 0] = H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]
+    cofactor[2, 1] = H[0, 1] * H[2, 0] - H[0, 0] * H[2, 1]
+    cofactor[2, 2] = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+    determinant = H[0, 0] * cofactor[0, 0] + H[0, 1] * cofactor[1, 0] + H[0, 2] * cofactor[2, 0]
+    scale = (H[0, 0] + H[1, 1] + H[2, 2]) / 3.0
+    if determinant > 1e-9 * scale**3:  # condition number below ~1e9
+        for i in range(3):
+            step[i] = (cofactor[i, 0] * g[0] + cofactor[i, 1] * g[1] + cofactor[i, 2] * g[2]) / determinant
+        return
+    J = jacobians.reshape(2 * C, 3).copy()  # unused views are zero rows (``_project_one``)
+    b = -residuals.reshape(2 * C)
+    count = 0
+    for c in range(C):
+        if used[c]:
+            count += 1
+    U, S, Vt = np.linalg.svd(J, full_matrices=False)
+    cutoff = np.finfo(np.float64).eps * max(2 * count, 3) * S[0]
+    projected = U.T @ b
+    step[:] = 0.0
+    for k in range(3):
+        if S[k] > cutoff:
+            for i in range(3):
+                step[i] += Vt[k, i] * (projected[k] / S[k])
+
+
+@numba.njit(cache=True)
+def _triangulate_frames(pixels, normalised, projection, R_CW, tvec, focal, centre, distortion, sigma, threshold, min_views,
+                        iterations, tolerance, valid, position, covariance, views, rms):
+    """``triangulate_frames``' per-frame logic for N frames: pixels and normalised points (N, C, 2),
+    the stacked camera model (``_CameraStack``), and the outputs valid (N,), position (N, 3),
+    covariance (N, 3, 3), views (N, C) (the usable views on entry), rms (N,), filled in place."""
+    N, C = views.shape
+    rows = np.zeros((2 * C, 4))
+    residuals, jacobians = np.empty((C, 2)), np.empty((C, 2, 3))
+    step, p = np.empty(3), np.empty(3)
+    norms = np.empty(C)
+    for n in range(N):
+        used = views[n]
+        while used.sum() >= min_views:
+            # The DLT (triangulation.triangulate_linear) over the views used; unused ones are zero rows.
+            for c in range(C):
+                for j in range(4):
+                    if used[c]:
+                        rows[2 * c, j] = normalised[n, c, 0] * projection[c, 2, j] - projection[c, 0, j]
+                        rows[2 * c + 1, j] = normalised[n, c, 1] * projection[c, 2, j] - projection[c, 1, j]
+                    else:
+                        rows[2 * c, j] = rows[2 * c + 1, j] = 0.0
+            _, _, vt = np.linalg.svd(rows)
+            for i in range(3):
+                p[i] = vt[3, i] / vt[3, 3]
+            # Gauss-Newton (triangulation.refine_position), stopping after the first short step.
+            for _ in range(iterations):
+                _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians)
+                _gauss_newton_step(jacobians, residuals, used, step)
+                for i in range(3):
+                    p[i] = p[i] + step[i]
+                if not math.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) >= tolerance:
+                    break
+            _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians)
+            count, worst = 0, -1
+            for c in range(C):
+                norms[c] = math.sqrt(residuals[c, 0] * residuals[c, 0] + residuals[c, 1] * residuals[c, 1]) if used[c] else -np.inf
+                if used[c]:
+                    count += 1
+                if worst < 0 or norms[c] > norms[worst]:
+                    worst = c
+            if norms[worst] <= threshold:
+                information = np.zeros((3, 3))
+                squared = 0.0
+                good = True
+                for c in range(C):
+                    if not used[c]:
+                        continue
+                    squared += norms[c] ** 2
+                    R = R_CW[c]
+                    good = good and R[2, 0] * p[0] + R[2, 1] * p[1] + R[2, 2] * p[2] + tvec[c, 2] > 0.0
+                    for k in range(2):
+                        for i in range(3):
+                            for j in range(3):
+                                information[i, j] += jacobians[c, k, i] * jacobians[c, k, j]
+                # inverse_or_inf: sigma^2 (J^T J)^-1, infinite where singular.
+                eigenvalues = np.linalg.eigvalsh(information)
+                good = good and eigenvalues[0] > 1e-12 * max(eigenvalues[2], 1e-300)
+                if good:
+                    inverse = np.linalg.inv(information)
+                    for i in range(3):
+                        for j in range(3):
+                            good = good and math.isfinite(inverse[i, j])
+                if good:
+                    valid[n] = True
+                    position[n] = p
+                    covariance[n] = sigma**2 * inverse
+                    rms[n] = math.sqrt(squared / count)
+                break
+            if count <= 2:
+                break
+            used[worst] = False  # drop the worst view and try the rest (triangulate)
+        if not valid[n]:
+            used[:] = False
+
+
+@numba.njit(cache=True)
+def _visible(points, pixels, R_CW, tvec, focal_px, image_size, origins, box_centres, box_rotations, box_half_extents, ball_radius,
+             seen):
+    """``cameras.visibility`` of the ball at points (N, 3), m, whose projections pixels (C, N, 2),
+    px, are given, for cameras R_CW (C, 3, 3), tvec (C, 3), smaller focal lengths (C,), px,
+    image sizes (C, 2), px, and centres (C, 3), m, behind static boxes (K of them: centres (K,
+    3), rotations R_WB (K, 3, 3), half extents (K, 3), m), into seen (C, N): in front (depth >
+    ball radius), the projected disc inside the image (``projected_ball_radius``) and the line of
+    sight through no box (``segments_blocked``'s slab test); the same tests in the same order."""
+    C, N, K = R_CW.shape[0], points.shape[0], box_centres.shape[0]
+    start = np.empty((C, K, 3))  # the camera centres in each box's frame
+    for c in range(C):
+        for k in range(K):
+            for i in range(3):
+                start[c, k, i] = ((origins[c, 0] - box_centres[k, 0]) * box_rotations[k, 0, i]
+                                  + (origins[c, 1] - box_centres[k, 1]) * box_rotations[k, 1, i]
+                                  + (origins[c, 2] - box_centres[k, 2]) * box_rotations[k, 2, i])
+    for c in range(C):
+        R = R_CW[c]
+        for n in range(N):
+            x, y, z = points[n, 0], points[n, 1], points[n, 2]
+            p_C0 = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + tvec[c, 0]
+            p_C1 = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + tvec[c, 1]
+            p_C2 = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + tvec[c, 2]
+            distance = math.sqrt(p_C0 * p_C0 + p_C1 * p_C1 + p_C2 * p_C2)
+            visible = p_C2 > ball_radius and distance > ball_radius
+            if visible:
+                tan_theta = ball_radius / math.sqrt(max(distance**2 - ball_radius**2, 1e-300))
+                radius = focal_px[c] * tan_theta * distance / p_C2
+                for axis in range(2):
+                    pixel = pixels[c, n, axis]
+                    visible = visible and pixel - radius >= -0.5 and pixel + radius <= image_size[c, axis] - 0.5
+            for k in range(K):
+                if not visible:
+                    break
+                t_enter, t_exit = -np.inf, np.inf
+                for i in range(3):
+                    end = ((x - box_centres[k, 0]) * box_rotations[k, 0, i] + (y - box_centres[k, 1]) * box_rotations[k, 1, i]
+                           + (z - box_centres[k, 2]) * box_rotations[k, 2, i])
+                    direction = end - start[c, k, i]
+                    lower = -box_half_extents[k, i] - start[c, k, i]
+                    upper = box_half_extents[k, i] - start[c, k, i]
+                    if direction == 0.0:  # parallel to the slab: inside it for all t or for none
+                        inside = lower <= 0.0 and upper >= 0.0
+                        enter, leave = (-np.inf, np.inf) if inside else (np.inf, -np.inf)
+                    else:
+                        t_lower, t_upper = lower / direction, upper / direction
+                        enter, leave = min(t_lower, t_upper), max(t_lower, t_upper)
+                    t_enter, t_exit = max(t_enter, enter), min(t_exit, leave)
+                visible = not (t_enter <= t_exit and t_exit >= 0.0 and t_enter <= 1.0)
+            seen[c, n] = visible
+
+
 # ----------------------------------------------------------------------------------------------
 # Detection noise, as the reference draws it
 # ----------------------------------------------------------------------------------------------
@@ -317,53 +570,60 @@ _MIX_HASHES = _hash_constants(_HASH_INIT_A, _HASH_MULT_A, _POOL_SIZE * _POOL_SIZ
 _STATE_HASHES = _hash_constants(_HASH_INIT_B, _HASH_MULT_B, 2 * _POOL_SIZE)
 
 
-_VECTORISED_SEEDING_FROM = 32  # triggers; fewer are seeded with Python ints (less overhead)
+_MIX_HASH_ARRAY = np.array(_MIX_HASHES, dtype=np.uint64)  # (16, 2) as the compiled seeding takes them
+_STATE_HASH_ARRAY = np.array(_STATE_HASHES, dtype=np.uint64)  # (8, 2)
 
 
-def _hash(value, constants: tuple[int, int]):
-    """SeedSequence's hashmix of 32-bit words: Python ints or uint64 arrays (the operators
-    below wrap the same way for both once masked to 32 bits)."""
-    xor, mult = constants
-    value = ((value ^ xor) * mult) & _MASK32
-    return value ^ (value >> 16)
+@numba.njit(cache=True)
+def _hash(value, xor, mult):
+    """SeedSequence's hashmix of a 32-bit word held in a uint64."""
+    value = ((value ^ xor) * mult) & np.uint64(_MASK32)
+    return value ^ (value >> np.uint64(16))
 
 
-def _seed_words(entropy: list) -> list:
-    """SeedSequence's pool mixing and ``generate_state(4, uint64)``: the 8 state words (32-bit,
-    little-endian pairs) from the 4 entropy words (zero-padded), each a Python int or a uint64
-    array of many triggers' words."""
-    constants = iter(_MIX_HASHES)
-    pool = [_hash(word, next(constants)) for word in entropy]
-    for source in range(_POOL_SIZE):
-        for target in range(_POOL_SIZE):
-            if source != target:
-                mixed = (_MIX_MULT_L * pool[target] - _MIX_MULT_R * _hash(pool[source], next(constants))) & _MASK32
-                pool[target] = mixed ^ (mixed >> 16)
-    return [_hash(pool[i % _POOL_SIZE], constants) for i, constants in enumerate(_STATE_HASHES)]
-
-
-def _entropy(seed, sequence, two_words) -> list:
-    """The entropy words of [seed, sequence]: an int seed is coerced to as many 32-bit words as
-    it needs (at least one), then the sequence's word; shorter entropy hashes zeros into the pool."""
-    low, high = seed & _MASK32, seed >> 32
-    if isinstance(two_words, bool):
-        return [low, high, sequence, 0] if two_words else [low, sequence, 0, 0]
-    return [low, np.where(two_words, high, sequence), np.where(two_words, sequence, 0), np.zeros_like(low)]
+@numba.njit(cache=True)
+def _seed_words(seeds, sequences, mix_hashes, state_hashes, out):
+    """SeedSequence([seed, sequence])'s pool mixing and ``generate_state(4, uint64)`` per trigger,
+    seeds and sequences (N,) uint64: out (N, 4) uint64, the four state words (the 64-bit halves
+    [high, low] of PCG64's initstate, then of its initseq). The entropy words: an int seed is
+    coerced to as many 32-bit words as it needs (at least one), then the sequence's word; shorter
+    entropy hashes zeros into the pool."""
+    mask, shift = np.uint64(_MASK32), np.uint64(32)
+    left, right = np.uint64(_MIX_MULT_L), np.uint64(_MIX_MULT_R)
+    pool, entropy, words = np.empty(_POOL_SIZE, np.uint64), np.zeros(_POOL_SIZE, np.uint64), np.empty(8, np.uint64)
+    for n in range(seeds.shape[0]):
+        low, high = seeds[n] & mask, seeds[n] >> shift
+        entropy[:] = 0
+        entropy[0] = low
+        if high > 0:
+            entropy[1], entropy[2] = high, sequences[n]
+        else:
+            entropy[1] = sequences[n]
+        constant = 0
+        for i in range(_POOL_SIZE):
+            pool[i] = _hash(entropy[i], mix_hashes[constant, 0], mix_hashes[constant, 1])
+            constant += 1
+        for source in range(_POOL_SIZE):
+            for target in range(_POOL_SIZE):
+                if source != target:
+                    hashed = _hash(pool[source], mix_hashes[constant, 0], mix_hashes[constant, 1])
+                    constant += 1
+                    mixed = (left * pool[target] - right * hashed) & mask
+                    pool[target] = mixed ^ (mixed >> np.uint64(16))
+        for i in range(8):
+            words[i] = _hash(pool[i % _POOL_SIZE], state_hashes[i, 0], state_hashes[i, 1])
+        for i in range(4):  # little-endian pairs of 32-bit words
+            out[n, i] = words[2 * i] | (words[2 * i + 1] << shift)
 
 
 def _pcg64_states(seeds: np.ndarray, sequences: np.ndarray) -> list[tuple[int, int]]:
     """The (state, increment) of ``PCG64(SeedSequence([seed, sequence]))`` per trigger, seeds (N,)
     < 2**64 and sequences (N,) < 2**32 (pcg64's ``srandom_r``: state 0, increment 2 initseq + 1,
     step, add initstate, step)."""
-    if len(seeds) >= _VECTORISED_SEEDING_FROM:
-        seeds, sequences = seeds.astype(np.uint64), sequences.astype(np.uint64)
-        words = _seed_words(_entropy(seeds, sequences, seeds >= np.uint64(1 << 32)))
-        rows = np.stack([words[i] | (words[i + 1] << np.uint64(32)) for i in range(0, 8, 2)], axis=1).tolist()
-    else:
-        rows = []
-        for seed, sequence in zip(seeds.tolist(), sequences.tolist()):
-            words = _seed_words(_entropy(seed, sequence, seed >= 1 << 32))
-            rows.append([words[i] | (words[i + 1] << 32) for i in range(0, 8, 2)])
+    words = np.empty((len(seeds), 4), dtype=np.uint64)
+    _seed_words(np.ascontiguousarray(seeds, dtype=np.uint64), np.ascontiguousarray(sequences, dtype=np.uint64), _MIX_HASH_ARRAY,
+                _STATE_HASH_ARRAY, words)
+    rows = words.tolist()
     states = []
     for state_high, state_low, increment_high, increment_low in rows:  # 64-bit halves of initstate, initseq
         increment = ((((increment_high << 64) | increment_low) << 1) | 1) & _MASK128
@@ -489,6 +749,17 @@ class CameraSegment:
         self.period = 1.0 / self.params.trigger_rate
         self._stack = _CameraStack(self.cameras)
         self._origins = np.array([camera.p_WC for camera in self.cameras])
+        # ``visibility``'s constants for the compiled test (``_visible``): each camera's smaller
+        # focal length, px, and image size, px; the static boxes as (K, 3) centres, (K, 3, 3)
+        # rotations and (K, 3) half extents (None when some static occluder is not a box).
+        self._focal_px = np.array([camera.focal_length_px for camera in self.cameras])
+        self._image_size = np.array([[camera.width, camera.height] for camera in self.cameras], dtype=float)
+        boxes = [occluder for occluder in self.occluders if isinstance(occluder, OccluderBox)]
+        self._boxes = None if len(boxes) != len(self.occluders) else (
+            np.array([box.p_WB for box in boxes], dtype=float).reshape(-1, 3),
+            np.array([box.R_WB for box in boxes], dtype=float).reshape(-1, 3, 3),
+            np.array([box.half_extents for box in boxes], dtype=float).reshape(-1, 3),
+        )
 
     def detect(
         self,
@@ -506,8 +777,13 @@ class CameraSegment:
         C = len(self.cameras)
         points = p_WB.reshape(-1, 3)
         noise, uniforms = draw_detection_noise(seeds.reshape(-1), sequences.reshape(-1), C)
-        pixels, _ = project_points(self.cameras, points)  # (C, N, 2)
-        seen = visibility(self.cameras, points, self.occluders, self.ball_radius, pixels=pixels)  # (C, N)
+        pixels = np.stack([camera.project(points) for camera in self.cameras])  # (C, N, 2)
+        if self._boxes is None:
+            seen = visibility(self.cameras, points, self.occluders, self.ball_radius, pixels=pixels)  # (C, N)
+        else:
+            seen = np.empty((C, len(points)), dtype=np.bool_)
+            _visible(np.ascontiguousarray(points), pixels, self._stack.R_CW, self._stack.tvec, self._focal_px, self._image_size, self._origins,
+                     *self._boxes, self.ball_radius, seen)
         if occluders is not None:
             for environment, extra in enumerate(occluders):
                 if extra:

@@ -4,6 +4,8 @@
 contact inside a step to 1e-10 s (Illinois root finding on the RK4 solution itself) and applies the
 impact map there. It is the one propagator used by validation, fitting, prediction and the demos;
 the ``BallPlant`` LeafSystem uses the same maps under Drake's integrator and witness functions.
+``simulate_ball`` is ``simulate`` of one unperturbed ball compiled (numba), equal to it bit for bit:
+for callers that propagate one ball many times per simulated second (the hit prediction).
 """
 
 from __future__ import annotations
@@ -12,10 +14,13 @@ import dataclasses
 import enum
 from typing import Iterable, Sequence
 
+import math
+
+import numba
 import numpy as np
 
 from ace_drake.physics import contact
-from ace_drake.physics.flight import POSITION, SPIN, VELOCITY, rk4_step
+from ace_drake.physics.flight import POSITION, SPIN, VELOCITY, flight_constants, rk4_one, rk4_step
 from ace_drake.physics.params import BallPhysicsParams
 
 EVENT_TIME_TOLERANCE = 1e-10  # s, width of the final bracket around a contact time
@@ -307,4 +312,225 @@ def locate_root(x0, h, gap, params, max_iterations: int = 100, lower=None):
         # A trial that lands on the guard within 1e-13 m closes the bracket at once.
         exact = move_b & (g_c > -1e-13)
         a = np.where(exact, np.maximum(a, c - EVENT_TIME_TOLERANCE), a)
+    return b
+
+
+# ------------------------------------------------------------------------------------------------
+# One ball, compiled
+# ------------------------------------------------------------------------------------------------
+
+
+def simulate_ball(
+    initial_state: np.ndarray,
+    params: BallPhysicsParams,
+    duration: float,
+    dt: float = 1e-3,
+    kinds: Sequence[ContactKind] = DEFAULT_KINDS,
+    stop_on: Iterable[ContactKind] = (),
+) -> Trajectory:
+    """``simulate`` of one ball (9,) without perturbations (``rng`` None), recording every step:
+    the same Trajectory (N = 1), bit for bit (tests/test_propagate.py), from one compiled call
+    (``_simulate_ball``: the same operations in the same order) instead of NumPy calls per step
+    and per root-finding iteration. ``kinds``: any of TABLE, TABLE_PLANE, NET and FLOOR."""
+    if dt <= 0 or not np.isfinite(dt):
+        raise ValueError(f"simulate_ball: dt must be a positive number of seconds, got {dt}")
+    if duration < 0:
+        raise ValueError(f"simulate_ball: duration must be >= 0, got {duration}")
+    x = np.array(initial_state, dtype=float).reshape(-1)
+    if x.shape != (9,) or not np.all(np.isfinite(x)):
+        raise ValueError(f"simulate_ball: initial_state must be 9 finite numbers, got {np.shape(initial_state)}")
+    kinds = tuple(ContactKind(k) for k in kinds)
+    stop_on = frozenset(ContactKind(k) for k in stop_on)
+    n_steps = int(np.ceil(duration / dt - 1e-9))
+    times = np.empty(n_steps + 1)
+    states = np.empty((n_steps + 1, 9))
+    capacity = MAX_EVENTS_PER_STEP * n_steps
+    event_kinds, event_times = np.empty(capacity, dtype=np.int64), np.empty(capacity)
+    event_pre, event_post = np.empty((capacity, 9)), np.empty((capacity, 9))
+    count, stop = _simulate_ball(
+        x, float(duration), float(dt), n_steps, np.array([int(k) for k in kinds], dtype=np.int64),
+        np.array([k in stop_on for k in kinds], dtype=np.bool_), _contact_constants(params), *flight_constants(params.aero),
+        times, states, event_kinds, event_times, event_pre, event_post,
+    )
+    events = [ContactEvent(ContactKind(int(event_kinds[i])), float(event_times[i]), event_pre[i], event_post[i]) for i in range(count)]
+    return Trajectory(times=times, states=states[:, None, :], final_state=states[-1:].copy(), events=[events],
+                      stop_events=[events[stop] if stop >= 0 else None])
+
+
+def _contact_constants(params: BallPhysicsParams) -> np.ndarray:
+    """The contact geometry and impact maps' constants as ``_simulate_ball`` takes them: [r,
+    table length, width, surface height, friction, restitution base, slope, rolling alpha, net
+    height, overhang, restitution, tangential retention, floor restitution, tangential retention]."""
+    table, net, floor = params.table, params.net, params.floor
+    return np.array([params.aero.ball_radius, table.length, table.width, table.surface_height, table.friction,
+                     table.restitution_base, table.restitution_slope, table.rolling_alpha, net.height, net.overhang,
+                     net.restitution, net.tangential_retention, floor.restitution, floor.tangential_retention])
+
+
+@numba.njit(cache=True)
+def _gap_one(kind, x, c):
+    """``contact_gap`` of one ball x (9,) for ContactKind ``kind``, m (c: ``_contact_constants``)."""
+    radius = c[0]
+    if kind == 1:  # TABLE: contact.table_gap
+        dx = abs(x[0]) - 0.5 * c[1]
+        dy = abs(x[1]) - 0.5 * c[2]
+        signed_distance = math.hypot(max(dx, 0.0), max(dy, 0.0)) + min(max(dx, dy), 0.0)
+        return max(x[2] - radius, signed_distance)
+    if kind == 2:  # NET: contact.net_gap
+        half_span = 0.5 * c[2] + c[9]
+        oy = x[1] - min(max(x[1], -half_span), half_span)
+        oz = x[2] - min(max(x[2], 0.0), c[8])
+        return math.sqrt(x[0] * x[0] + oy * oy + oz * oz) - radius
+    if kind == 3:  # FLOOR: contact.floor_gap
+        return x[2] + c[3] - radius
+    return x[2] - radius  # TABLE_PLANE
+
+
+@numba.njit(cache=True)
+def _impact_one(kind, x, c, out):
+    """``apply_impact`` (no perturbation) of one ball x (9,) into out (9,): the table's map (paper
+    eqs (2)-(6), ``contact.table_impact``), the net's or the floor's, in their order of operations."""
+    radius = c[0]
+    for j in range(9):
+        out[j] = x[j]
+    vx, vy, vz, wx, wy, wz = x[3], x[4], x[5], x[6], x[7], x[8]
+    if kind == 1 or kind == 5:  # TABLE, TABLE_PLANE
+        eps = c[5] - c[6] * abs(vz)
+        slip = math.hypot(vx - radius * wy, vy + radius * wx)
+        normal_impulse = c[4] * (1.0 + eps) * abs(vz)
+        alpha_sliding = normal_impulse / slip if slip > 0.0 else np.inf
+        v_s = 1.0 - alpha_sliding / c[7]  # paper eq. (5)
+        alpha = alpha_sliding if v_s > 0.0 else c[7]  # paper eq. (4)
+        out[3] = (1.0 - alpha) * vx + alpha * radius * wy  # paper eq. (2)
+        out[4] = (1.0 - alpha) * vy - alpha * radius * wx
+        out[5] = -eps * vz
+        spin_gain = 1.5 * alpha / radius  # paper eq. (3)
+        out[6] = -spin_gain * vy + (1.0 - 1.5 * alpha) * wx
+        out[7] = spin_gain * vx + (1.0 - 1.5 * alpha) * wy
+        out[8] = wz
+    elif kind == 2:  # NET: contact.net_impact
+        half_span = 0.5 * c[2] + c[9]
+        ox = x[0]
+        oy = x[1] - min(max(x[1], -half_span), half_span)
+        oz = x[2] - min(max(x[2], 0.0), c[8])
+        length = max(math.sqrt(ox * ox + oy * oy + oz * oz), 1e-12)
+        nx, ny, nz = ox / length, oy / length, oz / length
+        v_normal = vx * nx + vy * ny + vz * nz
+        if v_normal < 0.0:
+            out[3] = c[11] * (vx - v_normal * nx) - c[10] * v_normal * nx
+            out[4] = c[11] * (vy - v_normal * ny) - c[10] * v_normal * ny
+            out[5] = c[11] * (vz - v_normal * nz) - c[10] * v_normal * nz
+    else:  # FLOOR: contact.floor_impact
+        out[3], out[4], out[5] = vx * c[13], vy * c[13], -c[12] * vz
+        out[6], out[7], out[8] = wx * c[13], wy * c[13], wz * c[13]
+
+
+@numba.njit(cache=True)
+def _simulate_ball(x, duration, dt, n_steps, kinds, stops, c, drag_scale, density_ratio, slope, radius, offset, cap, weight,
+                   drag_model, magnus_model, drag_table_scale, magnus_scale, times, states, event_kinds, event_times,
+                   event_pre, event_post):
+    """``simulate``'s loop for one ball x (9,) (changed in place) and the contact ``kinds`` (K,),
+    ContactKind values in ``simulate``'s order, stopping at those with ``stops`` (K,): the states
+    at the n_steps steps into times (n_steps+1,) and states (n_steps+1, 9), the contacts into
+    event_kinds, event_times, event_pre, event_post. Returns (the number of contacts, the index of
+    the stopping one or -1). The guards are the exact ``contact_gap`` (``simulate`` compares only
+    their signs, which its cheaper lower bounds share); the contact times ``locate_root``'s
+    Illinois iteration."""
+    K = kinds.shape[0]
+    k1, k2, k3, k4, trial = np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9)
+    x1, x_pre, x_post = np.empty(9), np.empty(9), np.empty(9)
+    gaps, gaps1 = np.empty(K), np.empty(K)
+    for k in range(K):
+        gaps[k] = _gap_one(kinds[k], x, c)
+    active = True
+    count, stop = 0, -1
+    t = 0.0
+    times[0] = 0.0
+    states[0] = x
+    for step in range(n_steps):
+        h = min(dt, duration - t)
+        remaining = h if active else 0.0
+        elapsed = 0.0
+        for _ in range(MAX_EVENTS_PER_STEP):
+            if not remaining > 0.0:
+                break
+            rk4_one(x, remaining, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                    drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
+            crossed = False
+            for k in range(K):
+                gaps1[k] = _gap_one(kinds[k], x1, c)
+                crossed = crossed or (gaps[k] > 0.0 and gaps1[k] <= 0.0)
+            if not crossed:
+                x[:] = x1
+                gaps[:] = gaps1
+                break
+            # first_contact_time: the earliest crossing guard's root, ties to the earlier kind.
+            tau, first = np.inf, 0
+            for k in range(K):
+                if gaps[k] > 0.0 and gaps1[k] <= 0.0:
+                    tau_k = _locate_root_one(kinds[k], x, remaining, c, drag_scale, density_ratio, slope, radius, offset, cap,
+                                             weight, drag_model, magnus_model, drag_table_scale, magnus_scale,
+                                             k1, k2, k3, k4, trial, x1)
+                    if tau_k < tau:
+                        tau, first = tau_k, k
+            rk4_one(x, tau, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                    drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x_pre)
+            kind = kinds[first]
+            if kind == 1 and x_pre[2] < c[0] - 1e-6:  # is_contact: beside the table, below its top
+                x_post[:] = x_pre
+            else:
+                _impact_one(kind, x_pre, c, x_post)
+                event_kinds[count], event_times[count] = kind, t + elapsed + tau
+                event_pre[count], event_post[count] = x_pre, x_post
+                count += 1
+                if stops[first]:
+                    stop = count - 1
+                    active = False
+                    x[:] = x_pre
+                    remaining = 0.0
+                    for k in range(K):
+                        gaps[k] = _gap_one(kinds[k], x, c)
+                    continue
+            x[:] = x_post
+            remaining -= tau
+            elapsed += tau
+            for k in range(K):
+                gaps[k] = _gap_one(kinds[k], x, c)
+        t += h
+        times[step + 1] = t
+        states[step + 1] = x
+    return count, stop
+
+
+@numba.njit(cache=True)
+def _locate_root_one(kind, x0, h, c, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                     drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1):
+    """``locate_root`` (lower 0) of one ball x0 (9,) over a step h, s, for the guard of ContactKind
+    ``kind``: the Illinois iteration, operation for operation (x1 (9,) is scratch)."""
+    a, g_a = 0.0, _gap_one(kind, x0, c)
+    b = h
+    rk4_one(x0, b, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model, drag_table_scale,
+            magnus_scale, k1, k2, k3, k4, trial, x1)
+    g_b = _gap_one(kind, x1, c)
+    last_side = 0
+    for _ in range(100):
+        if not (b - a) > EVENT_TIME_TOLERANCE:
+            break
+        denominator = g_a - g_b
+        c_trial = b + g_b * (b - a) / denominator if denominator > 0 else 0.5 * (a + b)
+        if c_trial <= a or c_trial >= b:
+            c_trial = 0.5 * (a + b)
+        rk4_one(x0, c_trial, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
+        g_c = _gap_one(kind, x1, c)
+        if g_c > 0.0:
+            if last_side == 1:
+                g_b = 0.5 * g_b  # Illinois: halve the stale end
+            a, g_a, last_side = c_trial, g_c, 1
+        else:
+            if last_side == -1:
+                g_a = 0.5 * g_a
+            b, g_b, last_side = c_trial, g_c, -1
+            if g_c > -1e-13:  # a trial on the guard within 1e-13 m closes the bracket at once
+                a = max(a, c_trial - EVENT_TIME_TOLERANCE)
     return b
