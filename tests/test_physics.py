@@ -353,6 +353,37 @@ def test_mirror_symmetry_in_y_is_exact(px, py, pz, vx, vy, vz, wx, wy, wz):
     assert [e.kind for e in trajectory.events[0]] == [e.kind for e in trajectory.events[1]]
 
 
+def test_batched_contact_maps_apply_the_one_ball_kernels_row_by_row():
+    # The table, net and floor gaps and maps are defined once, per ball (contact.*_one); the batched
+    # functions give each row exactly the kernel's result, whatever the batch's shape.
+    rng = np.random.default_rng(3)
+    p = rng.uniform([-1.6, -0.9, -0.1], [1.6, 0.9, 0.5], (24, 3))
+    v = rng.uniform(-10.0, 10.0, (24, 3))
+    w = rng.uniform(-500.0, 500.0, (24, 3))
+    table, net, floor = PARAMS.table, PARAMS.net, PARAMS.floor
+    for shape in [(24, 3), (4, 6, 3)]:
+        ps, vs, ws = (a.reshape(shape) for a in (p, v, w))
+        table_post = np.concatenate(contact.table_impact(vs, ws, table, R), -1).reshape(24, 6)
+        net_post = contact.net_impact(ps, vs, ws, table, net)[0].reshape(24, 3)
+        floor_post = np.concatenate(contact.floor_impact(vs, ws, floor), -1).reshape(24, 6)
+        gaps = np.stack([contact.table_gap(ps, table, R), contact.net_gap(ps, table, net, R), contact.floor_gap(ps, table, R)],
+                        -1).reshape(24, 3)
+        for i in range(24):
+            (x, y, z), (vx, vy, vz), (wx, wy, wz) = p[i], v[i], w[i]
+            tv, tw = contact.table_impact_one(vx, vy, vz, wx, wy, wz, table.friction, table.restitution_base,
+                                              table.restitution_slope, table.rolling_alpha, R)
+            assert tuple(table_post[i]) == tv + tw
+            assert tuple(net_post[i]) == contact.net_impact_one(x, y, z, vx, vy, vz, table.width, net.overhang, net.height,
+                                                                net.restitution, net.tangential_retention)
+            fv, fw = contact.floor_impact_one(vx, vy, vz, wx, wy, wz, floor.restitution, floor.tangential_retention)
+            assert tuple(floor_post[i]) == fv + fw
+            assert tuple(gaps[i]) == (
+                contact.table_gap_one(x, y, z, table.length, table.width, R),
+                contact.net_gap_one(x, y, z, table.width, net.overhang, net.height, R),
+                contact.floor_gap_one(z, table.surface_height, R),
+            )
+
+
 def test_batched_simulation_equals_one_by_one():
     rng = np.random.default_rng(0)
     n = 6
@@ -412,6 +443,7 @@ def test_simulate_rejects_bad_input():
 
 
 def test_compiled_one_ball_simulation_equals_simulate_bit_for_bit():
+    # simulate_ball's compiled loop against simulate's (both apply contact's one-ball kernels).
     # Random balls over and around the table with every static kind, stopping or not, and
     # steps from 3 to 50 ms: the same steps, contacts (kinds, times, states) and stops.
     rng = np.random.default_rng(11)

@@ -2,12 +2,19 @@
 
 Each map takes pre-contact velocity and spin (..., 3) in the world frame and returns the
 post-contact pair; contacts are instantaneous, position does not change. Batched throughout.
+
+The table, net and floor gaps and maps are each defined once, as a compiled (numba) kernel of one
+ball (``table_gap_one``, ``table_impact_one``, ...; scalars in, scalars out); the batched functions
+apply that kernel row by row, and compiled one-ball callers (``propagate.simulate_ball``) call it
+directly, so every propagator uses the same operations.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
+import numba
 import numpy as np
 
 from ace_drake.physics.params import FloorParams, NetParams, RacketParams, TableParams
@@ -16,9 +23,126 @@ from ace_drake.physics.params import FloorParams, NetParams, RacketParams, Table
 ResidualModel = Callable[[np.ndarray], np.ndarray]
 
 
-def table_restitution(v_z: np.ndarray, table: TableParams) -> np.ndarray:
+# ------------------------------------------------------------------------------ one ball, compiled
+# Velocities in m/s, spins in rad/s, positions and lengths in m, world frame; the params' fields are
+# passed as floats.
+
+
+@numba.njit(cache=True, error_model="numpy")
+def table_restitution_one(v_z, restitution_base, restitution_slope):
     """eps_table = 0.98 - 0.02 |v_z^-| (paper, below eq. (6); v_z^- < 0 at impact)."""
-    return table.restitution_base - table.restitution_slope * np.abs(v_z)
+    return restitution_base - restitution_slope * abs(v_z)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def table_alpha_one(vx, vy, vz, wx, wy, wz, friction, restitution_base, restitution_slope, rolling_alpha, radius):
+    """alpha of eq. (4) and the sliding flag of eq. (5) for one ball, v (m/s) and w (rad/s) just
+    before the table contact; ``table_alpha`` explains the switch."""
+    eps = table_restitution_one(vz, restitution_base, restitution_slope)
+    slip = math.hypot(vx - radius * wy, vy + radius * wx)  # |v_T|, paper eq. (6)
+    normal_impulse = friction * (1.0 + eps) * abs(vz)
+    alpha_sliding = normal_impulse / slip if slip > 0.0 else np.inf
+    v_s = 1.0 - alpha_sliding / rolling_alpha  # paper eq. (5)
+    sliding = v_s > 0.0
+    alpha = alpha_sliding if sliding else rolling_alpha  # paper eq. (4)
+    return alpha, sliding
+
+
+@numba.njit(cache=True, error_model="numpy")
+def table_impact_one(vx, vy, vz, wx, wy, wz, friction, restitution_base, restitution_slope, rolling_alpha, radius):
+    """Post-bounce (v+ (3 floats, m/s), w+ (3 floats, rad/s)) of one ball off the table, paper eqs
+    (2)-(3), from v (m/s) and w (rad/s) just before contact (v_z < 0) and the ball's radius, m."""
+    alpha, _ = table_alpha_one(vx, vy, vz, wx, wy, wz, friction, restitution_base, restitution_slope, rolling_alpha, radius)
+    eps = table_restitution_one(vz, restitution_base, restitution_slope)
+    # paper eq. (2): v+ = C_vv v- + C_vw w-
+    v_post = ((1.0 - alpha) * vx + alpha * radius * wy, (1.0 - alpha) * vy - alpha * radius * wx, -eps * vz)
+    # paper eq. (3): w+ = C_wv v- + C_ww w-
+    spin_gain = 1.5 * alpha / radius
+    w_post = (-spin_gain * vy + (1.0 - 1.5 * alpha) * wx, spin_gain * vx + (1.0 - 1.5 * alpha) * wy, wz)
+    return v_post, w_post
+
+
+@numba.njit(cache=True, error_model="numpy")
+def table_gap_one(x, y, z, length, width, radius):
+    """``table_gap`` of one ball centre (x, y, z), m: max(z - r, the signed horizontal distance to
+    the table's rectangle)."""
+    dx = abs(x) - 0.5 * length
+    dy = abs(y) - 0.5 * width
+    signed_distance = math.hypot(max(dx, 0.0), max(dy, 0.0)) + min(max(dx, dy), 0.0)
+    return max(z - radius, signed_distance)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def net_closest_point_one(y, z, width, overhang, height):
+    """(y, z) of ``net_closest_point`` for one ball centre (its x is 0), m."""
+    half_span = 0.5 * width + overhang
+    return min(max(y, -half_span), half_span), min(max(z, 0.0), height)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def net_gap_one(x, y, z, width, overhang, height, radius):
+    """``net_gap`` of one ball centre (x, y, z), m."""
+    y_net, z_net = net_closest_point_one(y, z, width, overhang, height)
+    dy, dz = y - y_net, z - z_net
+    return math.sqrt(x * x + dy * dy + dz * dz) - radius
+
+
+@numba.njit(cache=True, error_model="numpy")
+def net_impact_one(x, y, z, vx, vy, vz, width, overhang, height, restitution, tangential_retention):
+    """Post-contact v+ (3 floats, m/s) of one ball at (x, y, z) m with v (m/s) against the net
+    (``net_impact``; spin is unchanged)."""
+    y_net, z_net = net_closest_point_one(y, z, width, overhang, height)
+    dy, dz = y - y_net, z - z_net
+    length = max(math.sqrt(x * x + dy * dy + dz * dz), 1e-12)
+    nx, ny, nz = x / length, dy / length, dz / length
+    v_normal = vx * nx + vy * ny + vz * nz
+    if not v_normal < 0.0:  # separating: unchanged
+        return vx, vy, vz
+    return (tangential_retention * (vx - v_normal * nx) - restitution * v_normal * nx,
+            tangential_retention * (vy - v_normal * ny) - restitution * v_normal * ny,
+            tangential_retention * (vz - v_normal * nz) - restitution * v_normal * nz)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def floor_gap_one(z, surface_height, radius):
+    """``floor_gap`` of one ball centre at height z, m."""
+    return z + surface_height - radius
+
+
+@numba.njit(cache=True, error_model="numpy")
+def floor_impact_one(vx, vy, vz, wx, wy, wz, restitution, tangential_retention):
+    """Post-bounce (v+ (3 floats, m/s), w+ (3 floats, rad/s)) of one ball off the floor: v_z
+    reversed with ``restitution``, the rest scaled by ``tangential_retention``."""
+    return ((vx * tangential_retention, vy * tangential_retention, -restitution * vz),
+            (wx * tangential_retention, wy * tangential_retention, wz * tangential_retention))
+
+
+# ------------------------------------------------------------------------------ batched
+# The kernels above applied to every row of (..., 3) arrays (the row loops are at the module's end).
+
+
+def _rows(a, name: str):
+    """(a as float rows (M, 3), the batch shape (...)) of a (..., 3) array."""
+    a = np.asarray(a, dtype=float)
+    if a.shape[-1:] != (3,):
+        raise ValueError(f"{name}: expected an array (..., 3), got shape {a.shape}")
+    return a.reshape(-1, 3), a.shape[:-1]
+
+
+def _matching_rows(name: str, *arrays):
+    """``_rows`` of arrays of one shape (..., 3), and that batch shape."""
+    rows = [_rows(a, name) for a in arrays]
+    if any(batch != rows[0][1] for _, batch in rows):
+        raise ValueError(f"{name}: arrays of different shapes {[np.shape(a) for a in arrays]}")
+    return [r for r, _ in rows], rows[0][1]
+
+
+def table_restitution(v_z: np.ndarray, table: TableParams) -> np.ndarray:
+    """eps_table (any shape, like v_z in m/s): ``table_restitution_one`` (paper, below eq. (6))."""
+    v_z = np.asarray(v_z, dtype=float)
+    eps = np.empty(v_z.size)
+    _table_restitution_rows(v_z.reshape(-1), table.restitution_base, table.restitution_slope, eps)
+    return eps.reshape(v_z.shape)[()]
 
 
 def table_alpha(v_W: np.ndarray, w_W: np.ndarray, table: TableParams, radius: float):
@@ -27,42 +151,27 @@ def table_alpha(v_W: np.ndarray, w_W: np.ndarray, table: TableParams, radius: fl
     v_T = [v_x - r w_y, v_y + r w_x] is the contact point's slip velocity (eq. (6)). The contact
     slides while mu (1 + eps) |v_z| / |v_T| < 2/5; eq. (5) writes this v_s = 1 - 5/2 mu (1 + eps)
     |v_z| / |v_T| > 0, and 5/2 is 1 / rolling_alpha so that the switch stays continuous if the
-    rolling value is changed. A ball with no slip (|v_T| = 0) rolls. Returns (alpha, sliding).
+    rolling value is changed. A ball with no slip (|v_T| = 0) rolls. Args: v_W (..., 3) m/s, w_W
+    (..., 3) rad/s, radius r (m). Returns (alpha (...), sliding (...) bool).
     """
-    eps = table_restitution(v_W[..., 2], table)
-    slip = np.hypot(v_W[..., 0] - radius * w_W[..., 1], v_W[..., 1] + radius * w_W[..., 0])
-    normal_impulse = table.friction * (1.0 + eps) * np.abs(v_W[..., 2])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        alpha_sliding = np.where(slip > 0.0, normal_impulse / np.where(slip > 0, slip, 1.0), np.inf)
-    v_s = 1.0 - alpha_sliding / table.rolling_alpha  # paper eq. (5)
-    sliding = v_s > 0.0
-    alpha = np.where(sliding, alpha_sliding, table.rolling_alpha)  # paper eq. (4)
-    return alpha, sliding
+    (v, w), batch = _matching_rows("table_alpha", v_W, w_W)
+    alpha, sliding = np.empty(v.shape[0]), np.empty(v.shape[0], dtype=bool)
+    _table_alpha_rows(v, w, table.friction, table.restitution_base, table.restitution_slope, table.rolling_alpha, radius,
+                      alpha, sliding)
+    return alpha.reshape(batch), sliding.reshape(batch)[()]
 
 
 def table_impact(v_W: np.ndarray, w_W: np.ndarray, table: TableParams, radius: float):
-    """Post-bounce velocity and spin off the table, paper eqs (2)-(3) with the printed matrices.
+    """Post-bounce velocity and spin off the table, paper eqs (2)-(3) with the printed matrices
+    (``table_impact_one``).
 
     Args: v_W, w_W (..., 3) just before contact (v_z < 0); radius r (m). Returns (v+, w+).
     """
-    v_W = np.asarray(v_W, dtype=float)
-    w_W = np.asarray(w_W, dtype=float)
-    alpha, _ = table_alpha(v_W, w_W, table, radius)
-    eps = table_restitution(v_W[..., 2], table)
-    vx, vy, vz = v_W[..., 0], v_W[..., 1], v_W[..., 2]
-    wx, wy, wz = w_W[..., 0], w_W[..., 1], w_W[..., 2]
-    # paper eq. (2): v+ = C_vv v- + C_vw w-
-    v_post = np.stack(
-        [(1.0 - alpha) * vx + alpha * radius * wy, (1.0 - alpha) * vy - alpha * radius * wx, -eps * vz],
-        axis=-1,
-    )
-    # paper eq. (3): w+ = C_wv v- + C_ww w-
-    spin_gain = 1.5 * alpha / radius
-    w_post = np.stack(
-        [-spin_gain * vy + (1.0 - 1.5 * alpha) * wx, spin_gain * vx + (1.0 - 1.5 * alpha) * wy, wz],
-        axis=-1,
-    )
-    return v_post, w_post
+    (v, w), batch = _matching_rows("table_impact", v_W, w_W)
+    v_post, w_post = np.empty(v.shape), np.empty(v.shape)
+    _table_impact_rows(v, w, table.friction, table.restitution_base, table.restitution_slope, table.rolling_alpha, radius,
+                       v_post, w_post)
+    return v_post.reshape(batch + (3,)), w_post.reshape(batch + (3,))
 
 
 def blade_standoff(radius: float, racket: RacketParams) -> float:
@@ -155,60 +264,67 @@ def racket_impact(
 
 
 def table_gap(p_W: np.ndarray, table: TableParams, radius: float) -> np.ndarray:
-    """Continuous guard for the playing surface, m: <= 0 exactly when the ball touches it.
+    """Continuous guard for the playing surface, m (...): <= 0 exactly when the ball touches it.
 
-    max(z - r, d), with d the signed horizontal distance of the ball centre to the table's
-    rectangle (negative over the table), so a ball passing beside the table never triggers it.
+    max(z - r, d), with d the signed horizontal distance of the ball centre p_W (..., 3) to the
+    table's rectangle (negative over the table), so a ball passing beside the table never triggers
+    it (``table_gap_one``).
     """
-    dx = np.abs(p_W[..., 0]) - 0.5 * table.length
-    dy = np.abs(p_W[..., 1]) - 0.5 * table.width
-    signed_distance = np.hypot(np.maximum(dx, 0.0), np.maximum(dy, 0.0)) + np.minimum(np.maximum(dx, dy), 0.0)
-    return np.maximum(p_W[..., 2] - radius, signed_distance)
+    p, batch = _rows(p_W, "table_gap")
+    gap = np.empty(p.shape[0])
+    _table_gap_rows(p, table.length, table.width, radius, gap)
+    return gap.reshape(batch)[()]
 
 
 def net_closest_point(p_W: np.ndarray, table: TableParams, net: NetParams) -> np.ndarray:
-    """Closest point to p_W on the net, a thin rectangle x = 0, |y| <= W/2 + overhang, 0 <= z <= h."""
-    half_span = 0.5 * table.width + net.overhang
-    closest = np.zeros_like(p_W, dtype=float)
-    closest[..., 1] = np.clip(p_W[..., 1], -half_span, half_span)
-    closest[..., 2] = np.clip(p_W[..., 2], 0.0, net.height)
-    return closest
+    """Closest point (..., 3) to p_W (..., 3) on the net, a thin rectangle x = 0,
+    |y| <= W/2 + overhang, 0 <= z <= h, m (``net_closest_point_one``)."""
+    p, batch = _rows(p_W, "net_closest_point")
+    closest = np.empty(p.shape)
+    _net_closest_point_rows(p, table.width, net.overhang, net.height, closest)
+    return closest.reshape(batch + (3,))
 
 
 def net_gap(p_W: np.ndarray, table: TableParams, net: NetParams, radius: float) -> np.ndarray:
-    """Distance from the ball's surface to the net (face, top cord or side edge), m."""
-    return np.linalg.norm(p_W - net_closest_point(p_W, table, net), axis=-1) - radius
+    """Distance (...) from the ball's surface to the net (face, top cord or side edge), m, for ball
+    centres p_W (..., 3) (``net_gap_one``)."""
+    p, batch = _rows(p_W, "net_gap")
+    gap = np.empty(p.shape[0])
+    _net_gap_rows(p, table.width, net.overhang, net.height, radius, gap)
+    return gap.reshape(batch)[()]
 
 
 def net_impact(p_W, v_W, w_W, table: TableParams, net: NetParams):
-    """Post-contact velocity and spin against the net.
+    """Post-contact velocity and spin against the net (``net_impact_one``).
 
     The contact normal runs from the closest net point to the ball centre: along x on the face,
     tilted over the top cord, so a ball clipping the cord high keeps its forward speed and goes over
     (a net-cord ball, paper Fig. 4). Normal velocity is reversed with ``net.restitution``, tangential
-    velocity scaled by ``net.tangential_retention``; spin is unchanged. Returns (v+, w+).
+    velocity scaled by ``net.tangential_retention``; spin is unchanged; a separating ball is
+    unchanged. Args: p_W (m), v_W (m/s), w_W (rad/s), (..., 3) each. Returns (v+, w+).
     """
-    p_W, v_W, w_W = (np.asarray(a, dtype=float) for a in (p_W, v_W, w_W))
-    offset = p_W - net_closest_point(p_W, table, net)
-    normal = offset / np.maximum(np.linalg.norm(offset, axis=-1, keepdims=True), 1e-12)
-    v_normal = np.sum(v_W * normal, axis=-1, keepdims=True)
-    approaching = v_normal < 0.0
-    v_tangent = v_W - v_normal * normal
-    v_post = net.tangential_retention * v_tangent - net.restitution * v_normal * normal
-    return np.where(approaching, v_post, v_W), w_W.copy()
+    (p, v, w), batch = _matching_rows("net_impact", p_W, v_W, w_W)
+    v_post = np.empty(v.shape)
+    _net_impact_rows(p, v, table.width, net.overhang, net.height, net.restitution, net.tangential_retention, v_post)
+    return v_post.reshape(batch + (3,)), w.reshape(batch + (3,)).copy()
 
 
 def floor_gap(p_W: np.ndarray, table: TableParams, radius: float) -> np.ndarray:
-    """Height of the ball's bottom above the floor (z = -surface_height), m."""
-    return p_W[..., 2] + table.surface_height - radius
+    """Height (...) of the ball's bottom above the floor (z = -surface_height), m, for ball centres
+    p_W (..., 3) (``floor_gap_one``)."""
+    p, batch = _rows(p_W, "floor_gap")
+    gap = np.empty(p.shape[0])
+    _floor_gap_rows(p, table.surface_height, radius, gap)
+    return gap.reshape(batch)[()]
 
 
 def floor_impact(v_W, w_W, floor: FloorParams):
-    """Post-bounce velocity and spin off the floor: v_z reversed with restitution, tangential scaled."""
-    v_W = np.asarray(v_W, dtype=float)
-    v_post = v_W * floor.tangential_retention
-    v_post[..., 2] = -floor.restitution * v_W[..., 2]
-    return v_post, np.asarray(w_W, dtype=float) * floor.tangential_retention
+    """Post-bounce velocity and spin off the floor: v_z reversed with restitution, tangential scaled
+    (``floor_impact_one``). Args: v_W (m/s), w_W (rad/s), (..., 3) each. Returns (v+, w+)."""
+    (v, w), batch = _matching_rows("floor_impact", v_W, w_W)
+    v_post, w_post = np.empty(v.shape), np.empty(v.shape)
+    _floor_impact_rows(v, w, floor.restitution, floor.tangential_retention, v_post, w_post)
+    return v_post.reshape(batch + (3,)), w_post.reshape(batch + (3,))
 
 
 def perturb_velocity_and_spin(v_W, w_W, velocity_std: float, spin_std: float, rng: np.random.Generator):
@@ -350,3 +466,67 @@ def racket_contact(state, p_WR, R_WR, w_WR, v_WR, racket: RacketParams, radius: 
         post[impact, 3:6] = v_post
         post[impact, 6:9] = w_post
     return post.reshape(batch + (9,)), impact.reshape(batch)
+
+
+# ------------------------------------------------------------------------------ row loops
+# The one-ball kernels over the rows (M, 3) of the batched functions' arrays, into their outputs.
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _table_restitution_rows(v_z, restitution_base, restitution_slope, eps):
+    for i in range(v_z.shape[0]):
+        eps[i] = table_restitution_one(v_z[i], restitution_base, restitution_slope)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _table_alpha_rows(v, w, friction, restitution_base, restitution_slope, rolling_alpha, radius, alpha, sliding):
+    for i in range(v.shape[0]):
+        alpha[i], sliding[i] = table_alpha_one(v[i, 0], v[i, 1], v[i, 2], w[i, 0], w[i, 1], w[i, 2], friction, restitution_base,
+                                               restitution_slope, rolling_alpha, radius)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _table_impact_rows(v, w, friction, restitution_base, restitution_slope, rolling_alpha, radius, v_post, w_post):
+    for i in range(v.shape[0]):
+        (v_post[i, 0], v_post[i, 1], v_post[i, 2]), (w_post[i, 0], w_post[i, 1], w_post[i, 2]) = table_impact_one(
+            v[i, 0], v[i, 1], v[i, 2], w[i, 0], w[i, 1], w[i, 2], friction, restitution_base, restitution_slope, rolling_alpha,
+            radius)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _table_gap_rows(p, length, width, radius, gap):
+    for i in range(p.shape[0]):
+        gap[i] = table_gap_one(p[i, 0], p[i, 1], p[i, 2], length, width, radius)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _net_closest_point_rows(p, width, overhang, height, closest):
+    for i in range(p.shape[0]):
+        closest[i, 0] = 0.0
+        closest[i, 1], closest[i, 2] = net_closest_point_one(p[i, 1], p[i, 2], width, overhang, height)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _net_gap_rows(p, width, overhang, height, radius, gap):
+    for i in range(p.shape[0]):
+        gap[i] = net_gap_one(p[i, 0], p[i, 1], p[i, 2], width, overhang, height, radius)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _net_impact_rows(p, v, width, overhang, height, restitution, tangential_retention, v_post):
+    for i in range(p.shape[0]):
+        v_post[i, 0], v_post[i, 1], v_post[i, 2] = net_impact_one(
+            p[i, 0], p[i, 1], p[i, 2], v[i, 0], v[i, 1], v[i, 2], width, overhang, height, restitution, tangential_retention)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _floor_gap_rows(p, surface_height, radius, gap):
+    for i in range(p.shape[0]):
+        gap[i] = floor_gap_one(p[i, 2], surface_height, radius)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _floor_impact_rows(v, w, restitution, tangential_retention, v_post, w_post):
+    for i in range(v.shape[0]):
+        (v_post[i, 0], v_post[i, 1], v_post[i, 2]), (w_post[i, 0], w_post[i, 1], w_post[i, 2]) = floor_impact_one(
+            v[i, 0], v[i, 1], v[i, 2], w[i, 0], w[i, 1], w[i, 2], restitution, tangential_retention)

@@ -5,7 +5,9 @@ contact inside a step to 1e-10 s (Illinois root finding on the RK4 solution itse
 impact map there. It is the one propagator used by validation, fitting, prediction and the demos;
 the ``BallPlant`` LeafSystem uses the same maps under Drake's integrator and witness functions.
 ``simulate_ball`` is ``simulate`` of one unperturbed ball compiled (numba), equal to it bit for bit:
-for callers that propagate one ball many times per simulated second (the hit prediction).
+for callers that propagate one ball many times per simulated second (the hit prediction). Both
+apply the contact gaps and impact maps of ``contact``, whose one-ball kernels are their only
+definition (``simulate`` through the batched functions, ``simulate_ball`` directly).
 """
 
 from __future__ import annotations
@@ -13,8 +15,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 from typing import Iterable, Sequence
-
-import math
 
 import numba
 import numpy as np
@@ -113,7 +113,13 @@ def is_contact(kind: ContactKind, state: np.ndarray, params: BallPhysicsParams) 
     table guard without touching the top: that is not a table contact (the table's sides are not
     modelled). Every other crossing is a contact.
     """
-    return not (kind == ContactKind.TABLE and state[2] < params.aero.ball_radius - 1e-6)
+    return _is_contact_one(int(kind), state[2], params.aero.ball_radius)
+
+
+@numba.njit(cache=True)
+def _is_contact_one(kind, z, radius):
+    """``is_contact`` for a ContactKind value ``kind`` and the ball centre's height z, m."""
+    return not (kind == 1 and z < radius - 1e-6)
 
 
 def apply_impact(
@@ -329,9 +335,10 @@ def simulate_ball(
     stop_on: Iterable[ContactKind] = (),
 ) -> Trajectory:
     """``simulate`` of one ball (9,) without perturbations (``rng`` None), recording every step:
-    the same Trajectory (N = 1), bit for bit (tests/test_propagate.py), from one compiled call
-    (``_simulate_ball``: the same operations in the same order) instead of NumPy calls per step
-    and per root-finding iteration. ``kinds``: any of TABLE, TABLE_PLANE, NET and FLOOR."""
+    the same Trajectory (N = 1), bit for bit (tests/test_physics.py), from one compiled call
+    (``_simulate_ball``: ``simulate``'s loop in the same order, with the same ``contact`` kernels
+    for the gaps and impact maps) instead of NumPy calls per step and per root-finding iteration.
+    ``kinds``: any of TABLE, TABLE_PLANE, NET and FLOOR."""
     if dt <= 0 or not np.isfinite(dt):
         raise ValueError(f"simulate_ball: dt must be a positive number of seconds, got {dt}")
     if duration < 0:
@@ -357,10 +364,13 @@ def simulate_ball(
                       stop_events=[events[stop] if stop >= 0 else None])
 
 
+# The contact constants as ``_simulate_ball`` takes them (``_contact_constants``), by index.
+(_RADIUS, _TABLE_LENGTH, _TABLE_WIDTH, _SURFACE_HEIGHT, _FRICTION, _RESTITUTION_BASE, _RESTITUTION_SLOPE, _ROLLING_ALPHA,
+ _NET_HEIGHT, _NET_OVERHANG, _NET_RESTITUTION, _NET_RETENTION, _FLOOR_RESTITUTION, _FLOOR_RETENTION) = range(14)
+
+
 def _contact_constants(params: BallPhysicsParams) -> np.ndarray:
-    """The contact geometry and impact maps' constants as ``_simulate_ball`` takes them: [r,
-    table length, width, surface height, friction, restitution base, slope, rolling alpha, net
-    height, overhang, restitution, tangential retention, floor restitution, tangential retention]."""
+    """The params' fields that ``contact``'s one-ball kernels take, as one array (the indices above)."""
     table, net, floor = params.table, params.net, params.floor
     return np.array([params.aero.ball_radius, table.length, table.width, table.surface_height, table.friction,
                      table.restitution_base, table.restitution_slope, table.rolling_alpha, net.height, net.overhang,
@@ -370,59 +380,31 @@ def _contact_constants(params: BallPhysicsParams) -> np.ndarray:
 @numba.njit(cache=True)
 def _gap_one(kind, x, c):
     """``contact_gap`` of one ball x (9,) for ContactKind ``kind``, m (c: ``_contact_constants``)."""
-    radius = c[0]
-    if kind == 1:  # TABLE: contact.table_gap
-        dx = abs(x[0]) - 0.5 * c[1]
-        dy = abs(x[1]) - 0.5 * c[2]
-        signed_distance = math.hypot(max(dx, 0.0), max(dy, 0.0)) + min(max(dx, dy), 0.0)
-        return max(x[2] - radius, signed_distance)
-    if kind == 2:  # NET: contact.net_gap
-        half_span = 0.5 * c[2] + c[9]
-        oy = x[1] - min(max(x[1], -half_span), half_span)
-        oz = x[2] - min(max(x[2], 0.0), c[8])
-        return math.sqrt(x[0] * x[0] + oy * oy + oz * oz) - radius
-    if kind == 3:  # FLOOR: contact.floor_gap
-        return x[2] + c[3] - radius
-    return x[2] - radius  # TABLE_PLANE
+    if kind == 1:  # TABLE
+        return contact.table_gap_one(x[0], x[1], x[2], c[_TABLE_LENGTH], c[_TABLE_WIDTH], c[_RADIUS])
+    if kind == 2:  # NET
+        return contact.net_gap_one(x[0], x[1], x[2], c[_TABLE_WIDTH], c[_NET_OVERHANG], c[_NET_HEIGHT], c[_RADIUS])
+    if kind == 3:  # FLOOR
+        return contact.floor_gap_one(x[2], c[_SURFACE_HEIGHT], c[_RADIUS])
+    return x[2] - c[_RADIUS]  # TABLE_PLANE
 
 
 @numba.njit(cache=True)
 def _impact_one(kind, x, c, out):
-    """``apply_impact`` (no perturbation) of one ball x (9,) into out (9,): the table's map (paper
-    eqs (2)-(6), ``contact.table_impact``), the net's or the floor's, in their order of operations."""
-    radius = c[0]
+    """``apply_impact`` (no perturbation) of one ball x (9,) into out (9,), with ``contact``'s
+    kernels: the table's map (TABLE, TABLE_PLANE), the net's or the floor's."""
     for j in range(9):
         out[j] = x[j]
-    vx, vy, vz, wx, wy, wz = x[3], x[4], x[5], x[6], x[7], x[8]
-    if kind == 1 or kind == 5:  # TABLE, TABLE_PLANE
-        eps = c[5] - c[6] * abs(vz)
-        slip = math.hypot(vx - radius * wy, vy + radius * wx)
-        normal_impulse = c[4] * (1.0 + eps) * abs(vz)
-        alpha_sliding = normal_impulse / slip if slip > 0.0 else np.inf
-        v_s = 1.0 - alpha_sliding / c[7]  # paper eq. (5)
-        alpha = alpha_sliding if v_s > 0.0 else c[7]  # paper eq. (4)
-        out[3] = (1.0 - alpha) * vx + alpha * radius * wy  # paper eq. (2)
-        out[4] = (1.0 - alpha) * vy - alpha * radius * wx
-        out[5] = -eps * vz
-        spin_gain = 1.5 * alpha / radius  # paper eq. (3)
-        out[6] = -spin_gain * vy + (1.0 - 1.5 * alpha) * wx
-        out[7] = spin_gain * vx + (1.0 - 1.5 * alpha) * wy
-        out[8] = wz
-    elif kind == 2:  # NET: contact.net_impact
-        half_span = 0.5 * c[2] + c[9]
-        ox = x[0]
-        oy = x[1] - min(max(x[1], -half_span), half_span)
-        oz = x[2] - min(max(x[2], 0.0), c[8])
-        length = max(math.sqrt(ox * ox + oy * oy + oz * oz), 1e-12)
-        nx, ny, nz = ox / length, oy / length, oz / length
-        v_normal = vx * nx + vy * ny + vz * nz
-        if v_normal < 0.0:
-            out[3] = c[11] * (vx - v_normal * nx) - c[10] * v_normal * nx
-            out[4] = c[11] * (vy - v_normal * ny) - c[10] * v_normal * ny
-            out[5] = c[11] * (vz - v_normal * nz) - c[10] * v_normal * nz
-    else:  # FLOOR: contact.floor_impact
-        out[3], out[4], out[5] = vx * c[13], vy * c[13], -c[12] * vz
-        out[6], out[7], out[8] = wx * c[13], wy * c[13], wz * c[13]
+    if kind == 1 or kind == 5:
+        (out[3], out[4], out[5]), (out[6], out[7], out[8]) = contact.table_impact_one(
+            x[3], x[4], x[5], x[6], x[7], x[8], c[_FRICTION], c[_RESTITUTION_BASE], c[_RESTITUTION_SLOPE], c[_ROLLING_ALPHA],
+            c[_RADIUS])
+    elif kind == 2:
+        out[3], out[4], out[5] = contact.net_impact_one(x[0], x[1], x[2], x[3], x[4], x[5], c[_TABLE_WIDTH], c[_NET_OVERHANG],
+                                                        c[_NET_HEIGHT], c[_NET_RESTITUTION], c[_NET_RETENTION])
+    else:
+        (out[3], out[4], out[5]), (out[6], out[7], out[8]) = contact.floor_impact_one(
+            x[3], x[4], x[5], x[6], x[7], x[8], c[_FLOOR_RESTITUTION], c[_FLOOR_RETENTION])
 
 
 @numba.njit(cache=True)
@@ -476,7 +458,7 @@ def _simulate_ball(x, duration, dt, n_steps, kinds, stops, c, drag_scale, densit
             rk4_one(x, tau, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
                     drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x_pre)
             kind = kinds[first]
-            if kind == 1 and x_pre[2] < c[0] - 1e-6:  # is_contact: beside the table, below its top
+            if not _is_contact_one(kind, x_pre[2], c[_RADIUS]):  # beside the table, below its top
                 x_post[:] = x_pre
             else:
                 _impact_one(kind, x_pre, c, x_post)
