@@ -81,3 +81,17 @@ def test_history_batch_is_read_only():
     with pytest.raises(ValueError, match="read-only"):
         dut.value[0, 0, 0] = 1.0
     assert len(dut) == 2 and dut.capacity == 4 and dut[-1].measurements == ()
+
+
+def test_history_batch_extended_kernel_equals_its_numpy_reference():
+    rng = np.random.default_rng(5)
+    capacity, batch = 4, 5
+    dut = reference = MeasurementHistoryBatch.empty(batch, capacity)
+    for step in range(30):
+        counts = rng.integers(0, 7, batch)  # beyond the capacity at once sometimes
+        rows = np.repeat(np.arange(batch), counts)
+        capture = np.sort(rng.uniform(0.0, 1.0, rows.size)) + step
+        arguments = (rows, capture, capture + 0.01, rng.normal(size=(rows.size, 3)), rng.normal(size=(rows.size, 3, 3)))
+        dut, reference = dut.extended(*arguments), reference._extended_numpy(*arguments)
+        for name in ("sequence", "capture_time", "release_time", "value", "covariance", "written", "count", "last_sequence"):
+            np.testing.assert_array_equal(getattr(dut, name), getattr(reference, name))

@@ -44,6 +44,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import numba
 import numpy as np
 
 from ace_drake.control.params import ControlParams
@@ -167,17 +168,142 @@ def feasible_sets_batch(q0, v0, a0, limits: CommandLimits, control: ControlParam
         raise ValueError(f"feasible_sets: q0, v0, a0 must have {len(JOINT_NAMES)} joints in the last dimension, got shape {q0.shape}")
     batch = q0.shape[:-1]
     flat = [x.reshape(-1, len(JOINT_NAMES)) for x in (q0, v0, a0)]
-    sets, feasible = _feasible_sets(*flat, limits, control, period)
-    reasons = [""] * feasible.shape[0]
-    for row in np.flatnonzero(~np.all(feasible, axis=-1)):
-        empty = [name for name, ok in zip(JOINT_NAMES, feasible[row]) if not ok]
-        reasons[row] = f"no feasible terminal state for joint(s) {empty} from q={flat[0][row]}, v={flat[1][row]}, a={flat[2][row]}"
+    # A segment's start state is mapped twice per tick (the policy's ``action_towards`` and the
+    # ActionMapper): the last call's sets are kept, keyed on the exact inputs, and shared read-only.
+    key = (flat[0].shape, *(x.tobytes() for x in flat), limits.lower.tobytes(), limits.upper.tobytes(), limits.velocity.tobytes(),
+           limits.acceleration.tobytes(), control, period)
+    if _LAST_SETS[0] == key:
+        sets, feasible, reasons = _LAST_SETS[1]
+    else:
+        sets, feasible = _feasible_sets(*flat, limits, control, period)
+        reasons = [""] * feasible.shape[0]
+        for row in np.flatnonzero(~np.all(feasible, axis=-1)):
+            empty = [name for name, ok in zip(JOINT_NAMES, feasible[row]) if not ok]
+            reasons[row] = f"no feasible terminal state for joint(s) {empty} from q={flat[0][row]}, v={flat[1][row]}, a={flat[2][row]}"
+        feasible = np.all(feasible, axis=-1)
+        for array in (*(getattr(sets, field.name) for field in dataclasses.fields(sets)), feasible):
+            array.flags.writeable = False
+        _LAST_SETS[:] = [key, (sets, feasible, tuple(reasons))]
     shaped = FeasibleSets(*(getattr(sets, field.name).reshape(batch + getattr(sets, field.name).shape[1:]) for field in dataclasses.fields(sets)))
-    return shaped, np.all(feasible, axis=-1).reshape(batch), reasons
+    return shaped, feasible.reshape(batch), list(reasons)
+
+
+_LAST_SETS: list = [None, None]  # feasible_sets_batch's last (key, result)
 
 
 def _feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> tuple[FeasibleSets, np.ndarray]:
-    """The sets (batch B) for starts (B, 8) each, and which joints' sets are non-empty (B, 8)."""
+    """The sets (batch B) for starts (B, 8) each, and which joints' sets are non-empty (B, 8):
+    one compiled call (``_polygons``), bit for bit ``_feasible_sets_numpy``."""
+    if not (np.isfinite(q0).all() and np.isfinite(v0).all() and np.isfinite(a0).all()):
+        return _feasible_sets_numpy(q0, v0, a0, limits, control, period)  # NaN propagates as NumPy's minimum and maximum do
+    fractions = _polygon_fractions(control.boundary_samples)[:, 0, 0]
+    B, J = q0.shape
+    K = fractions.size - 1
+    centre, scale = np.empty((B, J, 2)), np.empty((B, J, 2))
+    vertices, normals, offsets = np.empty((B, J, 2 * K, 2)), np.empty((B, J, 2 * K, 2)), np.empty((B, J, 2 * K))
+    feasible = np.empty((B, J), dtype=np.bool_)
+    _polygons(np.ascontiguousarray(q0), np.ascontiguousarray(v0), np.ascontiguousarray(a0), limits.lower, limits.upper, limits.velocity,
+              limits.acceleration, float(control.reach_fraction), float(control.knot_samples * period),
+              float(control.segment_samples * period - control.knot_samples * period), float(ramp_time(control, period)),
+              float(control.reaction_time), float(control.stop_fraction), _GRID[:, 0, 0], fractions, centre, scale, vertices, normals, offsets, feasible)
+    return FeasibleSets(centre=centre, scale=scale, vertices=vertices, normals=normals, offsets=offsets), feasible
+
+
+def _assembled(lo: np.ndarray, hi: np.ndarray, v: np.ndarray, v_low: np.ndarray, v_high: np.ndarray) -> FeasibleSets:
+    """The FeasibleSets of the polygons' sides lo, hi (K + 1, B, 8) at velocities v (K + 1, B, 8)
+    (the last row: the centre's), with velocity range [v_low, v_high] (B, 8)."""
+    hi = np.maximum(hi, lo)  # round-off at the ends
+    centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)  # (B, 8, 2)
+    lo, hi, v = (np.moveaxis(x[:-1], 0, -1) for x in (lo, hi, v))  # (B, 8, K)
+    # Counter-clockwise in (q, v): up the right side (hi) with increasing v, down the left (lo).
+    vertices = np.concatenate([np.stack([hi, v], axis=-1), np.stack([lo, v], axis=-1)[..., ::-1, :]], axis=-2)  # (B, 8, 2K, 2)
+    edges = np.roll(vertices, -1, axis=-2) - vertices
+    normals = np.stack([edges[..., 1], -edges[..., 0]], axis=-1)  # outward for counter-clockwise
+    offsets = np.einsum("...ek,...ek->...e", normals, vertices)
+    scale = np.stack([0.5 * (hi.max(axis=-1) - lo.min(axis=-1)), 0.5 * (v_high - v_low)], axis=-1)
+    return FeasibleSets(centre=centre, scale=np.maximum(scale, 1e-12), vertices=vertices, normals=normals, offsets=offsets)
+
+
+@numba.njit(cache=True)
+def _side_bounds(q1, v1, excess_upper, excess_lower, v, lower, upper, V, A, reach_fraction, h, rest, ramp, reaction_time, stop_fraction):
+    """``_feasible_sets_numpy``'s ``bounds`` of one joint at velocity v: (lo, hi), the same
+    operations in the same order (s = +1: the upper side; s = -1: the lower, mirrored)."""
+    A_r = reach_fraction * A
+    bounds = np.empty(2)
+    for side in range(2):
+        s = 1.0 if side == 0 else -1.0
+        signed_q1 = s * q1 - 2.0 * h * (excess_upper if side == 0 else excess_lower)
+        signed_v1 = s * v1
+        x = s * v
+        # _reach_upper(signed_q1, signed_v1, x, A_r, V, rest, h)
+        peak = min(0.5 * (A_r * rest + signed_v1 + x), V)
+        bang_bang = signed_q1 - (signed_v1 * signed_v1 + x * x) / (2.0 * A_r) + peak * rest + peak * (signed_v1 + x) / A_r - peak * peak / A_r
+        reach = bang_bang - 0.5 * h * abs(peak - x)
+        # invariance_pad(x, ...)
+        ramped = max(x + 0.5 * A * ramp, 0.0)
+        stopping = max(x, 0.0) * ramp + A * ramp * ramp / 3.0 + ramped * reaction_time + ramped * ramped / (2.0 * stop_fraction * A)
+        away = min(x, 0.0)
+        turning = away * away / (2.0 * reach_fraction * A)
+        limit = upper if side == 0 else -lower
+        bounds[side] = s * min(reach, limit - max(stopping, turning))
+    return bounds[1], bounds[0]
+
+
+@numba.njit(cache=True)
+def _polygons(q0, v0, a0, lower, upper, V, A, reach_fraction, h, rest, ramp, reaction_time, stop_fraction, grid, fractions,
+              centre, scale, vertices, normals, offsets, feasible):
+    """``_feasible_sets_numpy`` start by start and joint by joint, on the whole velocity grid
+    (which ``_open_range`` reproduces): writes the FeasibleSets' fields and whether each set is
+    non-empty (B, 8)."""
+    B, J = q0.shape
+    K = fractions.size - 1
+    lo, hi, v = np.empty(K + 1), np.empty(K + 1), np.empty(K + 1)
+    for b in range(B):
+        for j in range(J):
+            A_j, V_j = A[j], V[j]
+            A_r = reach_fraction * A_j
+            q1 = q0[b, j] + v0[b, j] * h + a0[b, j] * h * h / 3.0
+            ramped_v = v0[b, j] + 0.5 * a0[b, j] * h
+            v1 = min(max(ramped_v, -V_j), V_j)
+            excess_upper = max(ramped_v - V_j, 0.0)
+            excess_lower = max(-ramped_v - V_j, 0.0)
+            low, high = max(-V_j, v1 - A_r * rest), min(V_j, v1 + A_r * rest)
+            first, last = -1, -1
+            for g in range(grid.size):
+                l, u = _side_bounds(q1, v1, excess_upper, excess_lower, low + grid[g] * (high - low), lower[j], upper[j], V_j, A_j,
+                                    reach_fraction, h, rest, ramp, reaction_time, stop_fraction)
+                if u >= l:
+                    if first < 0:
+                        first = g
+                    last = g
+            feasible[b, j] = first >= 0
+            if first < 0:  # argmax of all False: the first grid point, and the last
+                first, last = 0, grid.size - 1
+            v_low, v_high = low + grid[first] * (high - low), low + grid[last] * (high - low)
+            for k in range(K + 1):
+                v[k] = v_low + fractions[k] * (v_high - v_low)
+                lo[k], hi[k] = _side_bounds(q1, v1, excess_upper, excess_lower, v[k], lower[j], upper[j], V_j, A_j,
+                                            reach_fraction, h, rest, ramp, reaction_time, stop_fraction)
+                hi[k] = max(hi[k], lo[k])  # round-off at the ends
+            centre[b, j, 0], centre[b, j, 1] = 0.5 * (lo[K] + hi[K]), v[K]
+            # Counter-clockwise in (q, v): up the right side (hi) with increasing v, down the left (lo).
+            for k in range(K):
+                vertices[b, j, k, 0], vertices[b, j, k, 1] = hi[k], v[k]
+                vertices[b, j, 2 * K - 1 - k, 0], vertices[b, j, 2 * K - 1 - k, 1] = lo[k], v[k]
+            for e in range(2 * K):
+                following = (e + 1) % (2 * K)
+                normals[b, j, e, 0] = vertices[b, j, following, 1] - vertices[b, j, e, 1]  # outward for counter-clockwise
+                normals[b, j, e, 1] = -(vertices[b, j, following, 0] - vertices[b, j, e, 0])
+                offsets[b, j, e] = normals[b, j, e, 0] * vertices[b, j, e, 0] + normals[b, j, e, 1] * vertices[b, j, e, 1]
+            top, bottom = hi[0], lo[0]
+            for k in range(1, K):
+                top, bottom = max(top, hi[k]), min(bottom, lo[k])
+            scale[b, j, 0] = max(0.5 * (top - bottom), 1e-12)
+            scale[b, j, 1] = max(0.5 * (v_high - v_low), 1e-12)
+
+
+def _feasible_sets_numpy(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> tuple[FeasibleSets, np.ndarray]:
+    """``_feasible_sets`` in NumPy array operations: the reference of its compiled kernel."""
     A, V = limits.acceleration, limits.velocity
     A_r = control.reach_fraction * A
     h = control.knot_samples * period
@@ -213,16 +339,7 @@ def _feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, pe
     # Polygon vertices at K velocities from v_a to v_b, and the centre's velocity as one more row.
     v = v_low + _polygon_fractions(control.boundary_samples) * (v_high - v_low)  # (K + 1, B, 8)
     lo, hi = bounds(v)
-    hi = np.maximum(hi, lo)  # round-off at the ends
-    centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)  # (B, 8, 2)
-    lo, hi, v = (np.moveaxis(x[:-1], 0, -1) for x in (lo, hi, v))  # (B, 8, K)
-    # Counter-clockwise in (q, v): up the right side (hi) with increasing v, down the left (lo).
-    vertices = np.concatenate([np.stack([hi, v], axis=-1), np.stack([lo, v], axis=-1)[..., ::-1, :]], axis=-2)  # (B, 8, 2K, 2)
-    edges = np.roll(vertices, -1, axis=-2) - vertices
-    normals = np.stack([edges[..., 1], -edges[..., 0]], axis=-1)  # outward for counter-clockwise
-    offsets = np.einsum("...ek,...ek->...e", normals, vertices)
-    scale = np.stack([0.5 * (hi.max(axis=-1) - lo.min(axis=-1)), 0.5 * (v_high - v_low)], axis=-1)
-    return FeasibleSets(centre=centre, scale=np.maximum(scale, 1e-12), vertices=vertices, normals=normals, offsets=offsets), feasible
+    return _assembled(lo, hi, v, v_low, v_high), feasible
 
 
 def _grid_velocity(index: np.ndarray, v_low: np.ndarray, v_high: np.ndarray) -> np.ndarray:

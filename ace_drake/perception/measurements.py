@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numba
 import numpy as np
 
 
@@ -211,8 +212,16 @@ class MeasurementHistoryBatch:
         rows = np.asarray(rows, dtype=np.int64)
         if rows.size == 0:
             return self
-        if np.any(np.diff(rows) < 0):  # a row in two runs would count its first run only
+        if np.any(rows[1:] < rows[:-1]):  # a row in two runs would count its first run only
             raise ValueError("MeasurementHistoryBatch.extended: entries must be grouped by row in ascending order")
+        out = [getattr(self, field.name).copy() for field in dataclasses.fields(self)]
+        _extend_rings(rows, np.asarray(capture_time, dtype=float), np.asarray(release_time, dtype=float), np.asarray(value, dtype=float).reshape(-1, 3),
+                      np.asarray(covariance, dtype=float).reshape(-1, 3, 3), *out)
+        return MeasurementHistoryBatch(*out)
+
+    def _extended_numpy(self, rows, capture_time, release_time, value, covariance) -> MeasurementHistoryBatch:
+        """``extended`` in NumPy array operations: the reference of its compiled kernel."""
+        rows = np.asarray(rows, dtype=np.int64)
         C = self.capacity
         starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
         counts = np.diff(np.r_[starts, rows.size])
@@ -271,3 +280,31 @@ class MeasurementHistoryBatch:
         out[rows, columns, :3] = self.value[rows, slots]
         out[rows, columns, 3] = np.asarray(now, dtype=float)[rows] - self.capture_time[rows, slots]
         return out
+
+
+@numba.njit(cache=True)
+def _extend_rings(rows, capture_time, release_time, value, covariance, sequence, capture, release, values, covariances, written, count, last):
+    """``MeasurementHistoryBatch.extended`` in place on copies of the batch's arrays: entries (n,)
+    grouped by row in ascending order, the newest ``capacity`` of each row written to its ring."""
+    n, C = rows.size, sequence.shape[1]
+    start = 0
+    while start < n:
+        row = rows[start]
+        stop = start
+        while stop < n and rows[stop] == row:
+            stop += 1
+        entries = stop - start
+        for i in range(start + max(entries - C, 0), stop):
+            rank = i - start
+            slot = (written[row] + rank) % C
+            sequence[row, slot] = last[row] + 1 + rank
+            capture[row, slot] = capture_time[i]
+            release[row, slot] = release_time[i]
+            for k in range(3):
+                values[row, slot, k] = value[i, k]
+                for m in range(3):
+                    covariances[row, slot, k, m] = covariance[i, k, m]
+        written[row] += entries
+        count[row] = min(count[row] + entries, C)
+        last[row] += entries
+        start = stop
