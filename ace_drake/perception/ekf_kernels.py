@@ -36,6 +36,7 @@ import math
 import numba
 import numpy as np
 
+from ace_drake.physics.contact import floor_gap_one, net_gap_one, table_gap_one
 from ace_drake.physics.flight import FLIGHT_CONSTANT_COUNT, ball_acceleration, rk4_rows
 
 CONTACT, POSITION, SPIN = 0, 1, 2  # observation kinds, also their order among equal keys
@@ -120,16 +121,12 @@ def _norm3(x, y, z):
 
 @numba.njit(cache=True)
 def contact_gaps(x, y, z, cfg):
-    """The table, net and floor guards (m) of a ball centre: twins of ``physics.contact.table_gap``,
-    ``net_gap`` and ``floor_gap`` (tests/test_ekf_kernels.py checks them against those)."""
+    """The table, net and floor guards (m) of a ball centre: ``physics.contact``'s one-ball kernels
+    with the EKF's packed constants ``cfg``."""
     radius = cfg[F_RADIUS]
-    dx = abs(x) - 0.5 * cfg[F_TABLE_LENGTH]
-    dy = abs(y) - 0.5 * cfg[F_TABLE_WIDTH]
-    signed = math.hypot(max(dx, 0.0), max(dy, 0.0)) + min(max(dx, dy), 0.0)
-    table = max(z - radius, signed)
-    half_span = 0.5 * cfg[F_TABLE_WIDTH] + cfg[F_NET_OVERHANG]
-    net = _norm3(x, y - min(max(y, -half_span), half_span), z - min(max(z, 0.0), cfg[F_NET_HEIGHT])) - radius
-    floor = z + cfg[F_SURFACE_HEIGHT] - radius
+    table = table_gap_one(x, y, z, cfg[F_TABLE_LENGTH], cfg[F_TABLE_WIDTH], radius)
+    net = net_gap_one(x, y, z, cfg[F_TABLE_WIDTH], cfg[F_NET_OVERHANG], cfg[F_NET_HEIGHT], radius)
+    floor = floor_gap_one(z, cfg[F_SURFACE_HEIGHT], radius)
     return table, net, floor
 
 
