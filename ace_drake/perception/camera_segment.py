@@ -106,43 +106,19 @@ class _CameraStack:
     def project_with_jacobian(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (N, C, 2) of positions (N, 3), m, in every camera and their Jacobians
         d pixel / d p_W (N, C, 2, 3), px/m: ``Camera.project_with_jacobian`` (OpenCV's model;
-        equal to ``cv2.projectPoints`` to ~1e-12 px), vectorised over cameras when the lens
-        models allow, else one OpenCV call per camera."""
+        equal to ``cv2.projectPoints`` to ~1e-12 px), compiled over points and cameras
+        (``_project_all``) when the lens models allow, else one OpenCV call per camera."""
         if not self.stacked:
             pixels = np.empty((len(positions), len(self.cameras), 2))
             jacobians = np.empty((len(positions), len(self.cameras), 2, 3))
             for index, camera in enumerate(self.cameras):
                 pixels[:, index], jacobians[:, index] = camera.project_with_jacobian(positions)
             return pixels, jacobians
-        p_C = np.einsum("cij,nj->nci", self.R_CW, positions) + self.tvec  # (N, C, 3)
-        inverse_depth = 1.0 / p_C[..., 2]
-        a, b = p_C[..., 0] * inverse_depth, p_C[..., 1] * inverse_depth  # x', y'
-        k1, k2, p1, p2, k3, k4, k5, k6 = self.distortion.T  # (C,) each
-        r2 = a * a + b * b
-        numerator = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        radial = numerator / denominator
-        d_radial = ((k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)) * denominator - (k4 + r2 * (2.0 * k5 + 3.0 * r2 * k6)) * numerator) / denominator**2
-        x = a * radial + 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a)
-        y = b * radial + p1 * (r2 + 2.0 * b * b) + 2.0 * p2 * a * b
-        pixels = np.stack([x, y], axis=-1) * self.focal + self.centre
-        # d(a, b) / d p_C, then the chain rule through r2 and the distortion.
-        zero = np.zeros_like(a)
-        da = np.stack([inverse_depth, zero, -a * inverse_depth], axis=-1)  # (N, C, 3)
-        db = np.stack([zero, inverse_depth, -b * inverse_depth], axis=-1)
-        dr2 = 2.0 * (a[..., None] * da + b[..., None] * db)
-        dx = (
-            (radial + 2.0 * p1 * b + 4.0 * p2 * a)[..., None] * da
-            + (2.0 * p1 * a)[..., None] * db
-            + (a * d_radial + p2)[..., None] * dr2
-        )
-        dy = (
-            (radial + 2.0 * p2 * a + 4.0 * p1 * b)[..., None] * db
-            + (2.0 * p2 * b)[..., None] * da
-            + (b * d_radial + p1)[..., None] * dr2
-        )
-        d_pixel_d_p_C = np.stack([dx, dy], axis=-2) * self.focal[..., None]  # (N, C, 2, 3)
-        return pixels, d_pixel_d_p_C @ self.R_CW
+        positions = np.ascontiguousarray(positions, dtype=float).reshape(-1, 3)
+        pixels = np.empty((len(positions), len(self.cameras), 2))
+        jacobians = np.empty((len(positions), len(self.cameras), 2, 3))
+        _project_all(positions, self.R_CW, self.tvec, self.focal, self.centre, self.distortion, pixels, jacobians)
+        return pixels, jacobians
 
     def depths(self, positions: np.ndarray) -> np.ndarray:
         """Depths (N, C), m, of positions (N, 3) along each camera's optical axis."""
@@ -361,6 +337,16 @@ def _project_one(p, R_CW, tvec, focal, centre, distortion, used, residual_to, re
         for i in range(3):  # d pixel / d p_W = d pixel / d p_C R_CW
             jacobians[c, 0, i] = dx_dp_C[0] * R[0, i] + dx_dp_C[1] * R[1, i] + dx_dp_C[2] * R[2, i]
             jacobians[c, 1, i] = dy_dp_C[0] * R[0, i] + dy_dp_C[1] * R[1, i] + dy_dp_C[2] * R[2, i]
+
+
+@numba.njit(cache=True)
+def _project_all(positions, R_CW, tvec, focal, centre, distortion, pixels, jacobians):
+    """Pixels (N, C, 2) and Jacobians (N, C, 2, 3) of positions (N, 3) in every camera, into the
+    arrays given: ``_project_one`` per position (the one written form of the lens model here)."""
+    used = np.ones(R_CW.shape[0], dtype=np.bool_)
+    origin = np.zeros((R_CW.shape[0], 2))
+    for n in range(positions.shape[0]):
+        _project_one(positions[n], R_CW, tvec, focal, centre, distortion, used, origin, pixels[n], jacobians[n])
 
 
 @numba.njit(cache=True)
