@@ -66,6 +66,12 @@ class FrameTriangulations:
     views: np.ndarray
     rms_residual_px: np.ndarray
 
+    @classmethod
+    def of_frames(cls, valid, position, covariance, views, rms_residual_px, shape: tuple) -> FrameTriangulations:
+        """The results of N flat frames (N,), (N, 3), (N, 3, 3), (N, C), (N,) reshaped to ``shape`` S."""
+        return cls(valid=valid.reshape(shape), position=position.reshape(shape + (3,)), covariance=covariance.reshape(shape + (3, 3)),
+                   views=views.reshape(shape + views.shape[-1:]), rms_residual_px=rms_residual_px.reshape(shape))
+
 
 _STACKED_DISTORTION_LENGTHS = (4, 5, 8)  # OpenCV's radial-tangential and rational models
 
@@ -266,13 +272,7 @@ def _triangulate_rounds(stack: _CameraStack, flat: np.ndarray, normalised: np.nd
         views[rows, worst[again]] = False
         pending = rows[views[rows].sum(axis=1) >= min_views]
     views &= valid[:, None]
-    return FrameTriangulations(
-        valid=valid.reshape(shape),
-        position=position.reshape(shape + (3,)),
-        covariance=covariance.reshape(shape + (3, 3)),
-        views=views.reshape(shape + (C,)),
-        rms_residual_px=rms.reshape(shape),
-    )
+    return FrameTriangulations.of_frames(valid, position, covariance, views, rms, shape)
 
 
 def _triangulate_compiled(stack: _CameraStack, flat: np.ndarray, normalised: np.ndarray, usable: np.ndarray, pixel_noise_sigma: float,
@@ -290,13 +290,7 @@ def _triangulate_compiled(stack: _CameraStack, flat: np.ndarray, normalised: np.
     _triangulate_frames(np.ascontiguousarray(flat), np.ascontiguousarray(normalised), stack.projection, stack.R_CW, stack.tvec, stack.focal,
                         stack.centre, stack.distortion, float(pixel_noise_sigma), float(outlier_threshold_px), int(min_views),
                         GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, valid, position, covariance, views, rms)
-    return FrameTriangulations(
-        valid=valid.reshape(shape),
-        position=position.reshape(shape + (3,)),
-        covariance=covariance.reshape(shape + (3, 3)),
-        views=views.reshape(shape + (C,)),
-        rms_residual_px=rms.reshape(shape),
-    )
+    return FrameTriangulations.of_frames(valid, position, covariance, views, rms, shape)
 
 
 @numba.njit(cache=True)

@@ -159,6 +159,28 @@ def closest_approach(previous, relative: np.ndarray):
     return min(closest, float(np.linalg.norm(before + s * step))), relative
 
 
+def fallback_action(returner: ModelBasedReturner, obs: np.ndarray, hold) -> np.ndarray:
+    """The label of a returner without an action for ``obs``: continuing the committed plan
+    (``hold()``, its eq. (12) action) or else heading for the reset pose, whichever the stack
+    accepts first (the plan if neither)."""
+    q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
+    label = returner.driver.first_safe(q0, v0, a0, [hold, lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
+    return hold() if label is None else label
+
+
+def demonstrated_action(returner: ModelBasedReturner, obs: np.ndarray, label: np.ndarray, rng: np.random.Generator,
+                        exploration: ExplorationParams) -> np.ndarray:
+    """What the demonstrator plays for its ``label``: with probability ``demo_noise_fraction`` the
+    label plus Gaussian noise (DART), if the stack accepts that segment (noise that would collide
+    is not explored), else the label."""
+    if rng.random() < exploration.demo_noise_fraction:
+        noisy = np.clip(label + rng.normal(0.0, exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
+        q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
+        if returner.stack.propose(q0, v0, a0, noisy).safe:
+            return noisy
+    return label
+
+
 class RolloutWorker:
     """One environment playing whole episodes (module docstring). ``set_actor`` installs fresh
     actor weights (a ``SacLearner.actor`` state dict); ``collect(episodes, mode)`` plays them.
@@ -256,12 +278,7 @@ class RolloutWorker:
         if mode == "dagger":
             return self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale), self._label(obs)
         label = self._label(obs)
-        if self.rng.random() < self.exploration.demo_noise_fraction:
-            noisy = np.clip(label + self.rng.normal(0.0, self.exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
-            q0, v0, a0 = np.split(self.returner.layout.part(obs, "robot_state"), 3)
-            if self.returner.stack.propose(q0, v0, a0, noisy).safe:  # noise that would collide is not explored
-                return noisy, label
-        return label, label
+        return demonstrated_action(self.returner, obs, label, self.rng, self.exploration), label
 
     def _hit_state_action(self, mode: str, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """(the env's action, the hit state stored as the action, the label or None) of the
@@ -301,13 +318,8 @@ class RolloutWorker:
         return self._fallback(obs) if label is None else label
 
     def _fallback(self, obs: np.ndarray) -> np.ndarray:
-        """Without an action: continuing the plan or else heading for the reset pose, whichever
-        the stack accepts first (the plan if neither)."""
-        returner = self.returner
-        q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
-        label = returner.driver.first_safe(q0, v0, a0, [self.env.hold_action,
-                                                      lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
-        return self.env.hold_action() if label is None else label
+        """Without an action: ``fallback_action`` with the env's plan."""
+        return fallback_action(self.returner, obs, self.env.hold_action)
 
     def _blade_distance(self, previous):
         """(closest approach so far (m), relative position now): module docstring."""
@@ -451,23 +463,12 @@ class VectorRolloutWorker:
         neither): ``RolloutWorker._label``."""
         returner, obs = self.returners[row], np.asarray(self._obs[row], dtype=float)
         label = returner(obs)
-        if label is not None:
-            return label
-        q0, v0, a0 = np.split(returner.layout.part(obs, "robot_state"), 3)
-        hold = lambda: self.env.hold_actions([row])[0]  # noqa: E731 (computed only if tried)
-        label = returner.driver.first_safe(q0, v0, a0, [hold, lambda: returner.stack.action_towards(q0, v0, a0, returner.stack.reset_pose)])
-        return hold() if label is None else label
+        return fallback_action(returner, obs, lambda: self.env.hold_actions([row])[0]) if label is None else label
 
     def _demonstrate(self, row: int, label: np.ndarray) -> np.ndarray:
         """The demonstrator's action: the label, with DART noise on a share of the steps where the
         noisy segment would be accepted (``RolloutWorker._action``)."""
-        if self.rng.random() < self.exploration.demo_noise_fraction:
-            noisy = np.clip(label + self.rng.normal(0.0, self.exploration.demo_noise, ACTION_SIZE), -1.0, 1.0)
-            returner = self.returners[row]
-            q0, v0, a0 = np.split(returner.layout.part(np.asarray(self._obs[row], dtype=float), "robot_state"), 3)
-            if returner.stack.propose(q0, v0, a0, noisy).safe:  # noise that would collide is not explored
-                return noisy
-        return label
+        return demonstrated_action(self.returners[row], np.asarray(self._obs[row], dtype=float), label, self.rng, self.exploration)
 
     @staticmethod
     def _empty_rows(mode: str = "policy") -> dict:
