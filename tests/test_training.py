@@ -340,6 +340,21 @@ def test_a_batched_run_collects_on_vector_workers_and_evaluates_on_the_segment_d
     assert state.evaluations and state.evaluations[-1][2]["played"] + state.evaluations[-1][2].get("invalid", 0) <= 4
 
 
+def test_a_batched_run_demonstrates_clones_and_learns_with_dagger_labels(tmp_path):
+    # The returner demonstrates on a vector worker of 2 environments, the actor is cloned, then it
+    # plays while the returner labels (DAgger): every phase batched, end to end.
+    config = _config(batch=2, demonstrations=2, ou_episodes=0, pretrain_updates=4, learn_mode="dagger", env_steps=80,
+                     evaluation_episodes=2, demonstration_capacity=5_000)
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    state = trainer.run()
+    assert state.phase == "done" and state.demonstration_episodes == 2 and state.pretrain_updates == 4
+    assert state.env_steps >= 80 and trainer.learner.updates > 4
+    demonstrated = len(trainer.demonstrations)
+    assert demonstrated > 0 and trainer.demonstrations.buffer.capacity == 5_000
+    assert demonstrated == state.env_steps  # every collected step is labelled: demonstrations and DAgger
+    assert state.evaluations
+
+
 def test_batched_workers_refuse_the_hit_state_action():
     hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
     with pytest.raises(ConfigError, match="batched workers play the eq. \\(12\\) action"):
