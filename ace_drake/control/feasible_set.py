@@ -116,12 +116,22 @@ def invariance_pad(towards: np.ndarray, limits: CommandLimits, control: ControlP
 
     Moving towards it: the worst-case terminal acceleration A ramped out over ``ramp`` s
     (``ramp_time``), the reaction time, then braking at A_s. Moving away: the QP came from a turn
-    no closer than the limit. Units: rad or m and per second."""
-    A = limits.acceleration
-    ramped = np.maximum(towards + 0.5 * A * ramp, 0.0)
-    stopping = np.maximum(towards, 0.0) * ramp + A * ramp * ramp / 3.0 + ramped * control.reaction_time + ramped**2 / (2.0 * control.stop_fraction * A)
-    turning = np.minimum(towards, 0.0) ** 2 / (2.0 * control.reach_fraction * A)
-    return np.maximum(stopping, turning)
+    no closer than the limit. NaN where ``towards`` is NaN. Units: rad or m and per second."""
+    return _pad(np.asarray(towards, dtype=float), limits.acceleration, float(ramp), float(control.reaction_time),
+                float(control.stop_fraction), float(control.reach_fraction))
+
+
+@numba.vectorize(["float64(float64, float64, float64, float64, float64, float64)"], cache=True)
+def _pad(towards, A, ramp, reaction_time, stop_fraction, reach_fraction):
+    """``invariance_pad`` of one joint (acceleration limit A): the one definition, which the
+    feasible sets' kernel calls too."""
+    if np.isnan(towards):
+        return np.nan
+    ramped = max(towards + 0.5 * A * ramp, 0.0)
+    stopping = max(towards, 0.0) * ramp + A * ramp * ramp / 3.0 + ramped * reaction_time + ramped * ramped / (2.0 * stop_fraction * A)
+    away = min(towards, 0.0)
+    turning = away * away / (2.0 * reach_fraction * A)
+    return max(stopping, turning)
 
 
 def invariant_bounds(v: np.ndarray, limits: CommandLimits, control: ControlParams, ramp: float) -> tuple[np.ndarray, np.ndarray]:
@@ -130,15 +140,14 @@ def invariant_bounds(v: np.ndarray, limits: CommandLimits, control: ControlParam
     return limits.lower + invariance_pad(-v, limits, control, ramp), limits.upper - invariance_pad(v, limits, control, ramp)
 
 
+@numba.njit(cache=True)
 def _reach_upper(q1, v1, v, A_r, V, duration, ramp):
-    """q_max(v): the largest terminal position reachable with terminal velocity v (module
-    docstring), less the ramp pad (ramp / 2) (|w - v1| + |w - v|)."""
-    peak = np.minimum(0.5 * (A_r * duration + v1 + v), V)
-    bang_bang = q1 - (v1**2 + v**2) / (2.0 * A_r) + peak * duration + peak * (v1 + v) / A_r - peak**2 / A_r
-    return bang_bang - 0.5 * ramp * np.abs(peak - v)
-
-
-_SIDES = np.array([1.0, -1.0])[:, None, None, None]  # s: the upper bound (+1) and the lower (-1)
+    """q_max(v) of one joint: the largest terminal position reachable with terminal velocity v
+    (module docstring) from (q1, v1) over ``duration`` s at |a| <= A_r, |v| <= V, less the ramp
+    pad (ramp / 2) |w - v|."""
+    peak = min(0.5 * (A_r * duration + v1 + v), V)
+    bang_bang = q1 - (v1 * v1 + v * v) / (2.0 * A_r) + peak * duration + peak * (v1 + v) / A_r - peak * peak / A_r
+    return bang_bang - 0.5 * ramp * abs(peak - v)
 
 
 def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> FeasibleSets:
@@ -193,10 +202,8 @@ _LAST_SETS: list = [None, None]  # feasible_sets_batch's last (key, result)
 
 def _feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> tuple[FeasibleSets, np.ndarray]:
     """The sets (batch B) for starts (B, 8) each, and which joints' sets are non-empty (B, 8):
-    one compiled call (``_polygons``), bit for bit ``_feasible_sets_numpy``."""
-    if not (np.isfinite(q0).all() and np.isfinite(v0).all() and np.isfinite(a0).all()):
-        return _feasible_sets_numpy(q0, v0, a0, limits, control, period)  # NaN propagates as NumPy's minimum and maximum do
-    fractions = _polygon_fractions(control.boundary_samples)[:, 0, 0]
+    one compiled call (``_polygons``)."""
+    fractions = _polygon_fractions(control.boundary_samples)
     B, J = q0.shape
     K = fractions.size - 1
     centre, scale = np.empty((B, J, 2)), np.empty((B, J, 2))
@@ -205,61 +212,50 @@ def _feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, pe
     _polygons(np.ascontiguousarray(q0), np.ascontiguousarray(v0), np.ascontiguousarray(a0), limits.lower, limits.upper, limits.velocity,
               limits.acceleration, float(control.reach_fraction), float(control.knot_samples * period),
               float(control.segment_samples * period - control.knot_samples * period), float(ramp_time(control, period)),
-              float(control.reaction_time), float(control.stop_fraction), _GRID[:, 0, 0], fractions, centre, scale, vertices, normals, offsets, feasible)
+              float(control.reaction_time), float(control.stop_fraction), _GRID, fractions, centre, scale, vertices, normals, offsets, feasible)
     return FeasibleSets(centre=centre, scale=scale, vertices=vertices, normals=normals, offsets=offsets), feasible
-
-
-def _assembled(lo: np.ndarray, hi: np.ndarray, v: np.ndarray, v_low: np.ndarray, v_high: np.ndarray) -> FeasibleSets:
-    """The FeasibleSets of the polygons' sides lo, hi (K + 1, B, 8) at velocities v (K + 1, B, 8)
-    (the last row: the centre's), with velocity range [v_low, v_high] (B, 8)."""
-    hi = np.maximum(hi, lo)  # round-off at the ends
-    centre = np.stack([0.5 * (lo[-1] + hi[-1]), v[-1]], axis=-1)  # (B, 8, 2)
-    lo, hi, v = (np.moveaxis(x[:-1], 0, -1) for x in (lo, hi, v))  # (B, 8, K)
-    # Counter-clockwise in (q, v): up the right side (hi) with increasing v, down the left (lo).
-    vertices = np.concatenate([np.stack([hi, v], axis=-1), np.stack([lo, v], axis=-1)[..., ::-1, :]], axis=-2)  # (B, 8, 2K, 2)
-    edges = np.roll(vertices, -1, axis=-2) - vertices
-    normals = np.stack([edges[..., 1], -edges[..., 0]], axis=-1)  # outward for counter-clockwise
-    offsets = np.einsum("...ek,...ek->...e", normals, vertices)
-    scale = np.stack([0.5 * (hi.max(axis=-1) - lo.min(axis=-1)), 0.5 * (v_high - v_low)], axis=-1)
-    return FeasibleSets(centre=centre, scale=np.maximum(scale, 1e-12), vertices=vertices, normals=normals, offsets=offsets)
 
 
 @numba.njit(cache=True)
 def _side_bounds(q1, v1, excess_upper, excess_lower, v, lower, upper, V, A, reach_fraction, h, rest, ramp, reaction_time, stop_fraction):
-    """``_feasible_sets_numpy``'s ``bounds`` of one joint at velocity v: (lo, hi), the same
-    operations in the same order (s = +1: the upper side; s = -1: the lower, mirrored)."""
-    A_r = reach_fraction * A
+    """The bounds (lo, hi) of one joint's set at terminal velocity v: on each side the tighter of
+    reachability (``_reach_upper``) and invariance (``_pad``), the lower side mirrored (s = -1:
+    q -> -q, v -> -v).
+
+    (q1, v1) is the start after the first knot interval (module docstring, part 1). Where the
+    ramp of a0 to zero over it would carry the velocity past its limit (by e = ``excess_*``), the
+    spline must instead turn its acceleration round within the interval to meet the bound at the
+    sample, and recover after it: it reaches about e h less far on that side (measured: 1.7e-6 m
+    for e = 1.7e-3 m/s); that side's start is moved back by 2 e h."""
     bounds = np.empty(2)
     for side in range(2):
         s = 1.0 if side == 0 else -1.0
-        signed_q1 = s * q1 - 2.0 * h * (excess_upper if side == 0 else excess_lower)
-        signed_v1 = s * v1
         x = s * v
-        # _reach_upper(signed_q1, signed_v1, x, A_r, V, rest, h)
-        peak = min(0.5 * (A_r * rest + signed_v1 + x), V)
-        bang_bang = signed_q1 - (signed_v1 * signed_v1 + x * x) / (2.0 * A_r) + peak * rest + peak * (signed_v1 + x) / A_r - peak * peak / A_r
-        reach = bang_bang - 0.5 * h * abs(peak - x)
-        # invariance_pad(x, ...)
-        ramped = max(x + 0.5 * A * ramp, 0.0)
-        stopping = max(x, 0.0) * ramp + A * ramp * ramp / 3.0 + ramped * reaction_time + ramped * ramped / (2.0 * stop_fraction * A)
-        away = min(x, 0.0)
-        turning = away * away / (2.0 * reach_fraction * A)
+        reach = _reach_upper(s * q1 - 2.0 * h * (excess_upper if side == 0 else excess_lower), s * v1, x, reach_fraction * A, V, rest, h)
         limit = upper if side == 0 else -lower
-        bounds[side] = s * min(reach, limit - max(stopping, turning))
+        bounds[side] = s * min(reach, limit - _pad(x, A, ramp, reaction_time, stop_fraction, reach_fraction))
     return bounds[1], bounds[0]
 
 
 @numba.njit(cache=True)
 def _polygons(q0, v0, a0, lower, upper, V, A, reach_fraction, h, rest, ramp, reaction_time, stop_fraction, grid, fractions,
               centre, scale, vertices, normals, offsets, feasible):
-    """``_feasible_sets_numpy`` start by start and joint by joint, on the whole velocity grid
-    (which ``_open_range`` reproduces): writes the FeasibleSets' fields and whether each set is
-    non-empty (B, 8)."""
+    """The feasible sets start by start (B) and joint by joint (8): writes the FeasibleSets'
+    fields (B, 8, ...) and whether each set is non-empty (B, 8).
+
+    The velocity range [v_a, v_b] is where the (concave) width hi - lo is >= 0 on the ``grid``
+    (fractions of the reachable range: the ramp pad closes its two ends, and a position limit may
+    cut it further); the polygon's vertices are at ``fractions`` of [v_a, v_b], the last of them
+    the centre's velocity. A joint whose start is not finite has an empty set with NaN fields."""
     B, J = q0.shape
     K = fractions.size - 1
     lo, hi, v = np.empty(K + 1), np.empty(K + 1), np.empty(K + 1)
     for b in range(B):
         for j in range(J):
+            if not (np.isfinite(q0[b, j]) and np.isfinite(v0[b, j]) and np.isfinite(a0[b, j])):
+                feasible[b, j] = False
+                centre[b, j], scale[b, j], vertices[b, j], normals[b, j], offsets[b, j] = np.nan, np.nan, np.nan, np.nan, np.nan
+                continue
             A_j, V_j = A[j], V[j]
             A_r = reach_fraction * A_j
             q1 = q0[b, j] + v0[b, j] * h + a0[b, j] * h * h / 3.0
@@ -277,7 +273,7 @@ def _polygons(q0, v0, a0, lower, upper, V, A, reach_fraction, h, rest, ramp, rea
                         first = g
                     last = g
             feasible[b, j] = first >= 0
-            if first < 0:  # argmax of all False: the first grid point, and the last
+            if first < 0:  # an empty set: finite but meaningless polygons over the whole range
                 first, last = 0, grid.size - 1
             v_low, v_high = low + grid[first] * (high - low), low + grid[last] * (high - low)
             for k in range(K + 1):
@@ -302,119 +298,17 @@ def _polygons(q0, v0, a0, lower, upper, V, A, reach_fraction, h, rest, ramp, rea
             scale[b, j, 1] = max(0.5 * (v_high - v_low), 1e-12)
 
 
-def _feasible_sets_numpy(q0, v0, a0, limits: CommandLimits, control: ControlParams, period: float) -> tuple[FeasibleSets, np.ndarray]:
-    """``_feasible_sets`` in NumPy array operations: the reference of its compiled kernel."""
-    A, V = limits.acceleration, limits.velocity
-    A_r = control.reach_fraction * A
-    h = control.knot_samples * period
-    rest = control.segment_samples * period - h
-    # The start after the first knot interval's ramp of a0 to zero (module docstring, part 1).
-    q1 = q0 + v0 * h + a0 * h * h / 3.0
-    v1 = np.clip(v0 + 0.5 * a0 * h, -V, V)
-    # Where that ramp would carry the velocity past its limit (by e), the spline must instead
-    # turn its acceleration round within the interval to meet the bound at the sample, and
-    # recover after it: it reaches about e * h less far on that side (measured: 1.7e-6 m for
-    # e = 1.7e-3 m/s); the bound on that side is padded by 2 e h.
-    excess = np.maximum(_SIDES * (v0 + 0.5 * a0 * h) - V, 0.0)  # (2, 1, B, 8)
-    signed_q1, signed_v1 = _SIDES * q1 - 2.0 * h * excess, _SIDES * v1
-    signed_limit = np.empty((2, 1, 1, q0.shape[-1]))  # upper, -lower
-    signed_limit[0, 0, 0], signed_limit[1, 0, 0] = limits.upper, -limits.lower
-    ramp = ramp_time(control, period)
-
-    def bounds(v: np.ndarray, rows=slice(None)) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) (K, b, 8) at velocities v (K, b, 8) of the starts ``rows``: both sides at
-        once, the lower one mirrored (s = -1: q -> -q, v -> -v), each the tighter of
-        reachability and invariance."""
-        x = _SIDES * v  # (2, K, b, 8)
-        reach = _reach_upper(signed_q1[:, :, rows], signed_v1[:, :, rows], x, A_r, V, rest, h)
-        side = _SIDES * np.minimum(reach, signed_limit - invariance_pad(x, limits, control, ramp))
-        return side[1], side[0]
-
-    # The velocity range [v_a, v_b] of F: where the (concave) width hi - lo is >= 0, within the
-    # reachable range, found on a grid (the ramp pad closes the reachable range's two ends, and a
-    # position limit may cut it further).
-    v_low, v_high = np.maximum(-V, v1 - A_r * rest), np.minimum(V, v1 + A_r * rest)
-    first, last, feasible = _open_range(bounds, v_low, v_high, h)
-    v_low, v_high = _grid_velocity(first, v_low, v_high), _grid_velocity(last, v_low, v_high)
-    # Polygon vertices at K velocities from v_a to v_b, and the centre's velocity as one more row.
-    v = v_low + _polygon_fractions(control.boundary_samples) * (v_high - v_low)  # (K + 1, B, 8)
-    lo, hi = bounds(v)
-    return _assembled(lo, hi, v, v_low, v_high), feasible
-
-
-def _grid_velocity(index: np.ndarray, v_low: np.ndarray, v_high: np.ndarray) -> np.ndarray:
-    """The velocities (B, 8) of grid points ``index`` (B, 8), as the grid computes them."""
-    return v_low + _GRID[index, 0, 0] * (v_high - v_low)
-
-
-def _open_range(bounds, v_low: np.ndarray, v_high: np.ndarray, knot_interval: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The first and last grid indices (B, 8) where hi >= lo (``bounds``) on the grid of
-    ``VELOCITY_GRID`` velocities from v_low to v_high (B, 8), and whether there is one (B, 8):
-    exactly what evaluating the whole grid gives, from about a quarter of its points.
-
-    The width w = hi - lo is concave up to two convex kinks, where the ramp pads
-    (knot_interval / 2) |w* - v| of hi and lo meet the velocity limit, each raising w's slope by
-    knot_interval / 4 (``_reach_upper``). So on the coarse grid of every ``_COARSE``-th point,
-    if every |w| exceeds tol = 2 knot_interval dv (dv: the grid step) and the open points are
-    contiguous, every fine point between two open ones is open (w stays above tol -
-    knot_interval dv) and every fine point beyond the first closed one on either side is closed
-    (the slope there keeps the sign it has across the transition); only the fine points next to
-    the two transitions need evaluating, by the same arithmetic as on the whole grid. Joints of a
-    start where that does not hold (a narrow or empty set) get the whole grid, and so do batches
-    of fewer than ``_COARSE_ROWS`` starts (one evaluation of the grid costs less there than two of
-    fewer points: NumPy's per-call overhead dominates)."""
-    stride, rows = _COARSE, v_low.shape[0]
-    if rows < _COARSE_ROWS:
-        grid = v_low + _GRID * (v_high - v_low)
-        lo, hi = bounds(grid)
-        open_ = hi >= lo
-        return np.argmax(open_, axis=0), open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0), np.any(open_, axis=0)
-    coarse = np.arange(0, VELOCITY_GRID, stride)
-    lo, hi = bounds(v_low + _GRID[coarse] * (v_high - v_low))
-    width = hi - lo  # (C, B, 8); open where >= 0, as hi >= lo
-    open_ = width >= 0.0
-    tolerance = 2.0 * knot_interval * (v_high - v_low) / (VELOCITY_GRID - 1) * (1.0 + 1e-6) + 1e-9
-    first_coarse = np.argmax(open_, axis=0)
-    last_coarse = open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0)
-    span = np.arange(open_.shape[0])[:, None, None]
-    contiguous = np.all(open_ == ((span >= first_coarse) & (span <= last_coarse)), axis=0)
-    decided = np.any(open_, axis=0) & contiguous & np.all(np.abs(width) > tolerance, axis=0)
-    # The fine points before the first open coarse point and after the last (clipped to the grid:
-    # an end of the grid that is open is its own transition).
-    offsets = np.arange(1, stride)
-    before = coarse[first_coarse] - stride + offsets[:, None, None]  # (stride - 1, B, 8)
-    after = coarse[last_coarse] + offsets[:, None, None]
-    fine = np.clip(np.concatenate([before, after]), 0, VELOCITY_GRID - 1)
-    lo, hi = bounds(_grid_velocity(fine, v_low, v_high))
-    fine_open = (hi >= lo) & (np.concatenate([before, after]) == fine)
-    before_open, after_open = fine_open[: stride - 1], fine_open[stride - 1 :]
-    first = np.where(np.any(before_open, axis=0), before[0] + np.argmax(before_open, axis=0), coarse[first_coarse])
-    last = np.where(np.any(after_open, axis=0), after[-1] - np.argmax(after_open[::-1], axis=0), coarse[last_coarse])
-    feasible = np.ones(first.shape, dtype=bool)
-    undecided = np.flatnonzero(~np.all(decided, axis=-1))
-    if undecided.size:  # the whole grid, for the starts with a joint not decided above
-        grid = v_low[undecided] + _GRID * (v_high[undecided] - v_low[undecided])
-        lo, hi = bounds(grid, undecided)
-        open_ = hi >= lo
-        feasible[undecided] = np.any(open_, axis=0)
-        first[undecided] = np.argmax(open_, axis=0)
-        last[undecided] = open_.shape[0] - 1 - np.argmax(open_[::-1], axis=0)
-    return first, last, feasible
-
-
 @functools.lru_cache(maxsize=8)
 def _polygon_fractions(samples: int) -> np.ndarray:
-    """(samples + 1, 1, 1): 0 .. 1 in ``samples`` steps, then 0.5 (the centre's row)."""
+    """(samples + 1,): 0 .. 1 in ``samples`` steps, then 0.5 (the centre's row)."""
     fractions = np.linspace(0.0, 1.0, samples + 1)
     fractions[:-1] = np.linspace(0.0, 1.0, samples)
     fractions[-1] = 0.5
-    return fractions[:, None, None]
+    return fractions
 
 
 VELOCITY_GRID = 129
-_COARSE = 8  # _open_range's coarse grid: every 8th velocity (VELOCITY_GRID - 1 a multiple)
-_COARSE_ROWS = 4  # and the smallest batch it is used for
-_GRID = np.linspace(0.0, 1.0, VELOCITY_GRID)[:, None, None]
+_GRID = np.linspace(0.0, 1.0, VELOCITY_GRID)
 
 
 def in_invariant_set(q, v, limits: CommandLimits, control: ControlParams, period: float, tolerance: float = 0.0) -> np.ndarray:
