@@ -48,3 +48,4 @@ def test_no_module_imports_another_modules_private_names():
 def test_the_private_import_check_catches_one(tmp_path):
     (tmp_path / "m.py").write_text("from ace_drake.physics.flight import _hidden\n")
     assert private_imports(tmp_path) == [f"{tmp_path / 'm.py'}: ace_drake.physics.flight._hidden"]
+
