@@ -213,3 +213,26 @@ def test_a_policy_artefact_stores_its_play_options_beside_the_learners_config(tm
     assert payload["play"] == {"meet_ball": True, "hit_memory": False} and "meet_ball" not in payload["sac_config"]
     policy = load_policy(tmp_path / "p.pt")
     assert policy.meet_ball and not policy.hit_memory
+
+
+def test_the_cloning_term_weights_the_rows_near_the_predicted_hit():
+    learner = SacLearner(SacConfig(**SMALL, bc_weight=1.0, bc_hit_weight=4.0, bc_hit_window=0.1, seed=3))
+    rng = np.random.default_rng(1)
+    obs = rng.normal(size=(4, learner.observation_size))
+    prediction = learner.config.layout.slice("hit_prediction")
+    # [valid, time to the hit]: near and valid, far, near but invalid, exactly at the window
+    obs[:, prediction.start : prediction.start + 2] = [[1.0, 0.05], [1.0, 0.3], [0.0, 0.05], [1.0, 0.1]]
+    demos = {"obs": obs, "demo_action": rng.uniform(-1, 1, (4, 16))}
+    with torch.no_grad():
+        mean, _, _ = learner.actor(learner.actor_features(torch.as_tensor(obs, dtype=torch.float32)))
+        error = ((torch.tanh(mean) - torch.as_tensor(demos["demo_action"], dtype=torch.float32)) ** 2).sum(-1).numpy()
+        loss = learner.behaviour_cloning_loss(demos).item()
+    weights = np.array([5.0, 1.0, 1.0, 5.0])
+    assert loss == pytest.approx(np.sum(weights * error) / weights.sum(), rel=1e-5)
+    plain = SacLearner(SacConfig(**SMALL, bc_weight=1.0, seed=3))
+    with torch.no_grad():
+        assert plain.behaviour_cloning_loss(demos).item() == pytest.approx(error.mean(), rel=1e-5)
+    with pytest.raises(ValueError, match="bc_hit_weight"):
+        SacConfig(bc_hit_weight=-1.0)
+    with pytest.raises(ValueError, match="hit_state"):
+        SacConfig(bc_hit_weight=1.0, action="hit_state", actor_observation_parts=("robot_state", "hit_prediction"))

@@ -20,10 +20,14 @@ second batch of demonstrated transitions (observations with the model-based retu
 ``rollout`` docstring) and then adds a behaviour-cloning term to the actor's loss (Nair et al.
 2018, "Overcoming exploration in RL with demonstrations"):
 
-    L_actor += bc_weight * mean |tanh(mu(o_demo)) - a_demo|^2     (mu: the Gaussian's mean)
+    L_actor += bc_weight * sum_i w_i |tanh(mu(o_i)) - a_i|^2 / sum_i w_i     (mu: the Gaussian's mean)
 
 so that the sparse terminal reward is not the only thing telling 16 action dimensions how to hit
 a ball; with ``bc_weight`` 0 (the default) or no demonstration batch, the update is the paper's.
+The row weights w_i are 1, or 1 + ``bc_hit_weight`` where the observation's predicted hit is at
+most ``bc_hit_window`` s away: the segments that decide the stroke are ~15% of the rows and the
+hardest to fit (the cloned actor placed the blade well but swung at a third of the returner's
+speed; docs/training.md, *Training the paper's policy*).
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
 the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
@@ -99,6 +103,10 @@ class SacConfig:
     critic_observation_parts: tuple[str, ...] = ("robot_state",)
     # The behaviour-cloning term's weight (module docstring; this project's, 0: the paper's SAC).
     bc_weight: float = 0.0
+    # The cloning term's extra weight on rows whose predicted hit is at most bc_hit_window s away
+    # (module docstring; 0: every row alike). Terminal action only.
+    bc_hit_weight: float = 0.0
+    bc_hit_window: float = 0.1
     # What the actor outputs (module docstring): "terminal" (eq. (12), the paper's) or "hit_state".
     action: str = "terminal"
     # The hit-state cloning loss (learning.hit_state): its consistency weight (30 measured best of
@@ -119,6 +127,10 @@ class SacConfig:
             raise ValueError(f"SacConfig.tau must be in (0, 1], got {self.tau}")
         if not (self.alpha >= 0.0 and self.aux_weight >= 0.0 and self.bc_weight >= 0.0):
             raise ValueError(f"SacConfig.alpha, aux_weight and bc_weight must be >= 0, got {self.alpha}, {self.aux_weight}, {self.bc_weight}")
+        if not (self.bc_hit_weight >= 0.0 and self.bc_hit_window > 0.0):
+            raise ValueError(f"SacConfig: bc_hit_weight must be >= 0 and bc_hit_window > 0 s, got {self.bc_hit_weight}, {self.bc_hit_window}")
+        if self.bc_hit_weight > 0.0 and self.action != "terminal":
+            raise ValueError("SacConfig.bc_hit_weight weights the terminal action's cloning term; the hit_state action has its own loss")
         if self.action not in ACTIONS:
             raise ValueError(f"SacConfig.action must be one of {ACTIONS}, got {self.action!r}")
         if self.action == "hit_state" and not {"robot_state", "hit_prediction"} <= set(self.actor_observation_parts):
@@ -187,6 +199,7 @@ class SacLearner:
         obs_scale = observation_scale(layout)
         self._actor_index = torch.as_tensor(layout.indices(c.actor_observation_parts))
         self._critic_obs_index = torch.as_tensor(layout.indices(c.critic_observation_parts))
+        self._hit_prediction_slice = layout.slice("hit_prediction")  # [valid, time to the hit (s), ...]
         self._actor_scale = torch.as_tensor(obs_scale, dtype=torch.float32)[self._actor_index]
         self._critic_scale = torch.cat([
             torch.as_tensor(privileged_scale(), dtype=torch.float32),
@@ -281,14 +294,27 @@ class SacLearner:
         return torch.mean((self.actor.decode(embedding) - truth) ** 2)
 
     def behaviour_cloning_loss(self, demonstrations: dict) -> torch.Tensor:
-        """mean |tanh(mu(o)) - a_demo|^2 over a demonstration batch (keys ``obs``, ``demo_action``);
-        for the hit-state action, ``HitStateCloning.loss`` (``demo_action`` then holds hit states)."""
+        """The weighted mean of |tanh(mu(o)) - a_demo|^2 over a demonstration batch (keys ``obs``,
+        ``demo_action``; weights ``cloning_weights``); for the hit-state action,
+        ``HitStateCloning.loss`` (``demo_action`` then holds hit states)."""
         obs = torch.as_tensor(np.asarray(demonstrations["obs"]), dtype=torch.float32)
         target = torch.as_tensor(np.asarray(demonstrations["demo_action"]), dtype=torch.float32)
         mean, _, _ = self.actor(self.actor_features(obs))
         if self.config.action == "hit_state":
             return self.hit_cloning.loss(obs, torch.tanh(mean), target)
-        return torch.mean(torch.sum((torch.tanh(mean) - target) ** 2, dim=-1))
+        error = torch.sum((torch.tanh(mean) - target) ** 2, dim=-1)
+        if self.config.bc_hit_weight == 0.0:
+            return torch.mean(error)
+        weights = self.cloning_weights(obs)
+        return torch.sum(weights * error) / torch.sum(weights)
+
+    def cloning_weights(self, obs: torch.Tensor) -> torch.Tensor:
+        """The cloning term's row weights (B,) for full observations (B, layout.size): 1, or
+        1 + ``bc_hit_weight`` where the hit prediction is valid and at most ``bc_hit_window`` s
+        ahead (module docstring)."""
+        prediction = obs[:, self._hit_prediction_slice]
+        near = (prediction[:, 0] > 0.5) & (prediction[:, 1] <= self.config.bc_hit_window)
+        return 1.0 + self.config.bc_hit_weight * near.to(obs.dtype)
 
     def update(self, batch: dict, demonstrations: dict | None = None, bc_weight: float | None = None) -> dict[str, float]:
         """One SAC update (critic, then actor, then targets) on ``batch``; returns the losses and
