@@ -5,6 +5,7 @@ the compiled OpenCV arithmetic is cv2's bit for bit and the compiled detections 
 ones; a batch gives row by row the single-environment results; bad input raises."""
 
 import cv2
+import numba
 import numpy as np
 import pytest
 from pydrake.common import RandomGenerator
@@ -18,6 +19,7 @@ from ace_drake.perception.camera_segment import (
     _CameraStack,
     _opencv_project,
     _opencv_undistort,
+    _regular,
     _triangulate_compiled,
     _triangulate_rounds,
     _visible,
@@ -296,6 +298,38 @@ def test_frames_are_the_flat_measurements():
     np.testing.assert_array_equal(frames.covariance, measured.covariance.reshape(-1, 3, 3))
     with pytest.raises(ValueError, match="p_WB must be finite"):
         dut.frames(np.full((1, 3), np.nan), seeds[:1], np.ones(1, dtype=np.uint64))
+
+
+@numba.njit
+def _economy_and_full_right_vectors(matrices):
+    out = np.empty((len(matrices), 2, matrices.shape[2], matrices.shape[2]))
+    for n in range(len(matrices)):
+        out[n, 0] = np.linalg.svd(matrices[n], full_matrices=False)[2]
+        out[n, 1] = np.linalg.svd(matrices[n])[2]
+    return out
+
+
+def test_compiled_triangulation_shortcuts_change_nothing():
+    # The DLT's economy SVD has the full SVD's right singular vectors bit for bit (views dropped as
+    # zero rows), and _regular decides as LAPACK's eigenvalues do, near-singular matrices included.
+    frames = noisy_frames(2000, seed=17)
+    stack = _CameraStack(CAMERAS)
+    usable = np.all(np.isfinite(frames), axis=2) & (np.random.default_rng(17).random((len(frames), C)) < 0.8)
+    normalised = stack.normalised(frames, usable)
+    P = stack.projection
+    rows = np.stack([normalised[..., :1] * P[None, :, 2] - P[None, :, 0], normalised[..., 1:] * P[None, :, 2] - P[None, :, 1]], axis=2)
+    rows = (rows * usable[:, :, None, None]).reshape(len(frames), 2 * C, 4)
+    vectors = _economy_and_full_right_vectors(rows[usable.sum(axis=1) >= 2])
+    assert np.array_equal(vectors[:, 0].view(np.uint64), vectors[:, 1].view(np.uint64))
+    rng = np.random.default_rng(18)
+    for condition in 10.0 ** np.arange(0.1, 17, 0.25):  # clear of the 1e12 boundary, where roundings decide
+        rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        scale = 10.0 ** rng.uniform(-3, 9)
+        information = scale * rotation @ np.diag([1.0, rng.uniform(1.0, condition), condition]) @ rotation.T
+        information = 0.5 * (information + information.T)
+        eigenvalues = np.linalg.eigvalsh(information)
+        assert _regular(information) == (eigenvalues[0] > 1e-12 * max(eigenvalues[2], 1e-300)), condition
+    assert not _regular(np.zeros((3, 3)))
 
 
 def test_degenerate_frames_give_no_position():

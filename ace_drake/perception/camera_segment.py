@@ -300,11 +300,12 @@ def _triangulate_compiled(stack: _CameraStack, flat: np.ndarray, pixel_noise_sig
 
 
 @numba.njit(cache=True)
-def _project_one(p, R_CW, tvec, focal, centre, distortion, used, residual_to, residuals, jacobians):
+def _project_one(p, R_CW, tvec, focal, centre, distortion, used, residual_to, residuals, jacobians, scratch):
     """``_CameraStack.project_with_jacobian`` of one position p (3,) in the cameras ``used`` (C,):
     residuals (C, 2), px (the projection less ``residual_to`` (C, 2)), and Jacobians (C, 2, 3),
-    px/m (zero for the other cameras), in that method's order of operations."""
-    dx_dp_C, dy_dp_C = np.empty(3), np.empty(3)
+    px/m (zero for the other cameras), in that method's order of operations. scratch (2, 3): work
+    space (the caller's, so that a call allocates nothing)."""
+    dx_dp_C, dy_dp_C = scratch[0], scratch[1]
     for c in range(R_CW.shape[0]):
         if not used[c]:
             residuals[c, 0] = residuals[c, 1] = 0.0
@@ -345,8 +346,9 @@ def _project_all(positions, R_CW, tvec, focal, centre, distortion, pixels, jacob
     arrays given: ``_project_one`` per position (the one written form of the lens model here)."""
     used = np.ones(R_CW.shape[0], dtype=np.bool_)
     origin = np.zeros((R_CW.shape[0], 2))
+    scratch = np.empty((2, 3))
     for n in range(positions.shape[0]):
-        _project_one(positions[n], R_CW, tvec, focal, centre, distortion, used, origin, pixels[n], jacobians[n])
+        _project_one(positions[n], R_CW, tvec, focal, centre, distortion, used, origin, pixels[n], jacobians[n], scratch)
 
 
 # OpenCV's arithmetic written out, operation for operation, for the lens models of up to 12
@@ -440,12 +442,14 @@ def _opencv_undistort(pixels, intrinsics, k, out):
 
 
 @numba.njit(cache=True)
-def _gauss_newton_step(jacobians, residuals, used, step):
+def _gauss_newton_step(jacobians, residuals, used, step, scratch):
     """``_least_squares_steps`` of one frame into step (3,): the normal equations' closed-form
-    solution, or the minimum-norm least-squares solution (SVD) when they are near singular."""
+    solution, or the minimum-norm least-squares solution (SVD) when they are near singular.
+    scratch (7, 3): work space (the caller's, so that a call allocates nothing)."""
     C = jacobians.shape[0]
-    H = np.zeros((3, 3))
-    g = np.zeros(3)
+    H, g, cofactor = scratch[:3], scratch[3], scratch[4:]
+    H[:] = 0.0
+    g[:] = 0.0
     for c in range(C):
         if not used[c]:
             continue
@@ -454,7 +458,6 @@ def _gauss_newton_step(jacobians, residuals, used, step):
                 g[i] += jacobians[c, k, i] * -residuals[c, k]
                 for j in range(3):
                     H[i, j] += jacobians[c, k, i] * jacobians[c, k, j]
-    cofactor = np.empty((3, 3))
     cofactor[0, 0] = H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]
     cofactor[0, 1] = H[0, 2] * H[2, 1] - H[0, 1] * H[2, 2]
     cofactor[0, 2] = H[0, 1] * H[1, 2] - H[0, 2] * H[1, 1]
@@ -487,6 +490,21 @@ def _gauss_newton_step(jacobians, residuals, used, step):
 
 
 @numba.njit(cache=True)
+def _regular(information):
+    """``inverse_or_inf``'s test of a symmetric positive semi-definite (3, 3) matrix: its smallest
+    eigenvalue above 1e-12 of its largest, as LAPACK's eigenvalues decide it. A determinant above
+    1e-9 trace^3 proves the smallest (>= det / trace^2) far above 1e-12 of the largest (<= trace),
+    every rounding included, so the usual case skips the LAPACK call without changing a decision."""
+    H = information
+    determinant = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
+                   + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
+    if determinant > 1e-9 * (H[0, 0] + H[1, 1] + H[2, 2]) ** 3:
+        return True
+    eigenvalues = np.linalg.eigvalsh(information)
+    return eigenvalues[0] > 1e-12 * max(eigenvalues[2], 1e-300)
+
+
+@numba.njit(cache=True)
 def _triangulate_frames(pixels, sigma, threshold, min_views, iterations, tolerance, cameras):
     """``triangulate_frames``' per-frame logic for N frames, pixels (N, C, 2), px (NaN: no
     detection), with the stacked camera model ``cameras`` (``_CameraStack.kernel_arrays``; the
@@ -505,6 +523,7 @@ def _triangulate_frames(pixels, sigma, threshold, min_views, iterations, toleran
     rows = np.zeros((2 * C, 4))
     residuals, jacobians = np.empty((C, 2)), np.empty((C, 2, 3))
     step, p = np.empty(3), np.empty(3)
+    information, projection_scratch, step_scratch = np.empty((3, 3)), np.empty((2, 3)), np.empty((7, 3))
     norms = np.empty(C)
     normalised = np.zeros((C, 2))
     for n in range(N):
@@ -521,18 +540,20 @@ def _triangulate_frames(pixels, sigma, threshold, min_views, iterations, toleran
                         rows[2 * c + 1, j] = normalised[c, 1] * projection[c, 2, j] - projection[c, 1, j]
                     else:
                         rows[2 * c, j] = rows[2 * c + 1, j] = 0.0
-            _, _, vt = np.linalg.svd(rows)
+            # Economy SVD: its right singular vectors are the full SVD's bit for bit (dgesdd's paths
+            # share the QR, bidiagonalisation and its SVD; they differ in U only), at less cost.
+            _, _, vt = np.linalg.svd(rows, full_matrices=False)
             for i in range(3):
                 p[i] = vt[3, i] / vt[3, 3]
             # Gauss-Newton (triangulation.refine_position), stopping after the first short step.
             for _ in range(iterations):
-                _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians)
-                _gauss_newton_step(jacobians, residuals, used, step)
+                _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians, projection_scratch)
+                _gauss_newton_step(jacobians, residuals, used, step, step_scratch)
                 for i in range(3):
                     p[i] = p[i] + step[i]
                 if not math.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) >= tolerance:
                     break
-            _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians)
+            _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians, projection_scratch)
             count, worst = 0, -1
             for c in range(C):
                 norms[c] = math.sqrt(residuals[c, 0] * residuals[c, 0] + residuals[c, 1] * residuals[c, 1]) if used[c] else -np.inf
@@ -541,7 +562,7 @@ def _triangulate_frames(pixels, sigma, threshold, min_views, iterations, toleran
                 if worst < 0 or norms[c] > norms[worst]:
                     worst = c
             if norms[worst] <= threshold:
-                information = np.zeros((3, 3))
+                information[:] = 0.0
                 squared = 0.0
                 good = True
                 for c in range(C):
@@ -555,8 +576,8 @@ def _triangulate_frames(pixels, sigma, threshold, min_views, iterations, toleran
                             for j in range(3):
                                 information[i, j] += jacobians[c, k, i] * jacobians[c, k, j]
                 # inverse_or_inf: sigma^2 (J^T J)^-1, infinite where singular.
-                eigenvalues = np.linalg.eigvalsh(information)
-                good = good and eigenvalues[0] > 1e-12 * max(eigenvalues[2], 1e-300)
+                regular = _regular(information)
+                good = good and regular
                 if good:
                     inverse = np.linalg.inv(information)
                     for i in range(3):
