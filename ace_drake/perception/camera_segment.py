@@ -34,12 +34,12 @@ from collections.abc import Sequence
 
 import cv2
 import numba
-import numba.np.random._constants as ziggurat
 import numpy as np
 
 from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, OccluderBox, segments_blocked, table_occluder, visibility
 from ace_drake.perception.measurements import Measurement
 from ace_drake.perception.params import CameraParams
+from ace_drake.perception import random_streams
 from ace_drake.perception.triangulation import GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, inverse_or_inf
 
 TIME_TOLERANCE = 1e-9  # s; as ApsCameraArray: trigger times are products of the period in floating point
@@ -680,7 +680,7 @@ def _detect_frames(points, seeds, sequences, blocked, sigma, dropout, cameras, s
     N, C = points.shape[0], R_CW.shape[0]
     detections = np.empty((N, C, 2))
     start = _box_starts(origins, box_centres, box_rotations)
-    generator, scratch = np.empty(4, np.uint64), np.empty(24, np.uint64)
+    generator, scratch = np.empty(4, np.uint64), np.empty(random_streams.GENERATOR_SCRATCH + 2, np.uint64)
     noise, uniforms, pixel = np.empty((C, 2)), np.empty(C), np.empty(2)
     for n in range(N):
         _trigger_generator(seeds[n], sequences[n], generator, scratch)
@@ -712,154 +712,17 @@ def _measure_frames(points, seeds, sequences, blocked, sigma, dropout, threshold
 # ----------------------------------------------------------------------------------------------
 
 
-# numpy's SeedSequence (numpy/random/bit_generator.pyx), PCG64 (pcg64.h: 128-bit LCG, XSL-RR
-# output) and Generator's standard normal (the ziggurat of distributions.c, with numpy's tables
-# as numba ships them) and uniform doubles, written out so that the generators of many triggers
-# are seeded and drawn in one compiled pass; tests check them bit for bit against
-# numpy.random.default_rng.
+# Each trigger's generator and draws, compiled (``random_streams``: numpy's default_rng bit for bit).
 _MASK32 = 0xFFFFFFFF
-_POOL_SIZE = 4
-_HASH_INIT_A, _HASH_MULT_A = 0x43B0D7E5, 0x931E8875
-_HASH_INIT_B, _HASH_MULT_B = 0x8B51F9DD, 0x58F38DED
-_MIX_MULT_L, _MIX_MULT_R = 0xCA01F9DD, 0x4973F715
-_PCG64_MULTIPLIER = 0x2360ED051FC65DA44385DF649FCCF645
-_PCG64_MULTIPLIER_HIGH = np.uint64(_PCG64_MULTIPLIER >> 64)
-_PCG64_MULTIPLIER_LOW = np.uint64(_PCG64_MULTIPLIER & 0xFFFFFFFFFFFFFFFF)
-_ZIGGURAT_KI = np.ascontiguousarray(ziggurat.ki_double, dtype=np.uint64)  # (256,) each
-_ZIGGURAT_WI = np.ascontiguousarray(ziggurat.wi_double, dtype=np.float64)
-_ZIGGURAT_FI = np.ascontiguousarray(ziggurat.fi_double, dtype=np.float64)
-_ZIGGURAT_R = float(ziggurat.ziggurat_nor_r)
-_ZIGGURAT_INV_R = float(ziggurat.ziggurat_nor_inv_r)
-
-
-def _hash_constants(init: int, mult: int, count: int) -> list[tuple[int, int]]:
-    """The data-independent (xor, multiplier) pairs of SeedSequence's successive hashes."""
-    pairs, value = [], init
-    for _ in range(count):
-        following = (value * mult) & _MASK32
-        pairs.append((value, following))
-        value = following
-    return pairs
-
-
-_MIX_HASHES = np.array(_hash_constants(_HASH_INIT_A, _HASH_MULT_A, _POOL_SIZE * _POOL_SIZE), dtype=np.uint64)  # (16, 2)
-_STATE_HASHES = np.array(_hash_constants(_HASH_INIT_B, _HASH_MULT_B, 2 * _POOL_SIZE), dtype=np.uint64)  # (8, 2)
-
-
-@numba.njit(cache=True)
-def _hash(value, xor, mult):
-    """SeedSequence's hashmix of a 32-bit word held in a uint64."""
-    value = ((value ^ xor) * mult) & np.uint64(_MASK32)
-    return value ^ (value >> np.uint64(16))
-
-
-@numba.njit(cache=True)
-def _seed_words(seed, sequence, mix_hashes, state_hashes, pool, entropy, words, out):
-    """SeedSequence([seed, sequence])'s pool mixing and ``generate_state(4, uint64)``, seed and
-    sequence uint64: out (4,) uint64, the four state words (the 64-bit halves [high, low] of
-    PCG64's initstate, then of its initseq); pool, entropy (4,) and words (8,) uint64 are scratch.
-    The entropy words: an int seed is coerced to as many 32-bit words as it needs (at least one),
-    then the sequence's word; shorter entropy hashes zeros into the pool."""
-    mask, shift = np.uint64(_MASK32), np.uint64(32)
-    left, right = np.uint64(_MIX_MULT_L), np.uint64(_MIX_MULT_R)
-    low, high = seed & mask, seed >> shift
-    entropy[:] = 0
-    entropy[0] = low
-    if high > 0:
-        entropy[1], entropy[2] = high, sequence
-    else:
-        entropy[1] = sequence
-    constant = 0
-    for i in range(_POOL_SIZE):
-        pool[i] = _hash(entropy[i], mix_hashes[constant, 0], mix_hashes[constant, 1])
-        constant += 1
-    for source in range(_POOL_SIZE):
-        for target in range(_POOL_SIZE):
-            if source != target:
-                hashed = _hash(pool[source], mix_hashes[constant, 0], mix_hashes[constant, 1])
-                constant += 1
-                mixed = (left * pool[target] - right * hashed) & mask
-                pool[target] = mixed ^ (mixed >> np.uint64(16))
-    for i in range(8):
-        words[i] = _hash(pool[i % _POOL_SIZE], state_hashes[i, 0], state_hashes[i, 1])
-    for i in range(4):  # little-endian pairs of 32-bit words
-        out[i] = words[2 * i] | (words[2 * i + 1] << shift)
-
-
-@numba.njit(cache=True, inline="always")
-def _multiply_high(a, b):
-    """The high 64 bits of the 128-bit product of uint64 a and b."""
-    mask, shift = np.uint64(_MASK32), np.uint64(32)
-    a_low, a_high, b_low, b_high = a & mask, a >> shift, b & mask, b >> shift
-    low_low, low_high, high_low = a_low * b_low, a_low * b_high, a_high * b_low
-    middle = (low_low >> shift) + (low_high & mask) + (high_low & mask)
-    return a_high * b_high + (low_high >> shift) + (high_low >> shift) + (middle >> shift)
-
-
-@numba.njit(cache=True, inline="always")
-def _pcg64_next(generator):
-    """PCG64's next 64-bit output: generator (4,) uint64 [state high, state low, increment high,
-    increment low] steps (state <- state * multiplier + increment, mod 2**128), then XSL-RR."""
-    high, low = generator[0], generator[1]
-    product_high = _multiply_high(low, _PCG64_MULTIPLIER_LOW) + high * _PCG64_MULTIPLIER_LOW + low * _PCG64_MULTIPLIER_HIGH
-    product_low = low * _PCG64_MULTIPLIER_LOW
-    low = product_low + generator[3]
-    high = product_high + generator[2] + (np.uint64(1) if low < product_low else np.uint64(0))
-    generator[0], generator[1] = high, low
-    rotation = high >> np.uint64(58)
-    value = high ^ low
-    return (value >> rotation) | (value << ((np.uint64(64) - rotation) & np.uint64(63)))
-
-
-@numba.njit(cache=True)
-def _pcg64_seed(words, generator):
-    """generator (4,) <- PCG64 seeded with the SeedSequence state words (4,) (``_seed_words``):
-    pcg64's ``srandom_r`` (state 0, increment 2 initseq + 1, step, add initstate, step)."""
-    one = np.uint64(1)
-    increment_high = (words[2] << one) | (words[3] >> np.uint64(63))
-    increment_low = (words[3] << one) | one
-    low = increment_low + words[1]  # the first step from state 0 gives the increment
-    generator[0] = increment_high + words[0] + (one if low < increment_low else np.uint64(0))
-    generator[1] = low
-    generator[2], generator[3] = increment_high, increment_low
-    _pcg64_next(generator)
-
-
-@numba.njit(cache=True, inline="always")
-def _next_double(generator):
-    """Generator.random's uniform double in [0, 1): the top 53 bits of the next output."""
-    return np.float64(_pcg64_next(generator) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
-
-
-@numba.njit(cache=True)
-def _standard_normal(generator):
-    """Generator.standard_normal's draw (numpy's ziggurat, ``random_standard_normal``)."""
-    while True:
-        r = _pcg64_next(generator)
-        index = np.intp(r & np.uint64(0xFF))
-        r >>= np.uint64(8)
-        sign = r & np.uint64(1)
-        magnitude = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
-        x = np.float64(magnitude) * _ZIGGURAT_WI[index]
-        if sign:
-            x = -x
-        if magnitude < _ZIGGURAT_KI[index]:
-            return x  # 99.3 % of draws
-        if index == 0:  # the tail
-            while True:
-                xx = -_ZIGGURAT_INV_R * math.log1p(-_next_double(generator))
-                yy = -math.log1p(-_next_double(generator))
-                if yy + yy > xx * xx:
-                    return -(_ZIGGURAT_R + xx) if (magnitude >> np.uint64(8)) & np.uint64(1) else _ZIGGURAT_R + xx
-        elif (_ZIGGURAT_FI[index - 1] - _ZIGGURAT_FI[index]) * _next_double(generator) + _ZIGGURAT_FI[index] < math.exp(-0.5 * x * x):
-            return x
 
 
 @numba.njit(cache=True)
 def _trigger_generator(seed, sequence, generator, scratch):
-    """generator (4,) <- ``numpy.random.default_rng([seed, sequence])``'s PCG64; scratch (24,) uint64."""
-    _seed_words(seed, sequence, _MIX_HASHES, _STATE_HASHES, scratch[:4], scratch[4:8], scratch[8:16], scratch[16:20])
-    _pcg64_seed(scratch[16:20], generator)
+    """generator (4,) <- ``numpy.random.default_rng([seed, sequence])``'s PCG64; scratch
+    (``random_streams.GENERATOR_SCRATCH`` + 2,) uint64."""
+    entropy = scratch[random_streams.GENERATOR_SCRATCH:]
+    entropy[0], entropy[1] = seed, sequence
+    random_streams.seed_generator(entropy, 2, generator, scratch[:random_streams.GENERATOR_SCRATCH])
 
 
 @numba.njit(cache=True)
@@ -868,27 +731,18 @@ def _draw_trigger(generator, noise, uniforms):
     (C, 2) (loc + scale z, as numpy computes it), then ``random(C)`` into uniforms (C,)."""
     for c in range(noise.shape[0]):
         for axis in range(2):
-            noise[c, axis] = 0.0 + 1.0 * _standard_normal(generator)
+            noise[c, axis] = 0.0 + 1.0 * random_streams.standard_normal(generator)
     for c in range(uniforms.shape[0]):
-        uniforms[c] = _next_double(generator)
+        uniforms[c] = random_streams.random(generator)
 
 
 @numba.njit(cache=True)
 def _draw_noise(seeds, sequences, noise, uniforms):
     """``draw_detection_noise``'s draws into noise (N, C, 2) and uniforms (N, C)."""
-    generator, scratch = np.empty(4, np.uint64), np.empty(24, np.uint64)
+    generator, scratch = np.empty(4, np.uint64), np.empty(random_streams.GENERATOR_SCRATCH + 2, np.uint64)
     for n in range(seeds.shape[0]):
         _trigger_generator(seeds[n], sequences[n], generator, scratch)
         _draw_trigger(generator, noise[n], uniforms[n])
-
-
-def _check_seeds(seeds: np.ndarray, sequences: np.ndarray, where: str) -> None:
-    if seeds.shape != sequences.shape:
-        raise ValueError(f"{where}: seeds {seeds.shape} and sequences {sequences.shape} must match")
-    if len(seeds) and (seeds.dtype.kind not in "iu" or sequences.dtype.kind not in "iu" or seeds.min() < 0 or sequences.min() < 0):
-        raise ValueError(f"{where}: seeds (< 2**64) and sequences (< 2**32) must be non-negative integers")
-    if len(seeds) and sequences.max() > _MASK32:
-        raise ValueError(f"{where}: sequences must be < 2**32, got {sequences.max()}")
 
 
 def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -899,7 +753,12 @@ def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count:
     compiled pass."""
     seeds = np.asarray(seeds).reshape(-1)
     sequences = np.asarray(sequences).reshape(-1)
-    _check_seeds(seeds, sequences, "draw_detection_noise")
+    if seeds.shape != sequences.shape:
+        raise ValueError(f"draw_detection_noise: seeds {seeds.shape} and sequences {sequences.shape} must match")
+    if len(seeds) and (seeds.dtype.kind not in "iu" or sequences.dtype.kind not in "iu" or seeds.min() < 0 or sequences.min() < 0):
+        raise ValueError("draw_detection_noise: seeds (< 2**64) and sequences (< 2**32) must be non-negative integers")
+    if len(seeds) and sequences.max() > _MASK32:
+        raise ValueError(f"draw_detection_noise: sequences must be < 2**32, got {sequences.max()}")
     noise = np.empty((len(seeds), camera_count, 2))
     uniforms = np.empty((len(seeds), camera_count))
     _draw_noise(seeds.astype(np.uint64), sequences.astype(np.uint64), noise, uniforms)
