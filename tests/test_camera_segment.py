@@ -17,8 +17,8 @@ from ace_drake.diagrams import add_ball, add_random_sources, make_simulator
 from ace_drake.perception.camera_segment import (
     CameraSegment,
     _CameraStack,
+    _opencv_normalised,
     _opencv_project,
-    _opencv_undistort,
     _regular,
     _triangulate_compiled,
     _triangulate_rounds,
@@ -240,6 +240,12 @@ def test_stacked_projection_equals_opencv():
         expected_pixels, expected_jacobians = camera.project_with_jacobian(points)
         np.testing.assert_allclose(pixels[:, index], expected_pixels, rtol=0, atol=1e-9)
         np.testing.assert_allclose(jacobians[:, index], expected_jacobians, rtol=1e-9, atol=1e-9)
+
+
+@numba.njit
+def _opencv_undistort(pixels, intrinsics, k, out):
+    for n in range(pixels.shape[0]):
+        out[n, 0], out[n, 1] = _opencv_normalised(pixels[n, 0], pixels[n, 1], intrinsics, k)
 
 
 def test_opencv_arithmetic_is_cv2_bit_for_bit():

@@ -23,7 +23,10 @@ The reference's timing, which this module reproduces and its callers must follow
 views, outlier rejection and covariance, with the DLT, Gauss-Newton and rejection rounds
 vectorised over all frames still in play. ``CameraSegment`` is built once from the calibration and
 ``CameraParams`` and maps the true ball positions at a segment's triggers (B, m, 3) to the
-measurements of those triggers (``SegmentMeasurements``).
+measurements of those triggers (``SegmentMeasurements``). For the usual arrays (lens models of up
+to 8 coefficients, box occluders) a tick's triggers are detected and triangulated in one compiled
+call (``_measure_frames``): the draws (``random_streams``), OpenCV's projection and undistortion
+and the visibility bit for bit as the NumPy/OpenCV steps give them.
 """
 
 from __future__ import annotations
@@ -36,10 +39,10 @@ import cv2
 import numba
 import numpy as np
 
+from ace_drake.perception import random_streams
 from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, OccluderBox, segments_blocked, table_occluder, visibility
 from ace_drake.perception.measurements import Measurement
 from ace_drake.perception.params import CameraParams
-from ace_drake.perception import random_streams
 from ace_drake.perception.triangulation import GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, inverse_or_inf
 
 TIME_TOLERANCE = 1e-9  # s; as ApsCameraArray: trigger times are products of the period in floating point
@@ -432,13 +435,6 @@ def _opencv_project(points, R, t, intrinsics, k, pixels):
     for c in range(R.shape[0]):
         for n in range(points.shape[0]):
             pixels[c, n, 0], pixels[c, n, 1] = _opencv_pixel(points[n, 0], points[n, 1], points[n, 2], R[c], t[c], intrinsics[c], k[c])
-
-
-@numba.njit(cache=True)
-def _opencv_undistort(pixels, intrinsics, k, out):
-    """``_opencv_normalised`` of pixels (N, 2) of one camera into out (N, 2)."""
-    for n in range(pixels.shape[0]):
-        out[n, 0], out[n, 1] = _opencv_normalised(pixels[n, 0], pixels[n, 1], intrinsics, k)
 
 
 @numba.njit(cache=True)
