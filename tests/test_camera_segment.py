@@ -1,8 +1,11 @@
 """CameraSegment: the batched camera array and triangulator of a control segment equal the
 reference systems (ApsCameraArray, analytic, + Triangulator) over a whole flight; triangulate_frames
-equals triangulate frame by frame; the noise is numpy's default_rng([seed, trigger]) bit for bit; a
-batch gives row by row the single-environment results; bad input raises."""
+equals triangulate frame by frame; the noise is numpy's default_rng([seed, trigger]) bit for bit;
+the compiled OpenCV arithmetic is cv2's bit for bit and the compiled detections the NumPy/OpenCV
+ones; a batch gives row by row the single-environment results; bad input raises."""
 
+import cv2
+import numba
 import numpy as np
 import pytest
 from pydrake.common import RandomGenerator
@@ -14,6 +17,9 @@ from ace_drake.diagrams import add_ball, add_random_sources, make_simulator
 from ace_drake.perception.camera_segment import (
     CameraSegment,
     _CameraStack,
+    _opencv_normalised,
+    _opencv_project,
+    _regular,
     _triangulate_compiled,
     _triangulate_rounds,
     _visible,
@@ -158,8 +164,9 @@ def test_detections_equal_simulate_detections_per_trigger():
 
 
 def test_noise_is_default_rng_bit_for_bit():
+    # Enough triggers (36k normals) for the ziggurat's rare paths: rejections and the tail beyond 3.65.
     rng = np.random.default_rng(5)
-    seeds = np.concatenate([rng.integers(0, 2**64, 40, dtype=np.uint64), np.array([0, 1, 2**32 - 1, 2**32, 2**64 - 1], dtype=np.uint64)])
+    seeds = np.concatenate([rng.integers(0, 2**64, 2000, dtype=np.uint64), np.array([0, 1, 2**32 - 1, 2**32, 2**64 - 1], dtype=np.uint64)])
     sequences = rng.integers(1, 2**32, len(seeds))
     sequences[:3] = [1, 2, 3]
     noise, uniforms = draw_detection_noise(seeds, sequences, C)
@@ -168,8 +175,9 @@ def test_noise_is_default_rng_bit_for_bit():
     np.testing.assert_array_equal(few_uniforms, uniforms[-8:])
     for index, (seed, sequence) in enumerate(zip(seeds.tolist(), sequences.tolist())):
         generator = np.random.default_rng([seed, sequence])
-        np.testing.assert_array_equal(noise[index], generator.normal(0.0, 1.0, size=(C, 2)))
-        np.testing.assert_array_equal(uniforms[index], generator.random(C))
+        assert np.array_equal(noise[index].view(np.uint64), generator.normal(0.0, 1.0, size=(C, 2)).view(np.uint64)), index
+        assert np.array_equal(uniforms[index].view(np.uint64), generator.random(C).view(np.uint64)), index
+    assert np.sum(np.abs(noise) > 3.6541528853610087) >= 3  # the tail was drawn
 
 
 # ---------------------------------------------------------------------------------- triangulation
@@ -196,7 +204,7 @@ def test_compiled_triangulation_equals_the_vectorised_rounds():
     usable = np.all(np.isfinite(frames), axis=2)
     normalised = stack.normalised(frames, usable)
     for threshold, min_views in ((8.0, 2), (4.0, 3)):
-        compiled = _triangulate_compiled(stack, frames, normalised, usable, 1.5, threshold, min_views, (len(frames),))
+        compiled = _triangulate_compiled(stack, frames, 1.5, threshold, min_views, (len(frames),))
         rounds = _triangulate_rounds(stack, frames, normalised, usable, 1.5, threshold, min_views, (len(frames),))
         np.testing.assert_array_equal(compiled.valid, rounds.valid)
         np.testing.assert_array_equal(compiled.views, rounds.views)
@@ -232,6 +240,102 @@ def test_stacked_projection_equals_opencv():
         expected_pixels, expected_jacobians = camera.project_with_jacobian(points)
         np.testing.assert_allclose(pixels[:, index], expected_pixels, rtol=0, atol=1e-9)
         np.testing.assert_allclose(jacobians[:, index], expected_jacobians, rtol=1e-9, atol=1e-9)
+
+
+@numba.njit
+def _opencv_undistort(pixels, intrinsics, k, out):
+    for n in range(pixels.shape[0]):
+        out[n, 0], out[n, 1] = _opencv_normalised(pixels[n, 0], pixels[n, 1], intrinsics, k)
+
+
+def test_opencv_arithmetic_is_cv2_bit_for_bit():
+    # Lens models of 4, 5, 8 and 12 coefficients; points in view, out of the image and behind the cameras.
+    cameras = [
+        camera_looking_at("rational", [-5.0, 4.0, 2.0], [0.0, 0.0, 0.3], 1500.0, (-0.1, 0.03, 1e-3, -2e-3, 0.01, 0.02, -0.01, 0.005)),
+        camera_looking_at("four", [0.0, -4.0, 3.0], [0.0, 0.0, 0.3], 1400.0, (-0.05, 0.02, 2e-3, 1e-3)),
+        camera_looking_at("thin prism", [4.0, 0.5, 2.5], [0.0, 0.0, 0.3], 1300.0, (-0.05, 0.02, 2e-3, 1e-3, 0.01, 0, 0, 0, 1e-3, -1e-3, 2e-3, 5e-4)),
+        *CAMERAS,
+    ]
+    stack = _CameraStack(cameras)
+    rng = np.random.default_rng(14)
+    points = np.concatenate([points_in_play_volume(3000, seed=14), rng.uniform([-8.0, -6.0, -1.0], [8.0, 6.0, 5.0], size=(3000, 3))])
+    pixels = np.empty((len(cameras), len(points), 2))
+    _opencv_project(points, stack.cv_rotation, stack.tvec, stack.cv_intrinsics, stack.cv_distortion, pixels)
+    for index, camera in enumerate(cameras):
+        assert np.array_equal(pixels[index].view(np.uint64), camera.project(points).view(np.uint64)), camera.name
+        detected = pixels[index] + rng.normal(0.0, 2.0, pixels[index].shape)
+        detected = np.concatenate([detected[np.all(np.abs(detected) < 5000.0, axis=1)], rng.uniform(-500.0, 2000.0, (2000, 2))])
+        normalised = np.empty_like(detected)
+        _opencv_undistort(detected, stack.cv_intrinsics[index], stack.cv_distortion[index], normalised)
+        expected = cv2.undistortPoints(detected.reshape(-1, 1, 2), camera.K, camera.distortion).reshape(-1, 2)
+        assert np.array_equal(normalised.view(np.uint64), expected.view(np.uint64)), camera.name
+
+
+@pytest.mark.parametrize("dropout", [0.02, 0.2])
+def test_compiled_detections_equal_numpy_and_opencv(dropout):
+    dut = CameraSegment(CAMERAS, CameraParams(dropout_probability=dropout))
+    reference = CameraSegment(CAMERAS, CameraParams(dropout_probability=dropout))
+    reference._compiled = False  # the same steps in NumPy and OpenCV (draw_detection_noise, cv2.projectPoints, _visible)
+    reference._stack.stacked = False
+    rng = np.random.default_rng(15)
+    p_WB = np.concatenate([points_in_play_volume(200, seed=15), rng.uniform([-6.0, -4.0, -1.0], [6.0, 4.0, 4.0], size=(200, 3))]).reshape(4, 100, 3)
+    seeds = rng.integers(0, 2**64, 4, dtype=np.uint64)
+    sequences = rng.integers(1, 2**32, (4, 100))
+    occluders = [(), (BLOCKER,), (), (OccluderSphere(np.array([0.0, 0.0, 2.0]), 0.3),)]
+    pixels = dut.detect(p_WB, seeds, sequences, occluders)
+    expected = reference.detect(p_WB, seeds, sequences, occluders)
+    assert np.array_equal(pixels.view(np.uint64), expected.view(np.uint64))
+    assert 0.2 < np.isfinite(pixels[..., 0]).mean() < 0.9
+    measured, measured_reference = dut.measure(p_WB, np.zeros(100), seeds, sequences), reference.measure(p_WB, np.zeros(100), seeds, sequences)
+    np.testing.assert_array_equal(measured.valid, measured_reference.valid)
+    np.testing.assert_allclose(measured.value, measured_reference.value, rtol=0, atol=1e-12)
+
+
+def test_frames_are_the_flat_measurements():
+    dut = CameraSegment(CAMERAS)
+    p_WB = points_in_play_volume(12, seed=16).reshape(2, 6, 3)
+    seeds = np.array([2**64 - 5, 17], dtype=np.uint64)
+    sequences = np.arange(1, 13).reshape(2, 6)
+    measured = dut.measure(p_WB, np.arange(6) * 0.005, seeds, sequences)
+    pixels, frames = dut.frames(p_WB.reshape(-1, 3), np.repeat(seeds, 6), sequences.reshape(-1).astype(np.uint64))
+    np.testing.assert_array_equal(pixels, measured.pixels.reshape(-1, C, 2))
+    np.testing.assert_array_equal(frames.valid, measured.valid.reshape(-1))
+    np.testing.assert_array_equal(frames.position, measured.value.reshape(-1, 3))
+    np.testing.assert_array_equal(frames.covariance, measured.covariance.reshape(-1, 3, 3))
+    with pytest.raises(ValueError, match="p_WB must be finite"):
+        dut.frames(np.full((1, 3), np.nan), seeds[:1], np.ones(1, dtype=np.uint64))
+
+
+@numba.njit
+def _economy_and_full_right_vectors(matrices):
+    out = np.empty((len(matrices), 2, matrices.shape[2], matrices.shape[2]))
+    for n in range(len(matrices)):
+        out[n, 0] = np.linalg.svd(matrices[n], full_matrices=False)[2]
+        out[n, 1] = np.linalg.svd(matrices[n])[2]
+    return out
+
+
+def test_compiled_triangulation_shortcuts_change_nothing():
+    # The DLT's economy SVD has the full SVD's right singular vectors bit for bit (views dropped as
+    # zero rows), and _regular decides as LAPACK's eigenvalues do, near-singular matrices included.
+    frames = noisy_frames(2000, seed=17)
+    stack = _CameraStack(CAMERAS)
+    usable = np.all(np.isfinite(frames), axis=2) & (np.random.default_rng(17).random((len(frames), C)) < 0.8)
+    normalised = stack.normalised(frames, usable)
+    P = stack.projection
+    rows = np.stack([normalised[..., :1] * P[None, :, 2] - P[None, :, 0], normalised[..., 1:] * P[None, :, 2] - P[None, :, 1]], axis=2)
+    rows = (rows * usable[:, :, None, None]).reshape(len(frames), 2 * C, 4)
+    vectors = _economy_and_full_right_vectors(rows[usable.sum(axis=1) >= 2])
+    assert np.array_equal(vectors[:, 0].view(np.uint64), vectors[:, 1].view(np.uint64))
+    rng = np.random.default_rng(18)
+    for condition in 10.0 ** np.arange(0.1, 17, 0.25):  # clear of the 1e12 boundary, where roundings decide
+        rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        scale = 10.0 ** rng.uniform(-3, 9)
+        information = scale * rotation @ np.diag([1.0, rng.uniform(1.0, condition), condition]) @ rotation.T
+        information = 0.5 * (information + information.T)
+        eigenvalues = np.linalg.eigvalsh(information)
+        assert _regular(information) == (eigenvalues[0] > 1e-12 * max(eigenvalues[2], 1e-300)), condition
+    assert not _regular(np.zeros((3, 3)))
 
 
 def test_degenerate_frames_give_no_position():

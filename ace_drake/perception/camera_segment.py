@@ -23,7 +23,10 @@ The reference's timing, which this module reproduces and its callers must follow
 views, outlier rejection and covariance, with the DLT, Gauss-Newton and rejection rounds
 vectorised over all frames still in play. ``CameraSegment`` is built once from the calibration and
 ``CameraParams`` and maps the true ball positions at a segment's triggers (B, m, 3) to the
-measurements of those triggers (``SegmentMeasurements``).
+measurements of those triggers (``SegmentMeasurements``). For the usual arrays (lens models of up
+to 8 coefficients, box occluders) a tick's triggers are detected and triangulated in one compiled
+call (``_measure_frames``): the draws (``random_streams``), OpenCV's projection and undistortion
+and the visibility bit for bit as the NumPy/OpenCV steps give them.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ import cv2
 import numba
 import numpy as np
 
+from ace_drake.perception import random_streams
 from ace_drake.perception.cameras import BALL_RADIUS, Camera, Occluder, OccluderBox, segments_blocked, table_occluder, visibility
 from ace_drake.perception.measurements import Measurement
 from ace_drake.perception.params import CameraParams
@@ -94,6 +98,17 @@ class _CameraStack:
         for index, camera in enumerate(self.cameras):
             count = min(camera.distortion.size, 8)
             self.distortion[index, :count] = camera.distortion[:count]
+        # For OpenCV's own arithmetic (``_opencv_pixel``, ``_opencv_normalised``; stacked arrays
+        # only): the rotation cv2.projectPoints rebuilds from the Rodrigues vector (not R_CW bit
+        # for bit), K as (fx, fy, cx, cy) and the coefficients zero-padded to OpenCV's 14.
+        self.cv_rotation = np.stack([cv2.Rodrigues(camera.rvec)[0] for camera in self.cameras])
+        self.cv_intrinsics = np.concatenate([self.focal, self.centre], axis=1)
+        self.cv_distortion = np.zeros((len(self.cameras), 14))
+        for index, camera in enumerate(self.cameras):
+            self.cv_distortion[index, : camera.distortion.size] = camera.distortion
+        # What the compiled kernels read, in one tuple (``_detect_frames``, ``_triangulate_frames``).
+        self.kernel_arrays = (self.cv_rotation, self.tvec, self.cv_intrinsics, self.cv_distortion, self.R_CW, self.projection, self.focal,
+                              self.centre, self.distortion)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -226,10 +241,10 @@ def triangulate_frames(
     shape = pixels.shape[:-2]
     flat = pixels.reshape(-1, C, 2)
     stack = cameras if isinstance(cameras, _CameraStack) else _CameraStack(cameras)
+    if stack.stacked:
+        return _triangulate_compiled(stack, flat, pixel_noise_sigma, outlier_threshold_px, min_views, shape)
     usable = np.all(np.isfinite(flat), axis=2)
-    normalised = stack.normalised(flat, usable)
-    triangulate = _triangulate_compiled if stack.stacked else _triangulate_rounds
-    return triangulate(stack, flat, normalised, usable, pixel_noise_sigma, outlier_threshold_px, min_views, shape)
+    return _triangulate_rounds(stack, flat, stack.normalised(flat, usable), usable, pixel_noise_sigma, outlier_threshold_px, min_views, shape)
 
 
 def _triangulate_rounds(stack: _CameraStack, flat: np.ndarray, normalised: np.ndarray, usable: np.ndarray, pixel_noise_sigma: float,
@@ -275,30 +290,25 @@ def _triangulate_rounds(stack: _CameraStack, flat: np.ndarray, normalised: np.nd
     return FrameTriangulations.of_frames(valid, position, covariance, views, rms, shape)
 
 
-def _triangulate_compiled(stack: _CameraStack, flat: np.ndarray, normalised: np.ndarray, usable: np.ndarray, pixel_noise_sigma: float,
-                          outlier_threshold_px: float, min_views: int, shape: tuple) -> FrameTriangulations:
-    """``triangulate_frames``' rounds frame by frame in one compiled call (``_triangulate_frames``),
-    for arrays whose lens models the stacked projection covers: the same views, rejections and
-    results to round-off (the SVDs, eigenvalues and sums are LAPACK's and loops' rather than
-    NumPy's batched ones; tests/test_camera_segment.py)."""
-    N, C = usable.shape
-    valid = np.zeros(N, dtype=np.bool_)
-    position = np.full((N, 3), np.nan)
-    covariance = np.full((N, 3, 3), np.nan)
-    views = usable.copy()
-    rms = np.full(N, np.nan)
-    _triangulate_frames(np.ascontiguousarray(flat), np.ascontiguousarray(normalised), stack.projection, stack.R_CW, stack.tvec, stack.focal,
-                        stack.centre, stack.distortion, float(pixel_noise_sigma), float(outlier_threshold_px), int(min_views),
-                        GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, valid, position, covariance, views, rms)
-    return FrameTriangulations.of_frames(valid, position, covariance, views, rms, shape)
+def _triangulate_compiled(stack: _CameraStack, flat: np.ndarray, pixel_noise_sigma: float, outlier_threshold_px: float, min_views: int,
+                          shape: tuple) -> FrameTriangulations:
+    """``triangulate_frames``' rounds frame by frame in one compiled call (``_triangulate_frames``)
+    for frames (N, C, 2), px, of an array whose lens models the stacked projection covers: the
+    same views, rejections and results to round-off (the SVDs, eigenvalues and sums are LAPACK's
+    and loops' rather than NumPy's batched ones; tests/test_camera_segment.py); results reshaped
+    to the leading shape ``shape``."""
+    result = _triangulate_frames(np.ascontiguousarray(flat), float(pixel_noise_sigma), float(outlier_threshold_px), int(min_views),
+                                 GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_STEP_TOLERANCE, stack.kernel_arrays)
+    return FrameTriangulations.of_frames(*result, shape)
 
 
 @numba.njit(cache=True)
-def _project_one(p, R_CW, tvec, focal, centre, distortion, used, residual_to, residuals, jacobians):
+def _project_one(p, R_CW, tvec, focal, centre, distortion, used, residual_to, residuals, jacobians, scratch):
     """``_CameraStack.project_with_jacobian`` of one position p (3,) in the cameras ``used`` (C,):
     residuals (C, 2), px (the projection less ``residual_to`` (C, 2)), and Jacobians (C, 2, 3),
-    px/m (zero for the other cameras), in that method's order of operations."""
-    dx_dp_C, dy_dp_C = np.empty(3), np.empty(3)
+    px/m (zero for the other cameras), in that method's order of operations. scratch (2, 3): work
+    space (the caller's, so that a call allocates nothing)."""
+    dx_dp_C, dy_dp_C = scratch[0], scratch[1]
     for c in range(R_CW.shape[0]):
         if not used[c]:
             residuals[c, 0] = residuals[c, 1] = 0.0
@@ -339,17 +349,103 @@ def _project_all(positions, R_CW, tvec, focal, centre, distortion, pixels, jacob
     arrays given: ``_project_one`` per position (the one written form of the lens model here)."""
     used = np.ones(R_CW.shape[0], dtype=np.bool_)
     origin = np.zeros((R_CW.shape[0], 2))
+    scratch = np.empty((2, 3))
     for n in range(positions.shape[0]):
-        _project_one(positions[n], R_CW, tvec, focal, centre, distortion, used, origin, pixels[n], jacobians[n])
+        _project_one(positions[n], R_CW, tvec, focal, centre, distortion, used, origin, pixels[n], jacobians[n], scratch)
+
+
+# OpenCV's arithmetic written out, operation for operation, for the lens models of up to 12
+# coefficients without the sensor tilt (OpenCV 5's 3d module: cv::projectPoints in
+# calibration_base.cpp, cv::undistortPoints in undistort.dispatch.cpp): the same pixels and
+# normalised points bit for bit (tests/test_camera_segment.py checks them against cv2), without a
+# Python call per camera. The identity tilt and rectification products are kept as OpenCV's Matx
+# products sum them (0 + 1 x + 0 y + 0), which only decides the sign of a zero.
+
+
+@numba.njit(cache=True, inline="always")
+def _opencv_pixel(X, Y, Z, R, t, intrinsics, k):
+    """``cv2.projectPoints`` of the world point (X, Y, Z), m, for a camera with OpenCV's rotation R
+    (3, 3) (rebuilt from the Rodrigues vector), translation t (3,), intrinsics (fx, fy, cx, cy) and
+    coefficients k (14,): the pixel (u, v)."""
+    x = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]
+    y = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + t[1]
+    z = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
+    z = 1.0 / z if z != 0.0 else 1.0
+    x *= z
+    y *= z
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    a1 = 2.0 * x * y
+    a2 = r2 + 2.0 * x * x
+    a3 = r2 + 2.0 * y * y
+    cdist = 1.0 + k[0] * r2 + k[1] * r4 + k[4] * r6
+    icdist2 = 1.0 / (1.0 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+    xd0 = x * cdist * icdist2 + k[2] * a1 + k[3] * a2 + k[8] * r2 + k[9] * r4
+    yd0 = y * cdist * icdist2 + k[2] * a3 + k[3] * a1 + k[10] * r2 + k[11] * r4
+    tilted_x = 0.0 + 1.0 * xd0 + 0.0 * yd0 + 0.0 * 1.0  # the identity tilt matrix times (xd0, yd0, 1)
+    tilted_y = 0.0 + 0.0 * xd0 + 1.0 * yd0 + 0.0 * 1.0
+    tilted_w = 0.0 + 0.0 * xd0 + 0.0 * yd0 + 1.0 * 1.0
+    inverse_projection = 1.0 / tilted_w if tilted_w != 0.0 else 1.0
+    xd = inverse_projection * tilted_x
+    yd = inverse_projection * tilted_y
+    return xd * intrinsics[0] + intrinsics[2], yd * intrinsics[1] + intrinsics[3]
+
+
+_UNDISTORT_ITERATIONS = 5  # cv2.undistortPoints' default criterion: five iterations, no tolerance
+
+
+@numba.njit(cache=True, inline="always")
+def _opencv_normalised(u, v, intrinsics, k):
+    """``cv2.undistortPoints`` of the pixel (u, v) for a camera with intrinsics (fx, fy, cx, cy)
+    and coefficients k (14,) (no rectification, no new camera matrix): the undistorted
+    normalised point (x, y)."""
+    cx, cy = intrinsics[2], intrinsics[3]
+    ifx = 1.0 / intrinsics[0]
+    ify = 1.0 / intrinsics[1]
+    x = (u - cx) * ifx
+    y = (v - cy) * ify
+    untilted_x = 0.0 + 1.0 * x + 0.0 * y + 0.0 * 1.0  # the identity inverse tilt matrix times (x, y, 1)
+    untilted_y = 0.0 + 0.0 * x + 1.0 * y + 0.0 * 1.0
+    untilted_w = 0.0 + 0.0 * x + 0.0 * y + 1.0 * 1.0
+    inverse_projection = 1.0 / untilted_w if untilted_w != 0.0 else 1.0
+    x = x0 = inverse_projection * untilted_x
+    y = y0 = inverse_projection * untilted_y
+    for _ in range(_UNDISTORT_ITERATIONS):
+        r2 = x * x + y * y
+        icdist = (1.0 + ((k[7] * r2 + k[6]) * r2 + k[5]) * r2) / (1.0 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2)
+        if icdist < 0.0:
+            x = (u - cx) * ifx
+            y = (v - cy) * ify
+            break
+        delta_x = 2.0 * k[2] * x * y + k[3] * (r2 + 2.0 * x * x) + k[8] * r2 + k[9] * r2 * r2
+        delta_y = k[2] * (r2 + 2.0 * y * y) + 2.0 * k[3] * x * y + k[10] * r2 + k[11] * r2 * r2
+        x = (x0 - delta_x) * icdist
+        y = (y0 - delta_y) * icdist
+    rectified_x = 1.0 * x + 0.0 * y + 0.0  # the identity rectification
+    rectified_y = 0.0 * x + 1.0 * y + 0.0
+    inverse_w = 1.0 / (0.0 * x + 0.0 * y + 1.0)
+    return rectified_x * inverse_w, rectified_y * inverse_w
 
 
 @numba.njit(cache=True)
-def _gauss_newton_step(jacobians, residuals, used, step):
+def _opencv_project(points, R, t, intrinsics, k, pixels):
+    """``_opencv_pixel`` of points (N, 3), m, in C cameras (R (C, 3, 3), t (C, 3), intrinsics (C,
+    4), k (C, 14)) into pixels (C, N, 2), as ``np.stack([camera.project(points) ...])``."""
+    for c in range(R.shape[0]):
+        for n in range(points.shape[0]):
+            pixels[c, n, 0], pixels[c, n, 1] = _opencv_pixel(points[n, 0], points[n, 1], points[n, 2], R[c], t[c], intrinsics[c], k[c])
+
+
+@numba.njit(cache=True)
+def _gauss_newton_step(jacobians, residuals, used, step, scratch):
     """``_least_squares_steps`` of one frame into step (3,): the normal equations' closed-form
-    solution, or the minimum-norm least-squares solution (SVD) when they are near singular."""
+    solution, or the minimum-norm least-squares solution (SVD) when they are near singular.
+    scratch (7, 3): work space (the caller's, so that a call allocates nothing)."""
     C = jacobians.shape[0]
-    H = np.zeros((3, 3))
-    g = np.zeros(3)
+    H, g, cofactor = scratch[:3], scratch[3], scratch[4:]
+    H[:] = 0.0
+    g[:] = 0.0
     for c in range(C):
         if not used[c]:
             continue
@@ -358,7 +454,6 @@ def _gauss_newton_step(jacobians, residuals, used, step):
                 g[i] += jacobians[c, k, i] * -residuals[c, k]
                 for j in range(3):
                     H[i, j] += jacobians[c, k, i] * jacobians[c, k, j]
-    cofactor = np.empty((3, 3))
     cofactor[0, 0] = H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]
     cofactor[0, 1] = H[0, 2] * H[2, 1] - H[0, 1] * H[2, 2]
     cofactor[0, 2] = H[0, 1] * H[1, 2] - H[0, 2] * H[1, 1]
@@ -391,39 +486,70 @@ def _gauss_newton_step(jacobians, residuals, used, step):
 
 
 @numba.njit(cache=True)
-def _triangulate_frames(pixels, normalised, projection, R_CW, tvec, focal, centre, distortion, sigma, threshold, min_views,
-                        iterations, tolerance, valid, position, covariance, views, rms):
-    """``triangulate_frames``' per-frame logic for N frames: pixels and normalised points (N, C, 2),
-    the stacked camera model (``_CameraStack``), and the outputs valid (N,), position (N, 3),
-    covariance (N, 3, 3), views (N, C) (the usable views on entry), rms (N,), filled in place."""
-    N, C = views.shape
+def _regular(information):
+    """``inverse_or_inf``'s test of a symmetric positive semi-definite (3, 3) matrix: its smallest
+    eigenvalue above 1e-12 of its largest, as LAPACK's eigenvalues decide it. A determinant above
+    1e-9 trace^3 proves the smallest (>= det / trace^2) far above 1e-12 of the largest (<= trace),
+    every rounding included, so the usual case skips the LAPACK call without changing a decision."""
+    H = information
+    determinant = (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
+                   + H[0, 2] * (H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]))
+    if determinant > 1e-9 * (H[0, 0] + H[1, 1] + H[2, 2]) ** 3:
+        return True
+    eigenvalues = np.linalg.eigvalsh(information)
+    return eigenvalues[0] > 1e-12 * max(eigenvalues[2], 1e-300)
+
+
+@numba.njit(cache=True)
+def _triangulate_frames(pixels, sigma, threshold, min_views, iterations, tolerance, cameras):
+    """``triangulate_frames``' per-frame logic for N frames, pixels (N, C, 2), px (NaN: no
+    detection), with the stacked camera model ``cameras`` (``_CameraStack.kernel_arrays``; the
+    usable views are undistorted as ``_CameraStack.normalised`` does it, ``_opencv_normalised``):
+    valid (N,), position (N, 3), covariance (N, 3, 3), views (N, C), rms (N,) (``FrameTriangulations``)."""
+    _, tvec, intrinsics, cv_distortion, R_CW, projection, focal, centre, distortion = cameras
+    N, C = pixels.shape[0], R_CW.shape[0]
+    valid = np.zeros(N, dtype=np.bool_)
+    position = np.full((N, 3), np.nan)
+    covariance = np.full((N, 3, 3), np.nan)
+    rms = np.full(N, np.nan)
+    views = np.empty((N, C), dtype=np.bool_)  # the usable views, then those used
+    for n in range(N):
+        for c in range(C):
+            views[n, c] = math.isfinite(pixels[n, c, 0]) and math.isfinite(pixels[n, c, 1])
     rows = np.zeros((2 * C, 4))
     residuals, jacobians = np.empty((C, 2)), np.empty((C, 2, 3))
     step, p = np.empty(3), np.empty(3)
+    information, projection_scratch, step_scratch = np.empty((3, 3)), np.empty((2, 3)), np.empty((7, 3))
     norms = np.empty(C)
+    normalised = np.zeros((C, 2))
     for n in range(N):
         used = views[n]
+        for c in range(C):  # _CameraStack.normalised: cv2.undistortPoints of the usable views
+            if used[c]:
+                normalised[c, 0], normalised[c, 1] = _opencv_normalised(pixels[n, c, 0], pixels[n, c, 1], intrinsics[c], cv_distortion[c])
         while used.sum() >= min_views:
             # The DLT (triangulation.triangulate_linear) over the views used; unused ones are zero rows.
             for c in range(C):
                 for j in range(4):
                     if used[c]:
-                        rows[2 * c, j] = normalised[n, c, 0] * projection[c, 2, j] - projection[c, 0, j]
-                        rows[2 * c + 1, j] = normalised[n, c, 1] * projection[c, 2, j] - projection[c, 1, j]
+                        rows[2 * c, j] = normalised[c, 0] * projection[c, 2, j] - projection[c, 0, j]
+                        rows[2 * c + 1, j] = normalised[c, 1] * projection[c, 2, j] - projection[c, 1, j]
                     else:
                         rows[2 * c, j] = rows[2 * c + 1, j] = 0.0
-            _, _, vt = np.linalg.svd(rows)
+            # Economy SVD: its right singular vectors are the full SVD's bit for bit (dgesdd's paths
+            # share the QR, bidiagonalisation and its SVD; they differ in U only), at less cost.
+            _, _, vt = np.linalg.svd(rows, full_matrices=False)
             for i in range(3):
                 p[i] = vt[3, i] / vt[3, 3]
             # Gauss-Newton (triangulation.refine_position), stopping after the first short step.
             for _ in range(iterations):
-                _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians)
-                _gauss_newton_step(jacobians, residuals, used, step)
+                _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians, projection_scratch)
+                _gauss_newton_step(jacobians, residuals, used, step, step_scratch)
                 for i in range(3):
                     p[i] = p[i] + step[i]
                 if not math.sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2]) >= tolerance:
                     break
-            _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians)
+            _project_one(p, R_CW, tvec, focal, centre, distortion, used, pixels[n], residuals, jacobians, projection_scratch)
             count, worst = 0, -1
             for c in range(C):
                 norms[c] = math.sqrt(residuals[c, 0] * residuals[c, 0] + residuals[c, 1] * residuals[c, 1]) if used[c] else -np.inf
@@ -432,7 +558,7 @@ def _triangulate_frames(pixels, normalised, projection, R_CW, tvec, focal, centr
                 if worst < 0 or norms[c] > norms[worst]:
                     worst = c
             if norms[worst] <= threshold:
-                information = np.zeros((3, 3))
+                information[:] = 0.0
                 squared = 0.0
                 good = True
                 for c in range(C):
@@ -446,8 +572,8 @@ def _triangulate_frames(pixels, normalised, projection, R_CW, tvec, focal, centr
                             for j in range(3):
                                 information[i, j] += jacobians[c, k, i] * jacobians[c, k, j]
                 # inverse_or_inf: sigma^2 (J^T J)^-1, infinite where singular.
-                eigenvalues = np.linalg.eigvalsh(information)
-                good = good and eigenvalues[0] > 1e-12 * max(eigenvalues[2], 1e-300)
+                regular = _regular(information)
+                good = good and regular
                 if good:
                     inverse = np.linalg.inv(information)
                     for i in range(3):
@@ -464,6 +590,61 @@ def _triangulate_frames(pixels, normalised, projection, R_CW, tvec, focal, centr
             used[worst] = False  # drop the worst view and try the rest (triangulate)
         if not valid[n]:
             used[:] = False
+    return valid, position, covariance, views, rms
+
+
+@numba.njit(cache=True)
+def _box_starts(origins, box_centres, box_rotations):
+    """The camera centres origins (C, 3), m, in the frames of K boxes (centres (K, 3), rotations
+    R_WB (K, 3, 3)): (C, K, 3), as ``segments_blocked``'s slab test takes them."""
+    C, K = origins.shape[0], box_centres.shape[0]
+    start = np.empty((C, K, 3))
+    for c in range(C):
+        for k in range(K):
+            for i in range(3):
+                start[c, k, i] = ((origins[c, 0] - box_centres[k, 0]) * box_rotations[k, 0, i]
+                                  + (origins[c, 1] - box_centres[k, 1]) * box_rotations[k, 1, i]
+                                  + (origins[c, 2] - box_centres[k, 2]) * box_rotations[k, 2, i])
+    return start
+
+
+@numba.njit(cache=True, inline="always")
+def _sees(x, y, z, pixel, R, t, focal_px, image_size, start, box_centres, box_rotations, box_half_extents, ball_radius):
+    """``cameras.visibility`` of the ball at (x, y, z), m, projected at pixel (2,), px, by a camera
+    R_CW (3, 3), tvec (3,), smaller focal length, px, image size (2,), px, and centre start (K, 3)
+    in the frames of the static boxes (``_box_starts``; centres (K, 3), rotations R_WB (K, 3, 3),
+    half extents (K, 3), m): in front (depth > ball radius), the projected disc inside the image
+    (``projected_ball_radius``) and the line of sight through no box (``segments_blocked``'s slab
+    test); the same tests in the same order."""
+    p_C0 = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + t[0]
+    p_C1 = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + t[1]
+    p_C2 = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + t[2]
+    distance = math.sqrt(p_C0 * p_C0 + p_C1 * p_C1 + p_C2 * p_C2)
+    visible = p_C2 > ball_radius and distance > ball_radius
+    if visible:
+        tan_theta = ball_radius / math.sqrt(max(distance**2 - ball_radius**2, 1e-300))
+        radius = focal_px * tan_theta * distance / p_C2
+        for axis in range(2):
+            visible = visible and pixel[axis] - radius >= -0.5 and pixel[axis] + radius <= image_size[axis] - 0.5
+    for k in range(box_centres.shape[0]):
+        if not visible:
+            break
+        t_enter, t_exit = -np.inf, np.inf
+        for i in range(3):
+            end = ((x - box_centres[k, 0]) * box_rotations[k, 0, i] + (y - box_centres[k, 1]) * box_rotations[k, 1, i]
+                   + (z - box_centres[k, 2]) * box_rotations[k, 2, i])
+            direction = end - start[k, i]
+            lower = -box_half_extents[k, i] - start[k, i]
+            upper = box_half_extents[k, i] - start[k, i]
+            if direction == 0.0:  # parallel to the slab: inside it for all t or for none
+                inside = lower <= 0.0 and upper >= 0.0
+                enter, leave = (-np.inf, np.inf) if inside else (np.inf, -np.inf)
+            else:
+                t_lower, t_upper = lower / direction, upper / direction
+                enter, leave = min(t_lower, t_upper), max(t_lower, t_upper)
+            t_enter, t_exit = max(t_enter, enter), min(t_exit, leave)
+        visible = not (t_enter <= t_exit and t_exit >= 0.0 and t_enter <= 1.0)
+    return visible
 
 
 @numba.njit(cache=True)
@@ -472,51 +653,54 @@ def _visible(points, pixels, R_CW, tvec, focal_px, image_size, origins, box_cent
     """``cameras.visibility`` of the ball at points (N, 3), m, whose projections pixels (C, N, 2),
     px, are given, for cameras R_CW (C, 3, 3), tvec (C, 3), smaller focal lengths (C,), px,
     image sizes (C, 2), px, and centres (C, 3), m, behind static boxes (K of them: centres (K,
-    3), rotations R_WB (K, 3, 3), half extents (K, 3), m), into seen (C, N): in front (depth >
-    ball radius), the projected disc inside the image (``projected_ball_radius``) and the line of
-    sight through no box (``segments_blocked``'s slab test); the same tests in the same order."""
-    C, N, K = R_CW.shape[0], points.shape[0], box_centres.shape[0]
-    start = np.empty((C, K, 3))  # the camera centres in each box's frame
-    for c in range(C):
-        for k in range(K):
-            for i in range(3):
-                start[c, k, i] = ((origins[c, 0] - box_centres[k, 0]) * box_rotations[k, 0, i]
-                                  + (origins[c, 1] - box_centres[k, 1]) * box_rotations[k, 1, i]
-                                  + (origins[c, 2] - box_centres[k, 2]) * box_rotations[k, 2, i])
-    for c in range(C):
-        R = R_CW[c]
-        for n in range(N):
-            x, y, z = points[n, 0], points[n, 1], points[n, 2]
-            p_C0 = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + tvec[c, 0]
-            p_C1 = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + tvec[c, 1]
-            p_C2 = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + tvec[c, 2]
-            distance = math.sqrt(p_C0 * p_C0 + p_C1 * p_C1 + p_C2 * p_C2)
-            visible = p_C2 > ball_radius and distance > ball_radius
-            if visible:
-                tan_theta = ball_radius / math.sqrt(max(distance**2 - ball_radius**2, 1e-300))
-                radius = focal_px[c] * tan_theta * distance / p_C2
-                for axis in range(2):
-                    pixel = pixels[c, n, axis]
-                    visible = visible and pixel - radius >= -0.5 and pixel + radius <= image_size[c, axis] - 0.5
-            for k in range(K):
-                if not visible:
-                    break
-                t_enter, t_exit = -np.inf, np.inf
-                for i in range(3):
-                    end = ((x - box_centres[k, 0]) * box_rotations[k, 0, i] + (y - box_centres[k, 1]) * box_rotations[k, 1, i]
-                           + (z - box_centres[k, 2]) * box_rotations[k, 2, i])
-                    direction = end - start[c, k, i]
-                    lower = -box_half_extents[k, i] - start[c, k, i]
-                    upper = box_half_extents[k, i] - start[c, k, i]
-                    if direction == 0.0:  # parallel to the slab: inside it for all t or for none
-                        inside = lower <= 0.0 and upper >= 0.0
-                        enter, leave = (-np.inf, np.inf) if inside else (np.inf, -np.inf)
-                    else:
-                        t_lower, t_upper = lower / direction, upper / direction
-                        enter, leave = min(t_lower, t_upper), max(t_lower, t_upper)
-                    t_enter, t_exit = max(t_enter, enter), min(t_exit, leave)
-                visible = not (t_enter <= t_exit and t_exit >= 0.0 and t_enter <= 1.0)
-            seen[c, n] = visible
+    3), rotations R_WB (K, 3, 3), half extents (K, 3), m), into seen (C, N) (``_sees``)."""
+    start = _box_starts(origins, box_centres, box_rotations)
+    for c in range(R_CW.shape[0]):
+        for n in range(points.shape[0]):
+            seen[c, n] = _sees(points[n, 0], points[n, 1], points[n, 2], pixels[c, n], R_CW[c], tvec[c], focal_px[c], image_size[c], start[c],
+                               box_centres, box_rotations, box_half_extents, ball_radius)
+
+
+@numba.njit(cache=True)
+def _detect_frames(points, seeds, sequences, blocked, sigma, dropout, cameras, scene):
+    """``CameraSegment.detect`` of N triggers in one pass, for a stacked array behind static
+    boxes: the ball at points (N, 3), m, trigger sequences (N,) of the episodes seeded seeds (N,)
+    (uint64), lines of sight blocked (C, N) by other occluders, pixel noise sigma, px, and the
+    dropout probability; the cameras ``_CameraStack.kernel_arrays``, the scene
+    ``CameraSegment._scene``. Returns the detections (N, C, 2), px (NaN: none): per trigger the
+    draws of ``_draw_trigger``, each camera's ``cv2.projectPoints`` pixel (``_opencv_pixel``)
+    and ``_sees``, then the pixel plus the noise where seen and not dropped out, as
+    ``cameras.simulate_detections`` has them."""
+    cv_rotation, tvec, intrinsics, cv_distortion, R_CW = cameras[:5]
+    focal_px, image_size, origins, box_centres, box_rotations, box_half_extents, ball_radius = scene
+    N, C = points.shape[0], R_CW.shape[0]
+    detections = np.empty((N, C, 2))
+    start = _box_starts(origins, box_centres, box_rotations)
+    generator, scratch = np.empty(4, np.uint64), np.empty(random_streams.GENERATOR_SCRATCH + 2, np.uint64)
+    noise, uniforms, pixel = np.empty((C, 2)), np.empty(C), np.empty(2)
+    for n in range(N):
+        _trigger_generator(seeds[n], sequences[n], generator, scratch)
+        _draw_trigger(generator, noise, uniforms)
+        x, y, z = points[n, 0], points[n, 1], points[n, 2]
+        for c in range(C):
+            pixel[0], pixel[1] = _opencv_pixel(x, y, z, cv_rotation[c], tvec[c], intrinsics[c], cv_distortion[c])
+            seen = _sees(x, y, z, pixel, R_CW[c], tvec[c], focal_px[c], image_size[c], start[c], box_centres, box_rotations, box_half_extents,
+                         ball_radius)
+            if seen and not blocked[c, n] and uniforms[c] >= dropout:
+                detections[n, c, 0] = pixel[0] + noise[c, 0] * sigma
+                detections[n, c, 1] = pixel[1] + noise[c, 1] * sigma
+            else:
+                detections[n, c, 0] = detections[n, c, 1] = np.nan
+    return detections
+
+
+@numba.njit(cache=True)
+def _measure_frames(points, seeds, sequences, blocked, sigma, dropout, threshold, min_views, iterations, tolerance, cameras, scene):
+    """``_detect_frames`` then ``_triangulate_frames`` of its detections in one call: (detections
+    (N, C, 2), valid, position, covariance, views, rms)."""
+    detections = _detect_frames(points, seeds, sequences, blocked, sigma, dropout, cameras, scene)
+    valid, position, covariance, views, rms = _triangulate_frames(detections, sigma, threshold, min_views, iterations, tolerance, cameras)
+    return detections, valid, position, covariance, views, rms
 
 
 # ----------------------------------------------------------------------------------------------
@@ -524,100 +708,45 @@ def _visible(points, pixels, R_CW, tvec, focal_px, image_size, origins, box_cent
 # ----------------------------------------------------------------------------------------------
 
 
-# numpy's SeedSequence (numpy/random/bit_generator.pyx) and PCG64 seeding (pcg64.h), written out
-# so that the generators of many triggers are seeded in one vectorised pass; tests check them bit
-# for bit against numpy.random.default_rng.
+# Each trigger's generator and draws, compiled (``random_streams``: numpy's default_rng bit for bit).
 _MASK32 = 0xFFFFFFFF
-_POOL_SIZE = 4
-_HASH_INIT_A, _HASH_MULT_A = 0x43B0D7E5, 0x931E8875
-_HASH_INIT_B, _HASH_MULT_B = 0x8B51F9DD, 0x58F38DED
-_MIX_MULT_L, _MIX_MULT_R = 0xCA01F9DD, 0x4973F715
-_PCG64_MULTIPLIER = 0x2360ED051FC65DA44385DF649FCCF645
-_MASK128 = (1 << 128) - 1
-
-
-def _hash_constants(init: int, mult: int, count: int) -> list[tuple[int, int]]:
-    """The data-independent (xor, multiplier) pairs of SeedSequence's successive hashes."""
-    pairs, value = [], init
-    for _ in range(count):
-        following = (value * mult) & _MASK32
-        pairs.append((value, following))
-        value = following
-    return pairs
-
-
-_MIX_HASHES = _hash_constants(_HASH_INIT_A, _HASH_MULT_A, _POOL_SIZE * _POOL_SIZE)
-_STATE_HASHES = _hash_constants(_HASH_INIT_B, _HASH_MULT_B, 2 * _POOL_SIZE)
-
-
-_MIX_HASH_ARRAY = np.array(_MIX_HASHES, dtype=np.uint64)  # (16, 2) as the compiled seeding takes them
-_STATE_HASH_ARRAY = np.array(_STATE_HASHES, dtype=np.uint64)  # (8, 2)
 
 
 @numba.njit(cache=True)
-def _hash(value, xor, mult):
-    """SeedSequence's hashmix of a 32-bit word held in a uint64."""
-    value = ((value ^ xor) * mult) & np.uint64(_MASK32)
-    return value ^ (value >> np.uint64(16))
+def _trigger_generator(seed, sequence, generator, scratch):
+    """generator (4,) <- ``numpy.random.default_rng([seed, sequence])``'s PCG64; scratch
+    (``random_streams.GENERATOR_SCRATCH`` + 2,) uint64."""
+    entropy = scratch[random_streams.GENERATOR_SCRATCH:]
+    entropy[0], entropy[1] = seed, sequence
+    random_streams.seed_generator(entropy, 2, generator, scratch[:random_streams.GENERATOR_SCRATCH])
 
 
 @numba.njit(cache=True)
-def _seed_words(seeds, sequences, mix_hashes, state_hashes, out):
-    """SeedSequence([seed, sequence])'s pool mixing and ``generate_state(4, uint64)`` per trigger,
-    seeds and sequences (N,) uint64: out (N, 4) uint64, the four state words (the 64-bit halves
-    [high, low] of PCG64's initstate, then of its initseq). The entropy words: an int seed is
-    coerced to as many 32-bit words as it needs (at least one), then the sequence's word; shorter
-    entropy hashes zeros into the pool."""
-    mask, shift = np.uint64(_MASK32), np.uint64(32)
-    left, right = np.uint64(_MIX_MULT_L), np.uint64(_MIX_MULT_R)
-    pool, entropy, words = np.empty(_POOL_SIZE, np.uint64), np.zeros(_POOL_SIZE, np.uint64), np.empty(8, np.uint64)
+def _draw_trigger(generator, noise, uniforms):
+    """One trigger's draws in the reference's order: ``normal(0.0, 1.0, size=(C, 2))`` into noise
+    (C, 2) (loc + scale z, as numpy computes it), then ``random(C)`` into uniforms (C,)."""
+    for c in range(noise.shape[0]):
+        for axis in range(2):
+            noise[c, axis] = 0.0 + 1.0 * random_streams.standard_normal(generator)
+    for c in range(uniforms.shape[0]):
+        uniforms[c] = random_streams.random(generator)
+
+
+@numba.njit(cache=True)
+def _draw_noise(seeds, sequences, noise, uniforms):
+    """``draw_detection_noise``'s draws into noise (N, C, 2) and uniforms (N, C)."""
+    generator, scratch = np.empty(4, np.uint64), np.empty(random_streams.GENERATOR_SCRATCH + 2, np.uint64)
     for n in range(seeds.shape[0]):
-        low, high = seeds[n] & mask, seeds[n] >> shift
-        entropy[:] = 0
-        entropy[0] = low
-        if high > 0:
-            entropy[1], entropy[2] = high, sequences[n]
-        else:
-            entropy[1] = sequences[n]
-        constant = 0
-        for i in range(_POOL_SIZE):
-            pool[i] = _hash(entropy[i], mix_hashes[constant, 0], mix_hashes[constant, 1])
-            constant += 1
-        for source in range(_POOL_SIZE):
-            for target in range(_POOL_SIZE):
-                if source != target:
-                    hashed = _hash(pool[source], mix_hashes[constant, 0], mix_hashes[constant, 1])
-                    constant += 1
-                    mixed = (left * pool[target] - right * hashed) & mask
-                    pool[target] = mixed ^ (mixed >> np.uint64(16))
-        for i in range(8):
-            words[i] = _hash(pool[i % _POOL_SIZE], state_hashes[i, 0], state_hashes[i, 1])
-        for i in range(4):  # little-endian pairs of 32-bit words
-            out[n, i] = words[2 * i] | (words[2 * i + 1] << shift)
-
-
-def _pcg64_states(seeds: np.ndarray, sequences: np.ndarray) -> list[tuple[int, int]]:
-    """The (state, increment) of ``PCG64(SeedSequence([seed, sequence]))`` per trigger, seeds (N,)
-    < 2**64 and sequences (N,) < 2**32 (pcg64's ``srandom_r``: state 0, increment 2 initseq + 1,
-    step, add initstate, step)."""
-    words = np.empty((len(seeds), 4), dtype=np.uint64)
-    _seed_words(np.ascontiguousarray(seeds, dtype=np.uint64), np.ascontiguousarray(sequences, dtype=np.uint64), _MIX_HASH_ARRAY,
-                _STATE_HASH_ARRAY, words)
-    rows = words.tolist()
-    states = []
-    for state_high, state_low, increment_high, increment_low in rows:  # 64-bit halves of initstate, initseq
-        increment = ((((increment_high << 64) | increment_low) << 1) | 1) & _MASK128
-        state = (increment + ((state_high << 64) | state_low)) & _MASK128  # the first step from state 0 is the increment
-        states.append(((state * _PCG64_MULTIPLIER + increment) & _MASK128, increment))
-    return states
+        _trigger_generator(seeds[n], sequences[n], generator, scratch)
+        _draw_trigger(generator, noise[n], uniforms[n])
 
 
 def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count: int) -> tuple[np.ndarray, np.ndarray]:
     """The standard-normal pixel noise (N, C, 2) and dropout uniforms (N, C) of N triggers, trigger
     ``sequences[i]`` (N,) of the episode seeded ``seeds[i]`` (N,), each from its own generator
     ``numpy.random.default_rng([seed, sequence])`` in the reference's order (noise, then dropout;
-    ``cameras.simulate_detections``). The generators are seeded in one vectorised pass and drawn
-    from one reused Generator whose state is set per trigger (the same numbers, bit for bit)."""
+    ``cameras.simulate_detections``): the same numbers, bit for bit, seeded and drawn in one
+    compiled pass."""
     seeds = np.asarray(seeds).reshape(-1)
     sequences = np.asarray(sequences).reshape(-1)
     if seeds.shape != sequences.shape:
@@ -628,12 +757,7 @@ def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count:
         raise ValueError(f"draw_detection_noise: sequences must be < 2**32, got {sequences.max()}")
     noise = np.empty((len(seeds), camera_count, 2))
     uniforms = np.empty((len(seeds), camera_count))
-    bit_generator = np.random.PCG64()
-    generator = np.random.Generator(bit_generator)
-    for index, (state, increment) in enumerate(_pcg64_states(seeds, sequences)):
-        bit_generator.state = {"bit_generator": "PCG64", "state": {"state": state, "inc": increment}, "has_uint32": 0, "uinteger": 0}
-        noise[index] = generator.normal(0.0, 1.0, size=(camera_count, 2))
-        uniforms[index] = generator.random(camera_count)
+    _draw_noise(seeds.astype(np.uint64), sequences.astype(np.uint64), noise, uniforms)
     return noise, uniforms
 
 
@@ -740,6 +864,10 @@ class CameraSegment:
             np.array([box.R_WB for box in boxes], dtype=float).reshape(-1, 3, 3),
             np.array([box.half_extents for box in boxes], dtype=float).reshape(-1, 3),
         )
+        # The whole detection and triangulation in one compiled call (``_measure_frames``) when
+        # the lenses are stacked and the static occluders boxes; its scene argument.
+        self._compiled = self._stack.stacked and self._boxes is not None
+        self._scene = (self._focal_px, self._image_size, self._origins, *self._boxes, self.ball_radius) if self._compiled else None
 
     def detect(
         self,
@@ -753,30 +881,32 @@ class CameraSegment:
         ``sequences`` (B, m) (or (m,)) of the episode seeded ``seeds`` (B,) (or (B, m), the seed
         at each trigger); ``occluders``: per environment, shapes added to the static ones."""
         p_WB, seeds, sequences = self._check(p_WB, seeds, sequences, occluders)
-        B, m = p_WB.shape[:2]
-        C = len(self.cameras)
-        points = p_WB.reshape(-1, 3)
-        noise, uniforms = draw_detection_noise(seeds.reshape(-1), sequences.reshape(-1), C)
-        pixels = np.stack([camera.project(points) for camera in self.cameras])  # (C, N, 2)
-        if self._boxes is None:
-            seen = visibility(self.cameras, points, self.occluders, self.ball_radius, pixels=pixels)  # (C, N)
-        else:
-            seen = np.empty((C, len(points)), dtype=np.bool_)
-            _visible(np.ascontiguousarray(points), pixels, self._stack.R_CW, self._stack.tvec, self._focal_px, self._image_size, self._origins,
-                     *self._boxes, self.ball_radius, seen)
-        if occluders is not None:
-            for environment, extra in enumerate(occluders):
-                if extra:
-                    rows = slice(environment * m, (environment + 1) * m)
-                    seen[:, rows] &= ~segments_blocked(self._origins, points[rows], tuple(extra))
-        detected = seen.T & (uniforms >= self.params.dropout_probability)  # (N, C)
-        noisy = pixels.transpose(1, 0, 2) + noise * self.params.pixel_noise_sigma
-        return np.where(detected[..., None], noisy, np.nan).reshape(B, m, C, 2)
+        return self._detections(*self._flat(p_WB, seeds, sequences, occluders)).reshape(p_WB.shape[:2] + (len(self.cameras), 2))
 
     def triangulate(self, pixels: np.ndarray) -> FrameTriangulations:
         """``triangulate_frames`` of detections (..., C, 2) with this array's parameters."""
         p = self.params
         return triangulate_frames(self._stack, pixels, p.pixel_noise_sigma, p.outlier_threshold_px, p.min_views)
+
+    def frames(self, p_WB: np.ndarray, seeds: np.ndarray, sequences: np.ndarray, blocked: np.ndarray | None = None) -> tuple[np.ndarray, FrameTriangulations]:
+        """The detections (N, C, 2), px (NaN: none), of N triggers and their triangulations (N,):
+        ``detect`` then ``triangulate`` for callers whose input is in the flat form already:
+        ball centres p_WB (N, 3), m, float; the episodes' seeds (N,) and the triggers' numbers
+        sequences (N,), uint64, in [1, 2**32) (not checked, ``measure`` checks them); the lines of
+        sight blocked (C, N) by per-environment occluders (None: none)."""
+        p_WB = np.ascontiguousarray(p_WB, dtype=float)
+        if not np.isfinite(p_WB).all():
+            raise ValueError("CameraSegment: p_WB must be finite")
+        if blocked is None:
+            blocked = np.zeros((len(self.cameras), len(p_WB)), dtype=np.bool_)
+        p = self.params
+        if self._compiled:
+            detections, *result = _measure_frames(p_WB, seeds, sequences, blocked, float(p.pixel_noise_sigma), float(p.dropout_probability),
+                                                  float(p.outlier_threshold_px), int(p.min_views), GAUSS_NEWTON_ITERATIONS,
+                                                  GAUSS_NEWTON_STEP_TOLERANCE, self._stack.kernel_arrays, self._scene)
+            return detections, FrameTriangulations(*result)
+        detections = self._detections(p_WB, seeds, sequences, blocked)
+        return detections, self.triangulate(detections)
 
     def measure(
         self,
@@ -806,19 +936,53 @@ class CameraSegment:
         last_sequence = np.zeros(B, dtype=int) if last_sequence is None else np.asarray(last_sequence)
         if last_sequence.shape != (B,):
             raise ValueError(f"CameraSegment.measure: last_sequence must have shape ({B},), got {last_sequence.shape}")
-        pixels = self.detect(p_WB, seeds, sequences, occluders)
-        result = self.triangulate(pixels)
-        sequence = np.where(result.valid, last_sequence[:, None] + np.cumsum(result.valid, axis=1), 0)
+        pixels, result = self.frames(*self._flat(p_WB, seeds, sequences, occluders))
+        valid = result.valid.reshape(B, m)
+        sequence = np.where(valid, last_sequence[:, None] + np.cumsum(valid, axis=1), 0)
         return SegmentMeasurements(
-            valid=result.valid,
+            valid=valid,
             sequence=sequence,
             capture_time=capture_times.copy(),
             release_time=capture_times + self.params.latency,
-            value=result.position,
-            covariance=result.covariance,
-            pixels=pixels,
-            last_sequence=last_sequence + result.valid.sum(axis=1),
+            value=result.position.reshape(B, m, 3),
+            covariance=result.covariance.reshape(B, m, 3, 3),
+            pixels=pixels.reshape(B, m, len(self.cameras), 2),
+            last_sequence=last_sequence + valid.sum(axis=1),
         )
+
+    def _flat(self, p_WB, seeds, sequences, occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``_check``'s (B, m) input as ``frames`` takes it: the N = B m ball centres (N, 3), seeds
+        and sequences (N,) uint64 and the lines of sight (C, N) the per-environment occluders block."""
+        m = p_WB.shape[1]
+        points = np.ascontiguousarray(p_WB.reshape(-1, 3))
+        blocked = np.zeros((len(self.cameras), len(points)), dtype=np.bool_)
+        for environment, extra in enumerate(occluders or ()):
+            if extra:
+                rows = slice(environment * m, (environment + 1) * m)
+                blocked[:, rows] = segments_blocked(self._origins, points[rows], tuple(extra))
+        return points, seeds.reshape(-1).astype(np.uint64), sequences.reshape(-1).astype(np.uint64), blocked
+
+    def _detections(self, points: np.ndarray, seeds: np.ndarray, sequences: np.ndarray, blocked: np.ndarray) -> np.ndarray:
+        """``detect`` of ``_flat``'s arrays: (N, C, 2), px; compiled (``_detect_frames``) or for
+        other lenses or occluders the same steps in NumPy and OpenCV."""
+        stack, params = self._stack, self.params
+        if self._compiled:
+            return _detect_frames(points, seeds, sequences, blocked, float(params.pixel_noise_sigma), float(params.dropout_probability),
+                                  stack.kernel_arrays, self._scene)
+        noise, uniforms = draw_detection_noise(seeds, sequences, len(self.cameras))
+        if stack.stacked:
+            pixels = np.empty((len(self.cameras), len(points), 2))
+            _opencv_project(points, stack.cv_rotation, stack.tvec, stack.cv_intrinsics, stack.cv_distortion, pixels)
+        else:
+            pixels = np.stack([camera.project(points) for camera in self.cameras])  # (C, N, 2)
+        if self._boxes is None:
+            seen = visibility(self.cameras, points, self.occluders, self.ball_radius, pixels=pixels)  # (C, N)
+        else:
+            seen = np.empty(blocked.shape, dtype=np.bool_)
+            _visible(points, pixels, stack.R_CW, stack.tvec, self._focal_px, self._image_size, self._origins, *self._boxes, self.ball_radius, seen)
+        detected = (seen & ~blocked).T & (uniforms >= params.dropout_probability)  # (N, C)
+        noisy = pixels.transpose(1, 0, 2) + noise * params.pixel_noise_sigma
+        return np.where(detected[..., None], noisy, np.nan)
 
     def _check(self, p_WB, seeds, sequences, occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Validated (B, m, 3) positions and (B, m) seeds and trigger numbers."""
@@ -840,8 +1004,8 @@ class CameraSegment:
             sequences = np.broadcast_to(sequences, (B, m))
         if sequences.shape != (B, m) or sequences.dtype.kind not in "iu":
             raise ValueError(f"CameraSegment: sequences must be integers of shape ({m},) or ({B}, {m}), got {sequences.dtype} {sequences.shape}")
-        if np.any(sequences < 1):
-            raise ValueError("CameraSegment: trigger sequence numbers start at 1")
+        if np.any(sequences < 1) or np.any(sequences > _MASK32):
+            raise ValueError("CameraSegment: trigger sequence numbers start at 1 and are < 2**32")
         if occluders is not None and len(occluders) != B:
             raise ValueError(f"CameraSegment: occluders must give one sequence per environment ({B}), got {len(occluders)}")
         return p_WB, seeds, sequences

@@ -32,26 +32,16 @@ class SegmentCameraArray(SegmentPositionSensor):
         return self.cameras.period
 
     def _sample(self, flight, ticks: np.ndarray, first: np.ndarray, seeds: np.ndarray) -> PendingBatch:
+        """Every environment's PendingMeasurements of the tick's triggers: all the triggers of
+        all environments detected and triangulated in one call (``CameraSegment.frames``; each
+        trigger's draws depend on its seed and number only)."""
         triggers, valid = self._trigger_grid(first)
-        groups: dict[tuple, list[int]] = {}
-        for row in range(self.batch):
-            groups.setdefault(tuple((triggers[row, valid[row]] - first[row]).tolist()), []).append(row)
-        parts = []
-        for offsets, rows in groups.items():
-            if not offsets:
-                continue
-            rows = np.array(rows)
-            indices = np.asarray(offsets)
-            row_triggers = first[rows, None] + indices[None, :]  # episode samples (k, m)
-            measured = self.cameras.measure(
-                flight.samples[rows][:, indices, :3], self.timing.seconds(row_triggers), seeds[rows].astype(np.uint64), row_triggers // self._trigger + 1
-            )
-            parts.append((np.repeat(rows, indices.size), measured))
-        if not parts:
+        sample_rows, columns = np.nonzero(valid)  # row by row, in trigger order
+        if sample_rows.size == 0:
             return PendingBatch.empty()
-        return PendingBatch.from_samples(
-            *(np.concatenate(items) for items in zip(*(
-                (sample_rows, m.capture_time.reshape(-1), m.release_time.reshape(-1), m.value.reshape(-1, 3), m.covariance.reshape(-1, 3, 3), m.valid.reshape(-1))
-                for sample_rows, m in parts
-            )))
-        )
+        sample_triggers = triggers[sample_rows, columns]  # episode samples
+        capture_times = self.timing.seconds(sample_triggers)
+        p_W = flight.samples[sample_rows, sample_triggers - first[sample_rows], :3]
+        _, frames = self.cameras.frames(p_W, seeds[sample_rows].astype(np.uint64), (sample_triggers // self._trigger + 1).astype(np.uint64))
+        return PendingBatch.from_samples(sample_rows, capture_times, capture_times + self.cameras.params.latency, frames.position, frames.covariance,
+                                         frames.valid)

@@ -9,7 +9,8 @@ from pydrake.systems.framework import LeafSystem
 from ace_drake.control.segment_timing import SegmentTiming
 from ace_drake.perception.measurements import MeasurementHistory
 from ace_drake.perception.params import PositionSensorParams
-from ace_drake.perception.sensor_models import PendingBatch, PositionVariates, draw_position_variates, position_measurements
+from ace_drake.perception.random_streams import position_variates
+from ace_drake.perception.sensor_models import PendingBatch, position_measurements
 from ace_drake.systems.statistical_position_sensor import POSITION_STREAM, SensorQueueBatch
 
 
@@ -102,15 +103,14 @@ class SegmentPositionSensor(LeafSystem):
 
     def _sample(self, flight, ticks: np.ndarray, first: np.ndarray, seeds: np.ndarray) -> PendingBatch:
         """Every environment's PendingMeasurements of the tick's triggers: the model's variates
-        drawn environment by environment (each from its stream), the model of all at once."""
+        drawn environment by environment, each from its stream (``draw_position_variates`` with
+        ``default_rng([seed, POSITION_STREAM, tick])``, compiled: ``random_streams``), the model
+        of all at once."""
         triggers, valid = self._trigger_grid(first)
         counts = valid.sum(axis=1)
-        rows = np.flatnonzero(counts)
-        if rows.size == 0:
+        if not counts.any():
             return PendingBatch.empty()
-        variates = PositionVariates.concatenate([
-            draw_position_variates(int(counts[b]), self.params, np.random.default_rng([int(seeds[b]), POSITION_STREAM, int(ticks[b])])) for b in rows
-        ])
+        variates = position_variates(seeds, POSITION_STREAM, ticks, counts, self.params.latency_min, self.params.latency_max)
         sample_rows, columns = np.nonzero(valid)  # row by row, in trigger order
         sample_triggers = triggers[sample_rows, columns]
         capture_times = self.timing.seconds(sample_triggers)
