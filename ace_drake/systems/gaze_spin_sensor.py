@@ -193,15 +193,16 @@ def poll_spin_sensors(
     if polling.size == 0:
         return dataclasses.replace(current, queue=current.queue.sampled(PendingBatch.empty(), now))
     rows = np.repeat(polling, [times.size for times in captures])
-    capture_times = np.concatenate(captures)
+    capture_times = captures[0] if polling.size == 1 else np.concatenate(captures)  # one sensor (B = 1): no copy
     contact_times, spins_before, racket_times = _contact_arrays(events, polling, now.size)
-    w_WB, intervals = spin_at_times_batch(rows, capture_times, np.asarray(w_now, dtype=float), contact_times, spins_before)
+    w_WB, intervals = spin_at_times_batch(rows, capture_times, w_now, contact_times, spins_before)
     needed = np.zeros(now.size, dtype=np.int64)
     np.maximum.at(needed, rows, intervals + 1)
     with_biases = _with_biases(params, current, seeds, needed)
     kept, release_times, values, covariances = spin_measurements(
         w_WB, capture_times, with_biases.bias_magnitude[rows, intervals], with_biases.bias_rotation_vector[rows, intervals],
-        racket_tracking_loss_batch(rows, capture_times, racket_times, params), SpinVariates.concatenate(variates), params,
+        racket_tracking_loss_batch(rows, capture_times, racket_times, params), variates[0] if polling.size == 1 else SpinVariates.concatenate(variates),
+        params,
     )
     sampled = PendingBatch.from_samples(rows, capture_times, release_times, values, covariances, kept)
     return dataclasses.replace(with_biases, queue=current.queue.sampled(sampled, now), next_capture_time=next_capture_time)
