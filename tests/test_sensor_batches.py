@@ -15,6 +15,7 @@ from ace_drake.perception.sensor_models import (
     due_mask,
     insert_pending,
     insert_pending_batch,
+    intervals_reached,
     racket_tracking_loss,
     racket_tracking_loss_batch,
     release_due_batch,
@@ -22,6 +23,7 @@ from ace_drake.perception.sensor_models import (
     spin_at_times,
     spin_at_times_batch,
     spin_measurements,
+    spin_pending_batch,
     spin_precision_covariance,
 )
 from ace_drake.physics.propagate import ContactEvent, ContactKind
@@ -236,6 +238,16 @@ def test_spin_model_kernels_equal_their_numpy_references():
         assert_arrays_equal(spin_at_times_batch(*arguments), spin_at_times_reference(*arguments))
         racket = np.where(np.isfinite(contacts), contacts, np.nan)
         assert_arrays_equal([racket_tracking_loss_batch(rows, captures, racket, SPIN)], [tracking_loss_reference(rows, captures, racket, SPIN)])
+        # the batch's model in one call: the biases of the samples' intervals, their tracking loss, the model, the kept in order
+        intervals = rng.integers(0, 3, n)
+        reached = np.zeros(batch, dtype=np.int64)
+        np.maximum.at(reached, rows, intervals + 1)
+        assert_arrays_equal([intervals_reached(rows, intervals, batch)], [reached])
+        magnitudes, rotations = rng.normal(scale=11.0, size=(batch, 3)), rng.normal(scale=0.04, size=(batch, 3, 3))
+        loss = racket_tracking_loss_batch(rows, captures, racket, SPIN)
+        expected = spin_measurements(w, captures, magnitudes[rows, intervals], rotations[rows, intervals], loss, variates, SPIN)
+        assert_arrays_equal(pending_arrays(spin_pending_batch(rows, intervals, captures, w, magnitudes, rotations, racket, variates, SPIN)),
+                            pending_arrays(PendingBatch.from_samples(rows, captures, expected[1], expected[2], expected[3], expected[0])))
 
 
 def test_pending_kernels_equal_their_numpy_references():

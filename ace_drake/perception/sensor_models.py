@@ -326,8 +326,7 @@ def spin_capture_times(
     # exactly as many as the loop would have, so that the stream goes on as before.
     state = rng.bit_generator.state
     bound = int((until - time) / low) + 2
-    times = np.cumsum(np.concatenate(([time], rng.uniform(low, high, bound))))
-    count = int(np.searchsorted(times, until, side="right"))  # times <= until
+    times, count = _times_until(time, rng.uniform(low, high, bound), until)
     rng.bit_generator.state = state
     if count > bound:  # rounding left the bound short: the loop itself
         times, next_time = [], time
@@ -337,6 +336,20 @@ def spin_capture_times(
         return np.asarray(times, dtype=float), next_time
     rng.uniform(low, high, count)
     return times[:count], float(times[count])
+
+
+@numba.njit(cache=True)
+def _times_until(time, intervals, until):
+    """``spin_capture_times``' sums: (time, then each interval (n,) added in turn, (n + 1,) s; how
+    many of them are <= until)."""
+    times = np.empty(intervals.shape[0] + 1)
+    times[0] = time
+    for k in range(intervals.shape[0]):
+        times[k + 1] = times[k] + intervals[k]
+    count = 0
+    while count < times.shape[0] and times[count] <= until:
+        count += 1
+    return times, count
 
 
 def first_spin_capture_time(start_time: float, params: SpinSensorParams, rng: np.random.Generator) -> float:
@@ -560,6 +573,67 @@ def _spin_measurement_rows(w, capture_times, bias_magnitude, bias_rotation, trac
         values[i, 0], values[i, 1], values[i, 2] = scale * x, scale * y, scale * z
         _precision_covariance_one(values[i], radial_variance, axis_std, covariances[i])
     return kept, release_times, values, covariances
+
+
+def spin_pending_batch(
+    rows: np.ndarray,
+    intervals: np.ndarray,
+    capture_times: np.ndarray,
+    w_W: np.ndarray,
+    bias_magnitude: np.ndarray,
+    bias_rotation_vector: np.ndarray,
+    racket_contact_times: np.ndarray,
+    variates: SpinVariates,
+    params: SpinSensorParams,
+) -> PendingBatch:
+    """The spin model of n samples by the sensors ``rows`` (n,) of a batch, as the PendingBatch of
+    those kept: ``PendingBatch.from_samples`` of ``spin_measurements`` of the true spins ``w_W``
+    (n, 3), rad/s, at ``capture_times`` (n,), s, sample i with the bias of its contact interval
+    intervals[i] in its sensor's tables ``bias_magnitude`` (B, k), rad/s, and
+    ``bias_rotation_vector`` (B, k, 3), rad, and the tracking loss of its sensor's
+    ``racket_contact_times`` (B, m), s, NaN-padded (``racket_tracking_loss_batch``). One compiled
+    call (the segment-stepped sensor's every tick)."""
+    return PendingBatch(*_spin_pending_rows(
+        rows, intervals, capture_times, w_W, bias_magnitude, bias_rotation_vector, racket_contact_times, float(params.racket_dropout_duration),
+        variates.dropout, variates.tracking_loss, variates.latency, variates.magnitude, variates.axis, variates.fallback_axis,
+        float(params.dropout_probability), float(params.racket_dropout_probability), float(params.magnitude_noise_std),
+        float(params.axis_noise_std), float(params.magnitude_noise_std**2),
+    ))
+
+
+@numba.njit(cache=True)
+def _spin_pending_rows(rows, intervals, capture_times, w, bias_magnitude, bias_rotation, racket_contact_times, racket_dropout_duration,
+                       dropout, loss_draw, latency, magnitude, axis, fallback_axis, dropout_probability, racket_dropout_probability,
+                       magnitude_std, axis_std, radial_variance):
+    """``spin_pending_batch``: the biases looked up, then ``_tracking_loss_rows``,
+    ``_spin_measurement_rows`` and ``_kept_in_order``."""
+    n = rows.shape[0]
+    sample_magnitude, sample_rotation = np.empty(n), np.empty((n, 3))
+    for i in range(n):
+        sample_magnitude[i] = bias_magnitude[rows[i], intervals[i]]
+        sample_rotation[i] = bias_rotation[rows[i], intervals[i]]
+    lost = _tracking_loss_rows(rows, capture_times, racket_contact_times, racket_dropout_duration)
+    kept, release_times, values, covariances = _spin_measurement_rows(
+        w, capture_times, sample_magnitude, sample_rotation, lost, dropout, loss_draw, latency, magnitude, axis, fallback_axis,
+        dropout_probability, racket_dropout_probability, magnitude_std, axis_std, radial_variance,
+    )
+    return _kept_in_order(rows, capture_times, release_times, values, covariances, kept)
+
+
+def intervals_reached(rows: np.ndarray, intervals: np.ndarray, batch: int) -> np.ndarray:
+    """How many contact intervals the samples of each of ``batch`` sensors reach (B,): one more
+    than the largest interval index (``spin_at_times``' contact counts, ``intervals`` (n,)) of its
+    samples (``rows`` (n,)), 0 without samples."""
+    return _intervals_reached(np.asarray(rows, dtype=np.int64), np.asarray(intervals, dtype=np.int64), int(batch))
+
+
+@numba.njit(cache=True)
+def _intervals_reached(rows, intervals, batch):
+    """``intervals_reached``."""
+    reached = np.zeros(batch, dtype=np.int64)
+    for i in range(rows.shape[0]):
+        reached[rows[i]] = max(reached[rows[i]], intervals[i] + 1)
+    return reached
 
 
 def spin_at_times(
