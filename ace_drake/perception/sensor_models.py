@@ -8,7 +8,8 @@ and dropout are modelled similarly, with additional dropout applied directly aft
 zero-mean Gaussian distributions for spin magnitude and axis. However, accuracy is sampled once per
 contact event". The numbers are ``PositionSensorParams`` and ``SpinSensorParams`` in config.py.
 
-Everything here is pure NumPy and batched over samples; randomness comes only from the
+Everything here is batched over samples (NumPy, and numba kernels for what the segment-stepped
+sensors run every tick: the spin model, the pending queues); randomness comes only from the
 ``numpy.random.Generator`` passed in, and each function draws a fixed number of variates per sample
 whatever the values, so that a seed gives the same stream of measurements bit for bit. A sampled
 measurement is a ``PendingMeasurement`` until its release time; ``release_due`` turns the pending
