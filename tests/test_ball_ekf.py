@@ -10,9 +10,10 @@ from scipy import stats
 
 from ace_drake.analysis.bench import sample_incoming_balls
 from ace_drake.config import ConfigError, from_dict
-from ace_drake.perception.ball_ekf import BallEkf, Observation
+from ace_drake.perception import ball_ekf, ekf_kernels
+from ace_drake.perception.ball_ekf import POSITION, SPIN, BallEkf, Observation
 from ace_drake.perception.ekf_evaluation import evaluate, replay, simulate_shots
-from ace_drake.perception.measurements import Measurement
+from ace_drake.perception.measurements import Measurement, MeasurementHistoryBatch
 from ace_drake.perception.params import EstimatorParams
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.params import BallPhysicsParams
@@ -406,3 +407,75 @@ def test_a_cleared_environment_starts_again():
     assert not cleared.row(1).latest.tracking and cleared.row(1).history_length == 0
     assert_same_filter(cleared.row(0), batch.row(0))
     assert batch.row(1).latest.tracking  # the original is untouched
+
+
+def observation_arrays_reference(ekf: BallEkf, positions, spins, racket_contact_times):
+    """``BallEkf.observation_arrays`` in NumPy array operations: the reference of its kernel
+    (``ekf_kernels.place_observations``)."""
+    count = len(racket_contact_times)
+    position_rows, spin_rows = np.asarray(positions[0], dtype=np.int64), np.asarray(spins[0], dtype=np.int64)
+    contact_rows = np.repeat(np.arange(count, dtype=np.int64), [len(times) for times in racket_contact_times])
+    contact_times = np.array([float(time) for times in racket_contact_times for time in times], dtype=float)
+    position_counts, spin_counts = np.bincount(position_rows, minlength=count), np.bincount(spin_rows, minlength=count)
+    contact_counts = np.bincount(contact_rows, minlength=count)
+    start = np.zeros(count + 1, dtype=np.int64)
+    start[1:] = np.cumsum(position_counts + spin_counts + contact_counts)
+    values = np.zeros((int(start[-1]), ekf_kernels.OBS_F))
+    kinds_out = np.zeros((int(start[-1]), ekf_kernels.OBS_I), dtype=np.int64)
+
+    def place(rows, counts, offset):
+        first = np.cumsum(counts) - counts
+        return start[rows] + offset[rows] + np.arange(rows.size) - first[rows]
+
+    for (rows, sequence, capture, value, covariance), counts, offset, kind, lag in (
+        (positions, position_counts, np.zeros(count, dtype=np.int64), POSITION, 0.0),
+        (spins, spin_counts, position_counts, SPIN, ekf.params.spin_fusion_lag),
+    ):
+        at = place(np.asarray(rows, dtype=np.int64), counts, offset)
+        values[at, ekf_kernels.O_KEY] = capture + lag
+        values[at, ekf_kernels.O_CAPTURE] = capture
+        values[at, ekf_kernels.O_VALUE:ekf_kernels.O_VALUE + 3] = value
+        values[at, ekf_kernels.O_COVARIANCE:] = np.reshape(covariance, (-1, 9))
+        kinds_out[at, ekf_kernels.O_KIND] = kind
+        kinds_out[at, ekf_kernels.O_SEQUENCE] = sequence
+    at = place(contact_rows, contact_counts, position_counts + spin_counts)
+    values[at, ekf_kernels.O_KEY] = contact_times
+    values[at, ekf_kernels.O_CAPTURE] = contact_times
+    return values, kinds_out, start
+
+
+def test_observation_kernel_equals_its_numpy_reference_from_arrays_and_from_rings():
+    rng = np.random.default_rng(6)
+    ekf = BallEkf()
+    for trial in range(40):
+        batch = int(rng.integers(1, 5))
+        histories = MeasurementHistoryBatch.empty(batch, 6)
+        counts = rng.integers(0, 9, batch)
+        rows = np.repeat(np.arange(batch), counts)
+        capture = np.sort(rng.uniform(0.0, 1.0, rows.size))
+        histories = histories.extended(rows, capture, capture + 0.01, rng.normal(size=(rows.size, 3)), rng.normal(size=(rows.size, 3, 3)))
+        contacts = [list(rng.uniform(0.0, 1.0, int(rng.integers(0, 3)))) for _ in range(batch)]
+        read = [histories.since_rows(rng.integers(0, 9, batch)) for _ in range(2)]  # positions, spins
+        flat = [(r, histories.sequence[r, s], histories.capture_time[r, s], histories.value[r, s], histories.covariance[r, s]) for r, s in read]
+        expected = observation_arrays_reference(ekf, *flat, contacts)
+        h = histories
+        for actual in (ekf.observation_arrays(*flat, contacts),
+                       ekf.observations_of_rings(*[(r, r, s, h.sequence, h.capture_time, h.value, h.covariance) for r, s in read], contacts)):
+            for mine, theirs in zip((actual.values, actual.kinds, actual.start), expected):
+                np.testing.assert_array_equal(mine, theirs)
+
+
+def test_predictions_simulated_ball_by_ball_or_together_are_the_same():
+    # A bounce inside the prediction: the few requests of one duration take simulate_ball, many simulate.
+    ekf = BallEkf(physics=PHYSICS)
+    start = make_state([-0.8, 0.1, 0.03], [-5.0, 0.3, -3.0], [0.0, 200.0, 50.0])
+    for count in (1, ball_ekf.SIMULATED_TOGETHER):
+        requests, results = np.zeros((count, ball_ekf.REQUEST_SIZE)), np.zeros((count, ball_ekf.REQUEST_SIZE))
+        for b in range(count):
+            requests[b, :90] = (start + 1e-4 * b + np.eye(10, 9) * 1e-6).ravel()
+            requests[b, 90:] = 0.006, 0.003
+        ekf._simulate_requests(requests, results, np.arange(count))
+        for b in range(count):
+            trajectory = simulate(requests[b, :90].reshape(10, 9), PHYSICS, 0.006, dt=0.003, record=False)
+            np.testing.assert_array_equal(results[b, :90], trajectory.final_state.ravel())
+            assert results[b, 90] == 1.0 and results[b, 91] == trajectory.events[0][-1].time

@@ -95,3 +95,33 @@ def test_history_batch_extended_kernel_equals_its_numpy_reference():
         dut, reference = dut.extended(*arguments), reference._extended_numpy(*arguments)
         for name in ("sequence", "capture_time", "release_time", "value", "covariance", "written", "count", "last_sequence"):
             np.testing.assert_array_equal(getattr(dut, name), getattr(reference, name))
+
+
+def since_rows_reference(batch: MeasurementHistoryBatch, sequence) -> tuple[np.ndarray, np.ndarray]:
+    """``MeasurementHistoryBatch.since_rows`` in NumPy array operations: the reference of its kernel."""
+    age = (batch.written[:, None] - 1 - np.arange(batch.capacity)[None, :]) % batch.capacity  # 0: newest slot
+    held = age < batch.count[:, None]
+    newer = np.count_nonzero(held & (batch.sequence > np.asarray(sequence, dtype=np.int64).reshape(-1, 1)), axis=1)
+    rows = np.repeat(np.arange(len(batch)), newer)
+    starts = np.cumsum(newer) - newer
+    rank = np.arange(rows.size) - np.repeat(starts, newer)
+    return rows, (batch.written[rows] - newer[rows] + rank) % batch.capacity
+
+
+def test_since_rows_and_first_gap_kernels_equal_their_numpy_references():
+    rng = np.random.default_rng(8)
+    capacity, batch = 4, 5
+    dut = MeasurementHistoryBatch.empty(batch, capacity)
+    for step in range(60):
+        counts = rng.integers(0, 7, batch)  # beyond the capacity at once sometimes
+        rows = np.repeat(np.arange(batch), counts)
+        capture = np.sort(rng.uniform(0.0, 1.0, rows.size)) + step
+        dut = dut.extended(rows, capture, capture + 0.01, rng.normal(size=(rows.size, 3)), rng.normal(size=(rows.size, 3, 3)))
+        if step % 9 == 8:
+            dut = dut.restarted([int(rng.integers(0, batch))])
+        read = rng.integers(0, dut.last_sequence.max() + 3, batch)
+        for actual, expected in zip(dut.since_rows(read), since_rows_reference(dut, read)):
+            assert actual.dtype == np.int64
+            np.testing.assert_array_equal(actual, expected)
+        gaps = np.flatnonzero((dut.count > 0) & (dut.first_sequence() > read + 1))
+        assert dut.first_gap(read) == (gaps[0] if gaps.size else -1)

@@ -586,6 +586,64 @@ def _process(core_f, core_i, obs_row_f, obs_row_i, obs_number, obs_f, offset, cf
 
 # ------------------------------------------------------------------------------ batch kernels
 @numba.njit(cache=True)
+def _row_counts(rows, count):
+    """How many of ``rows`` (n,) name each of ``count`` environments (np.bincount)."""
+    counts = np.zeros(count, dtype=np.int64)
+    for r in rows:
+        counts[r] += 1
+    return counts
+
+
+@numba.njit(cache=True)
+def _place_measurements(rows, sources, slots, sequence, capture, value, covariance, kind, lag, counts, offset, start, values, kinds):
+    """Writes measurement entries (n,) into the observation rows (``place_observations``): entry i,
+    the measurement in slot slots[i] of ring sources[i] of the arrays sequence, capture (R, C),
+    value (R, C, 3), covariance (R, C, 3, 3), is environment rows[i]'s, after offset[rows[i]] of
+    its rows; the entries are grouped by environment, in ascending order."""
+    first = np.cumsum(counts) - counts  # each environment's first entry
+    for i in range(rows.shape[0]):
+        r, source, slot = rows[i], sources[i], slots[i]
+        at = start[r] + offset[r] + i - first[r]
+        values[at, O_KEY] = capture[source, slot] + lag
+        values[at, O_CAPTURE] = capture[source, slot]
+        for k in range(3):
+            values[at, O_VALUE + k] = value[source, slot, k]
+            for m in range(3):
+                values[at, O_COVARIANCE + 3 * k + m] = covariance[source, slot, k, m]
+        kinds[at, O_KIND] = kind
+        kinds[at, O_SEQUENCE] = sequence[source, slot]
+
+
+@numba.njit(cache=True)
+def place_observations(position_rows, position_sources, position_slots, position_sequence, position_capture, position_value, position_covariance,
+                       spin_rows, spin_sources, spin_slots, spin_sequence, spin_capture, spin_value, spin_covariance, spin_lag,
+                       contact_counts, contact_times):
+    """The new observations of B environments (``BallEkf.observation_arrays``) as (values (M, OBS_F),
+    kinds (M, OBS_I), start (B + 1,)): environment b's rows start[b]:start[b + 1] are its
+    positions, then its spins (keys capture time + spin_lag, s), then its contact_counts[b] (B,)
+    racket contacts, each in the order given. Positions and spins as ``_place_measurements``'
+    entries; contact_times (sum of contact_counts,), s, environment by environment."""
+    count = contact_counts.shape[0]
+    position_counts, spin_counts = _row_counts(position_rows, count), _row_counts(spin_rows, count)
+    start = np.zeros(count + 1, dtype=np.int64)
+    start[1:] = np.cumsum(position_counts + spin_counts + contact_counts)
+    values = np.zeros((start[count], OBS_F))
+    kinds = np.zeros((start[count], OBS_I), dtype=np.int64)
+    _place_measurements(position_rows, position_sources, position_slots, position_sequence, position_capture, position_value, position_covariance,
+                        POSITION, 0.0, position_counts, np.zeros(count, dtype=np.int64), start, values, kinds)
+    _place_measurements(spin_rows, spin_sources, spin_slots, spin_sequence, spin_capture, spin_value, spin_covariance,
+                        SPIN, spin_lag, spin_counts, position_counts, start, values, kinds)
+    at = 0
+    for b in range(count):
+        for k in range(contact_counts[b]):
+            row = start[b] + position_counts[b] + spin_counts[b] + k
+            values[row, O_KEY] = contact_times[at]  # kind CONTACT (0), sequence 0
+            values[row, O_CAPTURE] = contact_times[at]
+            at += 1
+    return values, kinds, start
+
+
+@numba.njit(cache=True)
 def _key_less_equal(t0, k0, s0, t1, k1, s1):
     """(t0, k0, s0) <= (t1, k1, s1), lexicographically (Python's tuple order)."""
     if t0 != t1:
@@ -596,13 +654,23 @@ def _key_less_equal(t0, k0, s0, t1, k1, s1):
 
 
 @numba.njit(cache=True)
-def merge(old_obs_f, old_obs_i, old_core_f, old_core_i, old_index, old_base_key, new_f, new_i, new_start,
-          obs_f, obs_i, core_f, core_i, index, base_key, progress):
-    """Copies each environment's kept observations and cores into the new arrays (from index 0)
-    and inserts its new observations (rows new_start[b]:new_start[b + 1] of new_f, new_i) at
-    their places in processing order, those at or before the base's key counted as discarded.
-    Sets progress[b] to the first step to (re)process, or -1 when nothing is to be processed."""
-    for b in range(old_index.shape[0]):
+def merge(old_obs_f, old_obs_i, old_core_f, old_core_i, old_index, old_base_key, new_f, new_i, new_start):
+    """New arrays (obs_f, obs_i, core_f, core_i, index, base_key, progress) of the filters: each
+    environment's kept observations and cores copied (from index 0), its new observations (rows
+    new_start[b]:new_start[b + 1] of new_f, new_i) inserted at their places in processing order,
+    those at or before the base's key counted as discarded. progress[b]: the first step to
+    (re)process, or -1 when nothing is to be processed."""
+    size = old_index.shape[0]
+    capacity_obs, capacity_cores = 1, 0  # the most observations kept and steps of any environment
+    for b in range(size):
+        new = new_start[b + 1] - new_start[b]
+        capacity_obs = max(capacity_obs, old_index[b, X_N] - old_index[b, X_KEEP] + new)
+        capacity_cores = max(capacity_cores, old_index[b, X_N] - old_index[b, X_FIRST] + new)
+    obs_f, obs_i = np.empty((size, capacity_obs, OBS_F)), np.empty((size, capacity_obs, OBS_I), dtype=np.int64)
+    core_f = np.empty((size, capacity_cores + 1, CORE_F))
+    core_i = np.empty((size, capacity_cores + 1, old_core_i.shape[2]), dtype=np.int64)
+    index, base_key, progress = np.empty((size, INDEX_SIZE), dtype=np.int64), np.empty((size, 3)), np.empty(size, dtype=np.int64)
+    for b in range(size):
         n_old, first, core0, offset, discarded, keep = old_index[b]
         base_key[b] = old_base_key[b]
         # the new observations in processing order (stable: as listed among equal keys)
@@ -650,13 +718,16 @@ def merge(old_obs_f, old_obs_i, old_core_f, old_core_i, old_index, old_base_key,
         index[b, X_DISCARDED] = discarded + late
         index[b, X_KEEP] = 0
         progress[b] = start - keep if rows.shape[0] else -1
+    return obs_f, obs_i, core_f, core_i, index, base_key, progress
 
 
 @numba.njit(cache=True)
 def advance(obs_f, obs_i, core_f, core_i, index, base_key, progress, cfg, start_covariance, requests, results, blocked):
     """Processes every environment's steps from progress[b] on, until done (then prunes the
     history to ``history_duration`` s, progress -1) or until a prediction needs ``simulate``
-    (blocked[b] True, its request in requests[b]; call again with the result in results[b])."""
+    (blocked[b] True, its request in requests[b]; call again with the result in results[b]).
+    Returns how many environments are blocked."""
+    blocked_count = 0
     for b in range(index.shape[0]):
         blocked[b] = False
         if progress[b] < 0:
@@ -674,6 +745,7 @@ def advance(obs_f, obs_i, core_f, core_i, index, base_key, progress, cfg, start_
         progress[b] = i
         if i < n:
             blocked[b] = True
+            blocked_count += 1
             continue
         progress[b] = -1
         # Keep history_duration s for measurements that come late.
@@ -694,6 +766,7 @@ def advance(obs_f, obs_i, core_f, core_i, index, base_key, progress, cfg, start_
         for k in range(core_i[b, base, I_SPINS]):
             keep = min(keep, core_i[b, base, I_START + count + k] - offset)
         index[b, X_KEEP] = keep
+    return blocked_count
 
 
 @numba.njit(cache=True)
@@ -701,7 +774,9 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
     """Predicts each pending environment's latest posterior to times[b] (s) into means (B, 9),
     covariances (B, 9, 9) and status (B, 3) [valid, spin fused, last capture (s)]; pending[b]
     False when done, True when blocked (a request in requests[b], as in ``advance``). An
-    environment without a track gets valid 0; times[b] before the posterior gives valid -1."""
+    environment without a track gets valid 0; times[b] before the posterior gives valid -1.
+    Returns how many environments are blocked."""
+    blocked_count = 0
     for b in range(index.shape[0]):
         if not pending[b]:
             continue
@@ -719,9 +794,11 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
         result, _ = predict(mean, covariance, times[b] - core_f[b, c, C_TIME], cfg, requests[b], results[b], predicted_mean, predicted_covariance)
         if result == BLOCKED:
             pending[b] = True
+            blocked_count += 1
             continue
         means[b] = predicted_mean
         covariances[b] = predicted_covariance[:9, :9]
         status[b, 0] = 1.0
         status[b, 1] = float(core_i[b, c, I_SPIN_FUSED])
         status[b, 2] = core_f[b, c, C_LAST]
+    return blocked_count

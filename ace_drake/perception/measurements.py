@@ -148,8 +148,8 @@ class MeasurementHistoryBatch:
     last_sequence: np.ndarray
 
     def __post_init__(self) -> None:
-        for field in dataclasses.fields(self):
-            getattr(self, field.name).flags.writeable = False
+        for array in (self.sequence, self.capture_time, self.release_time, self.value, self.covariance, self.written, self.count, self.last_sequence):
+            array.flags.writeable = False
 
     def __deepcopy__(self, memo) -> MeasurementHistoryBatch:
         return self  # immutable: Drake copies abstract values on every state update
@@ -215,7 +215,7 @@ class MeasurementHistoryBatch:
         if np.any(rows[1:] < rows[:-1]):  # a row in two runs would count its first run only
             raise ValueError("MeasurementHistoryBatch.extended: entries must be grouped by row in ascending order")
         out = [getattr(self, field.name).copy() for field in dataclasses.fields(self)]
-        _extend_rings(rows, np.asarray(capture_time, dtype=float), np.asarray(release_time, dtype=float), np.asarray(value, dtype=float).reshape(-1, 3),
+        extend_rings(rows, np.asarray(capture_time, dtype=float), np.asarray(release_time, dtype=float), np.asarray(value, dtype=float).reshape(-1, 3),
                       np.asarray(covariance, dtype=float).reshape(-1, 3, 3), *out)
         return MeasurementHistoryBatch(*out)
 
@@ -255,15 +255,16 @@ class MeasurementHistoryBatch:
     def since_rows(self, sequence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The measurements numbered above ``sequence`` (B,) in every row, as (rows (n,), slots
         (n,)) into the arrays: grouped by row, oldest first within it (``MeasurementHistory.since``
-        of each row)."""
-        # Numbers grow along a row, so the ones above ``sequence`` are its newest ``newer``.
-        age = (self.written[:, None] - 1 - np.arange(self.capacity)[None, :]) % self.capacity  # 0: newest slot
-        held = age < self.count[:, None]
-        newer = np.count_nonzero(held & (self.sequence > np.asarray(sequence, dtype=np.int64).reshape(-1, 1)), axis=1)
-        rows = np.repeat(np.arange(len(self)), newer)
-        starts = np.cumsum(newer) - newer
-        rank = np.arange(rows.size) - np.repeat(starts, newer)
-        return rows, (self.written[rows] - newer[rows] + rank) % self.capacity
+        of each row). Compiled (``_since_slots``; the estimator asks for it twice per tick)."""
+        after = np.asarray(sequence, dtype=np.int64)
+        if after.shape != self.written.shape:
+            after = np.broadcast_to(after, self.written.shape)  # one number for every row
+        return _since_slots(self.sequence, self.written, self.count, after)
+
+    def first_gap(self, sequence: np.ndarray) -> int:
+        """The first row b whose oldest held measurement is numbered above sequence[b] + 1 (B,),
+        i.e. that no longer holds every measurement released after sequence[b]; -1 for none."""
+        return _first_gap(self.sequence, self.written, self.count, np.asarray(sequence, dtype=np.int64))
 
     def as_array(self, count: int, now: np.ndarray) -> np.ndarray:
         """``MeasurementHistory.as_array`` of every row, row b at ``now[b]`` (B,), s: (B, count, 4)
@@ -283,9 +284,11 @@ class MeasurementHistoryBatch:
 
 
 @numba.njit(cache=True)
-def _extend_rings(rows, capture_time, release_time, value, covariance, sequence, capture, release, values, covariances, written, count, last):
-    """``MeasurementHistoryBatch.extended`` in place on copies of the batch's arrays: entries (n,)
-    grouped by row in ascending order, the newest ``capacity`` of each row written to its ring."""
+def extend_rings(rows, capture_time, release_time, value, covariance, sequence, capture, release, values, covariances, written, count, last):
+    """``MeasurementHistoryBatch.extended`` in place on copies of the batch's arrays (sequence,
+    capture, release (B, C), values (B, C, 3), covariances (B, C, 3, 3), written, count, last (B,)):
+    entries (n,) grouped by row in ascending order, the newest ``capacity`` of each row written to
+    its ring (also ``sensor_models.release_due_batch``'s)."""
     n, C = rows.size, sequence.shape[1]
     start = 0
     while start < n:
@@ -308,3 +311,31 @@ def _extend_rings(rows, capture_time, release_time, value, covariance, sequence,
         count[row] = min(count[row] + entries, C)
         last[row] += entries
         start = stop
+
+
+@numba.njit(cache=True)
+def _since_slots(sequence, written, count, after):
+    """``MeasurementHistoryBatch.since_rows``: the held slots of each row b numbered above
+    after[b] (B,), as (rows (n,), slots (n,)), grouped by row, oldest first."""
+    batch, capacity = sequence.shape
+    rows, slots = np.empty(batch * capacity, dtype=np.int64), np.empty(batch * capacity, dtype=np.int64)
+    n = 0
+    for b in range(batch):
+        newer = 0  # numbers grow along a row, so the ones above after[b] are its newest ``newer``
+        for age in range(count[b]):  # age 0: the newest slot
+            if sequence[b, (written[b] - 1 - age) % capacity] > after[b]:
+                newer += 1
+        for rank in range(newer):
+            rows[n], slots[n] = b, (written[b] - newer + rank) % capacity
+            n += 1
+    return rows[:n], slots[:n]
+
+
+@numba.njit(cache=True)
+def _first_gap(sequence, written, count, after):
+    """``MeasurementHistoryBatch.first_gap``."""
+    capacity = sequence.shape[1]
+    for b in range(sequence.shape[0]):
+        if count[b] > 0 and sequence[b, (written[b] - count[b]) % capacity] > after[b] + 1:
+            return b
+    return -1

@@ -8,7 +8,8 @@ and dropout are modelled similarly, with additional dropout applied directly aft
 zero-mean Gaussian distributions for spin magnitude and axis. However, accuracy is sampled once per
 contact event". The numbers are ``PositionSensorParams`` and ``SpinSensorParams`` in config.py.
 
-Everything here is pure NumPy and batched over samples; randomness comes only from the
+Everything here is batched over samples (NumPy, and numba kernels for what the segment-stepped
+sensors run every tick: the spin model, the pending queues); randomness comes only from the
 ``numpy.random.Generator`` passed in, and each function draws a fixed number of variates per sample
 whatever the values, so that a seed gives the same stream of measurements bit for bit. A sampled
 measurement is a ``PendingMeasurement`` until its release time; ``release_due`` turns the pending
@@ -24,7 +25,7 @@ from collections.abc import Iterable
 import numba
 import numpy as np
 
-from ace_drake.perception.measurements import Measurement, MeasurementHistory, MeasurementHistoryBatch
+from ace_drake.perception.measurements import Measurement, MeasurementHistory, MeasurementHistoryBatch, extend_rings
 from ace_drake.perception.params import PositionSensorParams, SpinSensorParams
 
 ZERO_SPIN = 1e-9  # rad/s: below this the true spin has no axis, and a random one is measured
@@ -89,8 +90,8 @@ class PendingBatch:
     covariance: np.ndarray
 
     def __post_init__(self) -> None:
-        for field in dataclasses.fields(self):
-            getattr(self, field.name).flags.writeable = False
+        for array in (self.row, self.capture_time, self.release_time, self.value, self.covariance):
+            array.flags.writeable = False
 
     def __deepcopy__(self, memo):  # immutable: Drake's state copies may share it
         return self
@@ -105,12 +106,10 @@ class PendingBatch:
         """The ``kept`` (n,) samples of a sensor model's output for the sensors ``row`` (n,),
         put in order; the others are dropped. A sensor's samples must come in capture order
         (as ``sample_*_measurements`` make their PendingMeasurements). covariance: (n, 3, 3),
-        or (3, 3) for all."""
-        kept = np.asarray(kept, dtype=bool)
-        covariance = np.broadcast_to(np.asarray(covariance, dtype=float), (kept.size, 3, 3))
-        row, capture_time, release_time = np.asarray(row, dtype=np.int64)[kept], np.asarray(capture_time, dtype=float)[kept], np.asarray(release_time, dtype=float)[kept]
-        order = np.lexsort((capture_time, release_time, row))  # stable: ties keep the capture order
-        return cls(row[order], capture_time[order], release_time[order], np.asarray(value, dtype=float)[kept][order], covariance[kept][order])
+        or (3, 3) for all. Compiled (``_kept_in_order``)."""
+        covariance = np.asarray(covariance, dtype=float)
+        return cls(*_kept_in_order(np.asarray(row, dtype=np.int64), np.asarray(capture_time, dtype=float), np.asarray(release_time, dtype=float),
+                                   np.asarray(value, dtype=float).reshape(-1, 3), covariance.reshape(-1, 3, 3), np.asarray(kept, dtype=np.bool_)))
 
     @classmethod
     def from_rows(cls, rows) -> PendingBatch:
@@ -138,22 +137,18 @@ class PendingBatch:
 
 def insert_pending_batch(pending: PendingBatch, new: PendingBatch) -> PendingBatch:
     """``insert_pending`` for every sensor of a batch: ``pending`` and ``new`` in order (row,
-    release time, capture time; ties: ``pending`` first)."""
+    release time, capture time; ties: ``pending`` first). Compiled (``_merged``)."""
     if new.row.size == 0:
         return pending
     if pending.row.size == 0:
         return new
-    row, capture_time, release_time = (np.concatenate([getattr(pending, name), getattr(new, name)]) for name in ("row", "capture_time", "release_time"))
-    order = np.lexsort((capture_time, release_time, row))  # stable
-    return PendingBatch(
-        row[order], capture_time[order], release_time[order],
-        np.concatenate([pending.value, new.value])[order], np.concatenate([pending.covariance, new.covariance])[order],
-    )
+    return PendingBatch(*_merged(pending.row, pending.capture_time, pending.release_time, pending.value, pending.covariance,
+                                 new.row, new.capture_time, new.release_time, new.value, new.covariance))
 
 
 def due_mask(pending: PendingBatch, now: np.ndarray) -> np.ndarray:
     """Whether each pending measurement (n,) is released at or before its sensor's ``now`` (B,), s."""
-    return pending.release_time <= np.asarray(now, dtype=float)[pending.row]
+    return _due_mask(pending.row, pending.release_time, np.asarray(now, dtype=float))
 
 
 def release_due_batch(
@@ -163,16 +158,83 @@ def release_due_batch(
     or before ``now[b]`` (s) numbered on from ``histories.last_sequence[b]`` in release order and
     appended to its row. ``histories``: a MeasurementHistoryBatch (a sequence of B
     MeasurementHistory is converted). Returns (the histories, the rest of ``pending``); the same
-    objects when nothing is due. The measurements stay in arrays: no Measurement is built."""
+    objects when nothing is due. The measurements stay in arrays: no Measurement is built.
+    Compiled (``_released``, with ``MeasurementHistoryBatch.extended``'s kernel)."""
     due = due_mask(pending, now)
     if not due.any():
         return histories, pending
     if not isinstance(histories, MeasurementHistoryBatch):
         histories = MeasurementHistoryBatch.from_histories(histories)
     # A sensor's entries are in release order, so its due ones come first and in order.
-    released = histories.extended(pending.row[due], pending.capture_time[due], pending.release_time[due], pending.value[due], pending.covariance[due])
-    rest = ~due
-    return released, PendingBatch(pending.row[rest], pending.capture_time[rest], pending.release_time[rest], pending.value[rest], pending.covariance[rest])
+    h = histories
+    released = _released(pending.row, pending.capture_time, pending.release_time, pending.value, pending.covariance, due,
+                         h.sequence, h.capture_time, h.release_time, h.value, h.covariance, h.written, h.count, h.last_sequence)
+    return MeasurementHistoryBatch(*released[:8]), PendingBatch(*released[8:])
+
+
+@numba.njit(cache=True)
+def _stable_order(row, release_time, capture_time):
+    """The order (n,) of entries by row, then release time, then capture time, ties keeping their
+    order (np.lexsort((capture_time, release_time, row)): stable sorts by the last key first)."""
+    order = np.argsort(capture_time, kind="mergesort")
+    order = order[np.argsort(release_time[order], kind="mergesort")]
+    return order[np.argsort(row[order], kind="mergesort")]
+
+
+@numba.njit(cache=True)
+def _gathered(order, row, capture_time, release_time, value, covariance):
+    """PendingBatch's arrays of the entries ``order`` (m,) of arrays (n,); covariance (n, 3, 3),
+    or (1, 3, 3) for every entry."""
+    m = order.shape[0]
+    out_row, out_capture, out_release = np.empty(m, dtype=np.int64), np.empty(m), np.empty(m)
+    out_value, out_covariance = np.empty((m, 3)), np.empty((m, 3, 3))
+    for k in range(m):
+        i = order[k]
+        out_row[k], out_capture[k], out_release[k] = row[i], capture_time[i], release_time[i]
+        out_value[k] = value[i]
+        out_covariance[k] = covariance[i if covariance.shape[0] > 1 else 0]
+    return out_row, out_capture, out_release, out_value, out_covariance
+
+
+@numba.njit(cache=True)
+def _kept_in_order(row, capture_time, release_time, value, covariance, kept):
+    """``PendingBatch.from_samples``: the kept entries, in ``_stable_order``."""
+    index = np.flatnonzero(kept)
+    order = _stable_order(row[index], release_time[index], capture_time[index])
+    return _gathered(index[order], row, capture_time, release_time, value, covariance)
+
+
+@numba.njit(cache=True)
+def _merged(row, capture_time, release_time, value, covariance, new_row, new_capture_time, new_release_time, new_value, new_covariance):
+    """``insert_pending_batch``: the entries of both PendingBatches (the first's before the
+    second's), in ``_stable_order``."""
+    n, m = row.shape[0], new_row.shape[0]
+    rows, captures, releases = np.empty(n + m, dtype=np.int64), np.empty(n + m), np.empty(n + m)
+    values, covariances = np.empty((n + m, 3)), np.empty((n + m, 3, 3))
+    rows[:n], captures[:n], releases[:n], values[:n], covariances[:n] = row, capture_time, release_time, value, covariance
+    rows[n:], captures[n:], releases[n:], values[n:], covariances[n:] = new_row, new_capture_time, new_release_time, new_value, new_covariance
+    return _gathered(_stable_order(rows, releases, captures), rows, captures, releases, values, covariances)
+
+
+@numba.njit(cache=True)
+def _due_mask(row, release_time, now):
+    """``due_mask``: release_time (n,) <= now[row] (now (B,), s)."""
+    due = np.empty(row.shape[0], dtype=np.bool_)
+    for i in range(row.shape[0]):
+        due[i] = release_time[i] <= now[row[i]]
+    return due
+
+
+@numba.njit(cache=True)
+def _released(row, capture_time, release_time, value, covariance, due, sequence, capture, release, values, covariances, written, count, last):
+    """``release_due_batch``: the pending entries ``due`` (n,) appended to copies of the
+    histories' arrays (``extend_rings``), and the rest. Returns the histories' 8 arrays, then the
+    rest's 5 PendingBatch arrays."""
+    rings = (sequence.copy(), capture.copy(), release.copy(), values.copy(), covariances.copy(), written.copy(), count.copy(), last.copy())
+    chosen = np.flatnonzero(due)
+    extend_rings(row[chosen], capture_time[chosen], release_time[chosen], value[chosen], covariance[chosen], *rings)
+    rest = np.flatnonzero(~due)
+    return (*rings, row[rest], capture_time[rest], release_time[rest], value[rest], covariance[rest])
 
 
 # ---------------------------------------------------------------------------------- positions
@@ -265,8 +327,7 @@ def spin_capture_times(
     # exactly as many as the loop would have, so that the stream goes on as before.
     state = rng.bit_generator.state
     bound = int((until - time) / low) + 2
-    times = np.cumsum(np.concatenate(([time], rng.uniform(low, high, bound))))
-    count = int(np.searchsorted(times, until, side="right"))  # times <= until
+    times, count = _times_until(time, rng.uniform(low, high, bound), until)
     rng.bit_generator.state = state
     if count > bound:  # rounding left the bound short: the loop itself
         times, next_time = [], time
@@ -276,6 +337,20 @@ def spin_capture_times(
         return np.asarray(times, dtype=float), next_time
     rng.uniform(low, high, count)
     return times[:count], float(times[count])
+
+
+@numba.njit(cache=True)
+def _times_until(time, intervals, until):
+    """``spin_capture_times``' sums: (time, then each interval (n,) added in turn, (n + 1,) s; how
+    many of them are <= until)."""
+    times = np.empty(intervals.shape[0] + 1)
+    times[0] = time
+    for k in range(intervals.shape[0]):
+        times[k + 1] = times[k] + intervals[k]
+    count = 0
+    while count < times.shape[0] and times[count] <= until:
+        count += 1
+    return times, count
 
 
 def first_spin_capture_time(start_time: float, params: SpinSensorParams, rng: np.random.Generator) -> float:
@@ -295,11 +370,21 @@ def racket_tracking_loss(capture_times: np.ndarray, racket_contact_times: np.nda
 def racket_tracking_loss_batch(rows: np.ndarray, capture_times: np.ndarray, racket_contact_times: np.ndarray, params: SpinSensorParams) -> np.ndarray:
     """``racket_tracking_loss`` of captures (n,), s, by the sensors ``rows`` (n,) of a batch
     whose racket contact times are ``racket_contact_times`` (B, k), s, each row padded with NaN."""
-    capture_times = np.asarray(capture_times, dtype=float).reshape(-1)
-    if racket_contact_times.shape[1] == 0:
-        return np.zeros(capture_times.shape, dtype=bool)
-    since = capture_times[:, None] - racket_contact_times[rows]
-    return np.any((since >= 0.0) & (since <= params.racket_dropout_duration), axis=1)
+    return _tracking_loss_rows(np.asarray(rows, dtype=np.int64), np.asarray(capture_times, dtype=float).reshape(-1),
+                               np.asarray(racket_contact_times, dtype=float), float(params.racket_dropout_duration))
+
+
+@numba.njit(cache=True)
+def _tracking_loss_rows(rows, capture_times, racket_contact_times, duration):
+    """``racket_tracking_loss_batch``: capture i lies in [t_c, t_c + duration] of a racket
+    contact t_c of its sensor (NaN padding never)."""
+    lost = np.zeros(capture_times.shape[0], dtype=np.bool_)
+    for i in range(capture_times.shape[0]):
+        for t_c in racket_contact_times[rows[i]]:
+            since = capture_times[i] - t_c
+            if since >= 0.0 and since <= duration:
+                lost[i] = True
+    return lost
 
 
 def rotate(rotation_vectors: np.ndarray, vectors: np.ndarray) -> np.ndarray:
@@ -318,34 +403,20 @@ def rotate(rotation_vectors: np.ndarray, vectors: np.ndarray) -> np.ndarray:
 def _rotate_rows(r, v, out):
     """``rotate`` into ``out`` (n, 3), one sample at a time."""
     for i in range(v.shape[0]):
-        angle = math.sqrt(r[i, 0] * r[i, 0] + r[i, 1] * r[i, 1] + r[i, 2] * r[i, 2])
-        safe = angle if angle > 0.0 else 1.0
-        kx, ky, kz = r[i, 0] / safe, r[i, 1] / safe, r[i, 2] / safe
-        vx, vy, vz = v[i, 0], v[i, 1], v[i, 2]
-        cosine, sine = math.cos(angle), math.sin(angle)
-        along = (kx * vx + ky * vy + kz * vz) * (1.0 - cosine)
-        out[i, 0] = vx * cosine + (ky * vz - kz * vy) * sine + kx * along
-        out[i, 1] = vy * cosine + (kz * vx - kx * vz) * sine + ky * along
-        out[i, 2] = vz * cosine + (kx * vy - ky * vx) * sine + kz * along
+        out[i, 0], out[i, 1], out[i, 2] = _rotate_one(r[i, 0], r[i, 1], r[i, 2], v[i, 0], v[i, 1], v[i, 2])
 
 
-def perturb_spin(
-    w_W: np.ndarray, magnitude_offset: np.ndarray, rotation_vectors: tuple[np.ndarray, ...], fallback_axis: np.ndarray
-) -> np.ndarray:
-    """(|w| + magnitude_offset) R_m ... R_1 w / |w| for spins ``w_W`` (n, 3), rad/s.
-
-    magnitude_offset (n,), rad/s; rotation_vectors: the rotations R_1, ..., R_m applied to the
-    axis in that order, each (n, 3), rad; a spin below ZERO_SPIN has no axis and
-    ``fallback_axis`` (n, 3), a unit vector, is used instead. A negative rate flips the axis: the
-    measurement is a vector and that is what an estimator would report.
-    """
-    w_W = np.asarray(w_W, dtype=float).reshape(-1, 3)
-    rate = np.linalg.norm(w_W, axis=1)
-    spinning = rate > ZERO_SPIN
-    turned = np.where(spinning[:, None], w_W / np.where(spinning, rate, 1.0)[:, None], fallback_axis)
-    for rotation_vector in rotation_vectors:
-        turned = rotate(rotation_vector, turned)
-    return (rate + magnitude_offset)[:, None] * turned
+@numba.njit(cache=True)
+def _rotate_one(rx, ry, rz, vx, vy, vz):
+    """``rotate`` of one vector (vx, vy, vz) by the rotation vector (rx, ry, rz), rad: 3 floats."""
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    safe = angle if angle > 0.0 else 1.0
+    kx, ky, kz = rx / safe, ry / safe, rz / safe
+    cosine, sine = math.cos(angle), math.sin(angle)
+    along = (kx * vx + ky * vy + kz * vz) * (1.0 - cosine)
+    return (vx * cosine + (ky * vz - kz * vy) * sine + kx * along,
+            vy * cosine + (kz * vx - kx * vz) * sine + ky * along,
+            vz * cosine + (kx * vy - ky * vx) * sine + kz * along)
 
 
 def spin_precision_covariance(w_measured: np.ndarray, params: SpinSensorParams) -> np.ndarray:
@@ -366,18 +437,24 @@ def spin_precision_covariance(w_measured: np.ndarray, params: SpinSensorParams) 
 def _precision_covariance_rows(w, radial_variance, axis_noise_std, out):
     """``spin_precision_covariance`` into ``out`` (n, 3, 3), one sample at a time."""
     for n in range(w.shape[0]):
-        rate = math.sqrt(w[n, 0] * w[n, 0] + w[n, 1] * w[n, 1] + w[n, 2] * w[n, 2])
-        if not rate > ZERO_SPIN:
-            for i in range(3):
-                for j in range(3):
-                    out[n, i, j] = radial_variance if i == j else 0.0
-            continue
-        tangential_variance = (rate * axis_noise_std) ** 2
+        _precision_covariance_one(w[n], radial_variance, axis_noise_std, out[n])
+
+
+@numba.njit(cache=True)
+def _precision_covariance_one(w, radial_variance, axis_noise_std, out):
+    """``spin_precision_covariance`` of one measured spin w (3,) into out (3, 3)."""
+    rate = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    if not rate > ZERO_SPIN:
         for i in range(3):
             for j in range(3):
-                along = (w[n, i] / rate) * (w[n, j] / rate)
-                across = (1.0 if i == j else 0.0) - along
-                out[n, i, j] = radial_variance * along + tangential_variance * across
+                out[i, j] = radial_variance if i == j else 0.0
+        return
+    tangential_variance = (rate * axis_noise_std) ** 2
+    for i in range(3):
+        for j in range(3):
+            along = (w[i] / rate) * (w[j] / rate)
+            across = (1.0 if i == j else 0.0) - along
+            out[i, j] = radial_variance * along + tangential_variance * across
 
 
 def sample_spin_measurements(
@@ -457,18 +534,107 @@ def spin_measurements(
     """The spin model (``sample_spin_measurements``) of n samples with their ``variates``, sample
     by sample (any n: one sensor's samples or a batch's). Arguments as
     ``sample_spin_measurements``'. Returns (kept (n,) bool, release times (n,) s, values (n, 3)
-    rad/s, covariances (n, 3, 3) (rad/s)^2)."""
-    w_W = np.asarray(w_W, dtype=float).reshape(-1, 3)
-    kept = variates.dropout >= params.dropout_probability
-    lost = np.asarray(tracking_loss, dtype=bool) & (variates.tracking_loss < params.racket_dropout_probability)
-    kept &= ~lost
-    magnitude_noise = params.magnitude_noise_std * variates.magnitude
-    axis_noise = params.axis_noise_std * variates.axis
-    fallback_axis = variates.fallback_axis / np.linalg.norm(variates.fallback_axis, axis=1, keepdims=True)
-    # The measured axis: the bias's rotation, then this sample's noise.
-    bias_rotation = np.asarray(bias_rotation_vector, dtype=float).reshape(-1, 3)
-    values = perturb_spin(w_W, np.asarray(bias_magnitude, dtype=float) + magnitude_noise, (bias_rotation, axis_noise), fallback_axis)
-    return kept, np.asarray(capture_times, dtype=float) + variates.latency, values, spin_precision_covariance(values, params)
+    rad/s, covariances (n, 3, 3) (rad/s)^2). Compiled (``_spin_measurement_rows``)."""
+    return _spin_measurement_rows(
+        np.asarray(w_W, dtype=float).reshape(-1, 3), np.asarray(capture_times, dtype=float).reshape(-1), np.asarray(bias_magnitude, dtype=float).reshape(-1),
+        np.asarray(bias_rotation_vector, dtype=float).reshape(-1, 3), np.asarray(tracking_loss, dtype=np.bool_).reshape(-1),
+        variates.dropout, variates.tracking_loss, variates.latency, variates.magnitude, variates.axis, variates.fallback_axis,
+        float(params.dropout_probability), float(params.racket_dropout_probability), float(params.magnitude_noise_std),
+        float(params.axis_noise_std), float(params.magnitude_noise_std**2),
+    )
+
+
+@numba.njit(cache=True)
+def _spin_measurement_rows(w, capture_times, bias_magnitude, bias_rotation, tracking_loss, dropout, loss_draw, latency, magnitude, axis,
+                           fallback_axis, dropout_probability, racket_dropout_probability, magnitude_std, axis_std, radial_variance):
+    """``spin_measurements``, one sample at a time (the parameters' numbers as floats;
+    radial_variance: magnitude_std^2, as ``spin_precision_covariance`` squares it).
+
+    The measured spin is (|w| + magnitude offset) R_noise R_bias w / |w|: the bias's rotation of
+    the axis, then this sample's noise (rotation vector axis_noise_std times the axis variates),
+    the offset the bias's magnitude plus magnitude_noise_std times the magnitude variate; a spin
+    below ZERO_SPIN has no axis and the normalised fallback_axis variates stand for it. A
+    negative rate flips the axis: the measurement is a vector and that is what an estimator
+    would report. Covariance: ``spin_precision_covariance`` of the measured spin."""
+    n = w.shape[0]
+    kept, release_times, values, covariances = np.empty(n, dtype=np.bool_), np.empty(n), np.empty((n, 3)), np.empty((n, 3, 3))
+    for i in range(n):
+        kept[i] = dropout[i] >= dropout_probability and not (tracking_loss[i] and loss_draw[i] < racket_dropout_probability)
+        release_times[i] = capture_times[i] + latency[i]
+        rate = math.sqrt(w[i, 0] * w[i, 0] + w[i, 1] * w[i, 1] + w[i, 2] * w[i, 2])
+        if rate > ZERO_SPIN:
+            x, y, z = w[i, 0] / rate, w[i, 1] / rate, w[i, 2] / rate
+        else:
+            f = fallback_axis[i]
+            norm = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+            x, y, z = f[0] / norm, f[1] / norm, f[2] / norm
+        x, y, z = _rotate_one(bias_rotation[i, 0], bias_rotation[i, 1], bias_rotation[i, 2], x, y, z)
+        x, y, z = _rotate_one(axis_std * axis[i, 0], axis_std * axis[i, 1], axis_std * axis[i, 2], x, y, z)
+        scale = rate + (bias_magnitude[i] + magnitude_std * magnitude[i])
+        values[i, 0], values[i, 1], values[i, 2] = scale * x, scale * y, scale * z
+        _precision_covariance_one(values[i], radial_variance, axis_std, covariances[i])
+    return kept, release_times, values, covariances
+
+
+def spin_pending_batch(
+    rows: np.ndarray,
+    intervals: np.ndarray,
+    capture_times: np.ndarray,
+    w_W: np.ndarray,
+    bias_magnitude: np.ndarray,
+    bias_rotation_vector: np.ndarray,
+    racket_contact_times: np.ndarray,
+    variates: SpinVariates,
+    params: SpinSensorParams,
+) -> PendingBatch:
+    """The spin model of n samples by the sensors ``rows`` (n,) of a batch, as the PendingBatch of
+    those kept: ``PendingBatch.from_samples`` of ``spin_measurements`` of the true spins ``w_W``
+    (n, 3), rad/s, at ``capture_times`` (n,), s, sample i with the bias of its contact interval
+    intervals[i] in its sensor's tables ``bias_magnitude`` (B, k), rad/s, and
+    ``bias_rotation_vector`` (B, k, 3), rad, and the tracking loss of its sensor's
+    ``racket_contact_times`` (B, m), s, NaN-padded (``racket_tracking_loss_batch``). One compiled
+    call (the segment-stepped sensor's every tick)."""
+    return PendingBatch(*_spin_pending_rows(
+        rows, intervals, capture_times, w_W, bias_magnitude, bias_rotation_vector, racket_contact_times, float(params.racket_dropout_duration),
+        variates.dropout, variates.tracking_loss, variates.latency, variates.magnitude, variates.axis, variates.fallback_axis,
+        float(params.dropout_probability), float(params.racket_dropout_probability), float(params.magnitude_noise_std),
+        float(params.axis_noise_std), float(params.magnitude_noise_std**2),
+    ))
+
+
+@numba.njit(cache=True)
+def _spin_pending_rows(rows, intervals, capture_times, w, bias_magnitude, bias_rotation, racket_contact_times, racket_dropout_duration,
+                       dropout, loss_draw, latency, magnitude, axis, fallback_axis, dropout_probability, racket_dropout_probability,
+                       magnitude_std, axis_std, radial_variance):
+    """``spin_pending_batch``: the biases looked up, then ``_tracking_loss_rows``,
+    ``_spin_measurement_rows`` and ``_kept_in_order``."""
+    n = rows.shape[0]
+    sample_magnitude, sample_rotation = np.empty(n), np.empty((n, 3))
+    for i in range(n):
+        sample_magnitude[i] = bias_magnitude[rows[i], intervals[i]]
+        sample_rotation[i] = bias_rotation[rows[i], intervals[i]]
+    lost = _tracking_loss_rows(rows, capture_times, racket_contact_times, racket_dropout_duration)
+    kept, release_times, values, covariances = _spin_measurement_rows(
+        w, capture_times, sample_magnitude, sample_rotation, lost, dropout, loss_draw, latency, magnitude, axis, fallback_axis,
+        dropout_probability, racket_dropout_probability, magnitude_std, axis_std, radial_variance,
+    )
+    return _kept_in_order(rows, capture_times, release_times, values, covariances, kept)
+
+
+def intervals_reached(rows: np.ndarray, intervals: np.ndarray, batch: int) -> np.ndarray:
+    """How many contact intervals the samples of each of ``batch`` sensors reach (B,): one more
+    than the largest interval index (``spin_at_times``' contact counts, ``intervals`` (n,)) of its
+    samples (``rows`` (n,)), 0 without samples."""
+    return _intervals_reached(np.asarray(rows, dtype=np.int64), np.asarray(intervals, dtype=np.int64), int(batch))
+
+
+@numba.njit(cache=True)
+def _intervals_reached(rows, intervals, batch):
+    """``intervals_reached``."""
+    reached = np.zeros(batch, dtype=np.int64)
+    for i in range(rows.shape[0]):
+        reached[rows[i]] = max(reached[rows[i]], intervals[i] + 1)
+    return reached
 
 
 def spin_at_times(
@@ -493,10 +659,23 @@ def spin_at_times_batch(
     """``spin_at_times`` of past ``times`` (n,), s, of the balls ``rows`` (n,) of a batch: their
     spins now ``w_now`` (B, 3), rad/s, contact times ``contact_times`` (B, k), s, ascending,
     each row padded with inf, and the spins just before them ``spins_before_contact`` (B, k, 3)."""
-    times = np.asarray(times, dtype=float).reshape(-1)
-    counts = np.sum(contact_times[rows] <= times[:, None], axis=1)  # searchsorted(..., side="right") per row
-    spins = np.asarray(w_now, dtype=float)[rows]
-    later = counts < np.sum(np.isfinite(contact_times), axis=1)[rows]
-    if np.any(later):
-        spins[later] = spins_before_contact[rows[later], counts[later]]
+    return _spin_at_times_rows(np.asarray(rows, dtype=np.int64), np.asarray(times, dtype=float).reshape(-1), np.asarray(w_now, dtype=float),
+                               np.asarray(contact_times, dtype=float), np.asarray(spins_before_contact, dtype=float))
+
+
+@numba.njit(cache=True)
+def _spin_at_times_rows(rows, times, w_now, contact_times, spins_before_contact):
+    """``spin_at_times_batch``: per sample, the contacts of its ball at or before its time, and
+    the spin of its contact interval."""
+    spins, counts = np.empty((times.shape[0], 3)), np.zeros(times.shape[0], dtype=np.int64)
+    for i in range(times.shape[0]):
+        r = rows[i]
+        contacts = 0
+        for t_c in contact_times[r]:
+            counts[i] += t_c <= times[i]
+            contacts += math.isfinite(t_c)
+        if counts[i] < contacts:
+            spins[i] = spins_before_contact[r, counts[i]]
+        else:
+            spins[i] = w_now[r]
     return spins, counts

@@ -109,16 +109,15 @@ def fuse_measurements_batch(ekf: BallEkf, current: EstimatorBatchState, position
         raise ValueError(f"fuse_measurements_batch: expected {size} position and spin histories and event tuples, got "
                          f"{len(positions_histories)}, {len(spins_histories)} and {len(events)}")
     positions, spins = (h if isinstance(h, MeasurementHistoryBatch) else MeasurementHistoryBatch.from_histories(h) for h in (positions_histories, spins_histories))
-    times = np.broadcast_to(np.asarray(times, dtype=float), (size,))
     # ``_new_measurements``' rule on arrays: a sensor that started a new episode numbers from the start again.
     last_position = np.where(positions.last_sequence >= current.last_position_sequence, current.last_position_sequence, 0)
     last_spin = np.where(spins.last_sequence >= current.last_spin_sequence, current.last_spin_sequence, 0)
     for kind, history, last in (("position", positions, last_position), ("spin", spins, last_spin)):
-        gaps = np.flatnonzero((history.count > 0) & (history.first_sequence() > last + 1))
-        if gaps.size:
-            b = gaps[0]
+        b = history.first_gap(last)
+        if b >= 0:
+            time = np.broadcast_to(np.asarray(times, dtype=float), (size,))[b]
             raise RuntimeError(
-                f"BallEstimator: at {times[b]:.4f} s the {kind} sensor's history starts at measurement "
+                f"BallEstimator: at {time:.4f} s the {kind} sensor's history starts at measurement "
                 f"{history.first_sequence()[b]}, but the filter has read only up to {last[b]}: more were released "
                 f"since its last update than the history holds ({history.capacity}). Raise the sensor's "
                 "history_capacity or shorten EstimatorParams.update_period."
@@ -130,15 +129,13 @@ def fuse_measurements_batch(ekf: BallEkf, current: EstimatorBatchState, position
         seen = int(current.contacts_seen[b]) if len(events[b]) >= current.contacts_seen[b] else 0
         racket_times.append([event.time for event in events[b][seen:] if event.kind == ContactKind.RACKET])
         changed[b] = bool(racket_times[b]) or len(events[b]) != seen
-    changed |= np.bincount(position_rows, minlength=size) > 0
-    changed |= np.bincount(spin_rows, minlength=size) > 0
+    changed[position_rows] = True
+    changed[spin_rows] = True
     if not changed.any():
         return current
-    observations = ekf.observation_arrays(
-        (position_rows, positions.sequence[position_rows, position_slots], positions.capture_time[position_rows, position_slots],
-         positions.value[position_rows, position_slots], positions.covariance[position_rows, position_slots]),
-        (spin_rows, spins.sequence[spin_rows, spin_slots], spins.capture_time[spin_rows, spin_slots],
-         spins.value[spin_rows, spin_slots], spins.covariance[spin_rows, spin_slots]),
+    observations = ekf.observations_of_rings(
+        (position_rows, position_rows, position_slots, positions.sequence, positions.capture_time, positions.value, positions.covariance),
+        (spin_rows, spin_rows, spin_slots, spins.sequence, spins.capture_time, spins.value, spins.covariance),
         racket_times,
     )
     filters = ekf.update_arrays(current.filters, observations)

@@ -18,13 +18,13 @@ from ace_drake.perception.sensor_models import (
     draw_spin_bias,
     draw_spin_variates,
     first_spin_capture_time,
+    intervals_reached,
     racket_tracking_loss,
-    racket_tracking_loss_batch,
     sample_spin_measurements,
     spin_at_times,
     spin_at_times_batch,
     spin_capture_times,
-    spin_measurements,
+    spin_pending_batch,
 )
 from ace_drake.physics.propagate import ContactKind
 from ace_drake.systems.random_seed import declare_seed_port, episode_seed
@@ -145,19 +145,20 @@ def _contact_arrays(events, rows: np.ndarray, batch: int) -> tuple[np.ndarray, n
     width = max((len(events[b]) for b in rows), default=0)
     contact_times, spins_before, racket_times = np.full((batch, width), np.inf), np.zeros((batch, width, 3)), np.full((batch, width), np.nan)
     for b in rows:
-        if events[b]:
-            count = len(events[b])
-            contact_times[b, :count] = [event.time for event in events[b]]
-            spins_before[b, :count] = [event.state_pre[6:9] for event in events[b]]
-            racket = [event.time for event in events[b] if event.kind == ContactKind.RACKET]
-            racket_times[b, : len(racket)] = racket
+        rackets = 0
+        for k, event in enumerate(events[b]):
+            contact_times[b, k] = event.time
+            spins_before[b, k] = event.state_pre[6:9]
+            if event.kind == ContactKind.RACKET:
+                racket_times[b, rackets] = event.time
+                rackets += 1
     return contact_times, spins_before, racket_times
 
 
 def _with_biases(params: SpinSensorParams, current: SpinSensorBatchState, seeds: np.ndarray, needed: np.ndarray) -> SpinSensorBatchState:
     """``current`` with the biases of the first ``needed`` (B,) contact intervals of every sensor
     (``bias_of_interval``: each drawn once, the first time a sample of its interval is taken)."""
-    missing = np.flatnonzero(needed > current.bias_count)
+    missing = (needed > current.bias_count).nonzero()[0]
     if missing.size == 0:
         return current
     width = max(current.bias_magnitude.shape[1], int(needed.max()))
@@ -183,7 +184,7 @@ def poll_spin_sensors(
     drawn sensor by sensor (only those with a capture due), the model computed for all at once."""
     now = np.asarray(now, dtype=float)
     next_capture_time = current.next_capture_time.copy()
-    polling = np.flatnonzero(next_capture_time <= now)  # NaN (not started): no capture
+    polling = (next_capture_time <= now).nonzero()[0]  # NaN (not started): no capture
     captures, variates = [], []
     for b in polling:
         rng = poll_rng(params, int(seeds[b]), float(now[b]))
@@ -193,18 +194,16 @@ def poll_spin_sensors(
     if polling.size == 0:
         return dataclasses.replace(current, queue=current.queue.sampled(PendingBatch.empty(), now))
     rows = np.repeat(polling, [times.size for times in captures])
-    capture_times = np.concatenate(captures)
+    capture_times = captures[0] if polling.size == 1 else np.concatenate(captures)  # one sensor (B = 1): no copy
     contact_times, spins_before, racket_times = _contact_arrays(events, polling, now.size)
-    w_WB, intervals = spin_at_times_batch(rows, capture_times, np.asarray(w_now, dtype=float), contact_times, spins_before)
-    needed = np.zeros(now.size, dtype=np.int64)
-    np.maximum.at(needed, rows, intervals + 1)
-    with_biases = _with_biases(params, current, seeds, needed)
-    kept, release_times, values, covariances = spin_measurements(
-        w_WB, capture_times, with_biases.bias_magnitude[rows, intervals], with_biases.bias_rotation_vector[rows, intervals],
-        racket_tracking_loss_batch(rows, capture_times, racket_times, params), SpinVariates.concatenate(variates), params,
+    w_WB, intervals = spin_at_times_batch(rows, capture_times, w_now, contact_times, spins_before)
+    with_biases = _with_biases(params, current, seeds, intervals_reached(rows, intervals, now.size))
+    sampled = spin_pending_batch(
+        rows, intervals, capture_times, w_WB, with_biases.bias_magnitude, with_biases.bias_rotation_vector, racket_times,
+        variates[0] if polling.size == 1 else SpinVariates.concatenate(variates), params,
     )
-    sampled = PendingBatch.from_samples(rows, capture_times, release_times, values, covariances, kept)
-    return dataclasses.replace(with_biases, queue=current.queue.sampled(sampled, now), next_capture_time=next_capture_time)
+    return SpinSensorBatchState(current.queue.sampled(sampled, now), next_capture_time, with_biases.bias_magnitude, with_biases.bias_rotation_vector,
+                                with_biases.bias_count)
 
 
 class GazeSpinSensor(LeafSystem):

@@ -96,11 +96,10 @@ class SegmentBallEstimator(LeafSystem):
 
     def _CalcOutputs(self, context, value):
         now = np.asarray(self.timing.tick_time(self.episode_ticks_port.Eval(context)), dtype=float)
-        means, _, status = self.ekf.estimate_batch(self.estimator_states(context).filters, now)
-        valid = status[:, 0] == 1.0
-        # as ``ball_estimator.estimate_outputs``: [valid, spin valid, age of the newest measurement used]
-        outputs = np.where(valid[:, None], np.column_stack([status[:, :2], now - status[:, 2]]), np.array([0.0, 0.0, -1.0]))
-        value.set_value((np.where(valid[:, None], means, 0.0), outputs))
+        means, _, status = self.ekf.estimate_batch(self.estimator_states(context).filters, now)  # zeros where not valid
+        # as ``ball_estimator.estimate_outputs``: [valid, spin valid, age of the newest measurement used (-1: none)]
+        status[:, 2] = np.where(status[:, 0] == 1.0, now - status[:, 2], -1.0)
+        value.set_value((means, status))
 
     def Update(self, context, state):
         state.get_mutable_abstract_state(self._state_index).set_value(self.estimator_states(context))
