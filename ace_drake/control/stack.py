@@ -240,9 +240,11 @@ class ControlStack:
         """``segment`` for B starts (q, v, a) (B, 8) each and the mapping's Stages (B,): a failed
         target passes its reason on; the others' QPs at once (``SegmentQp.solve_batch``)."""
         stages = [Stage(False, reason=target.reason) if not target.ok else None for target in targets]
-        rows = np.array([row for row, stage in enumerate(stages) if stage is None], dtype=int)
-        if rows.size:
-            q, v, a = (np.asarray(x, dtype=float)[rows] for x in (q, v, a))
+        rows = [row for row, stage in enumerate(stages) if stage is None]
+        if rows:
+            q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
+            if len(rows) < len(targets):
+                q, v, a = q[rows], v[rows], a[rows]
             target_q = np.array([targets[row].value[0] for row in rows])
             target_v = np.array([targets[row].value[1] for row in rows])
             solved = self.qp.solve_batch(q, v, a, target_q, target_v)
