@@ -227,6 +227,9 @@ class ControlStack:
         if not q.shape[0]:
             return stages
         sets, mapped, infeasible = feasible_sets_batch(q, v, a, self.limits, self.control, self.period)
+        if mapped.all():  # the common case: every row (no copies of the sets)
+            target_q, target_v = map_action(actions, sets)
+            return [Stage(True, (target_q[row], target_v[row])) for row in range(q.shape[0])]
         for row in np.flatnonzero(~mapped):
             stages[row] = Stage(False, reason=f"infeasible start: {infeasible[row]}")
         rows = np.flatnonzero(mapped)
