@@ -138,26 +138,32 @@ def _sample_numbers(numbers: list[float], brakes: list, n: int, times: np.ndarra
     joint's positions onto its final position (``sample_profiles``). One compiled loop
     (``_sample_pieces``)."""
     flat = np.frombuffer(array.array("d", numbers))
-    brake_of = np.full(n, -1, dtype=np.int64)  # each joint's row of brake_values, -1 without a brake
-    brake_values = np.empty((len(brakes), 10))  # t, p, v, a, j of the two brake phases
-    for index, (dof, brake) in enumerate(brakes):
-        brake_of[dof] = index
-        brake_values[index] = (*brake.t, *brake.p, *brake.v, *brake.a, *brake.j)
-    return _sample_pieces(flat, _PIECE_MAP_REST if at_rest else _PIECE_MAP, _DURATION_MAP, brake_of, brake_values, np.asarray(times, dtype=float),
+    brake_dofs, brake_values = _NO_BRAKE_DOFS, _NO_BRAKES
+    if brakes:
+        brake_dofs = np.array([dof for dof, _ in brakes], dtype=np.int64)
+        brake_values = np.array([(*brake.t, *brake.p, *brake.v, *brake.a, *brake.j) for _, brake in brakes], dtype=float)
+    return _sample_pieces(flat, _PIECE_MAP_REST if at_rest else _PIECE_MAP, _DURATION_MAP, brake_dofs, brake_values, np.asarray(times, dtype=float),
                           np.asarray(lengths, dtype=np.int64), shift)
 
 
+_NO_BRAKE_DOFS, _NO_BRAKES = np.empty(0, dtype=np.int64), np.empty((0, 10))  # _sample_numbers without brakes
+
+
 @numba.njit(cache=True)
-def _sample_pieces(flat, piece_map, duration_map, brake_of, brake_values, times, lengths, shift):
-    """``_sample_numbers`` (returns its q, v, a): joint i's ten constant-jerk pieces (``_PIECE_MAP``) from its ``_ROW``
-    numbers in ``flat`` (the brake's from ``brake_values`` where brake_of[i] >= 0): piece k starts
-    at the sum of the durations before it and covers the samples from the first at or after its
-    start to the first at or after the next's; at time dt into it, a = a0 + j dt, v = v0 + dt
-    (a0 + j dt / 2), q = p0 + dt (v0 + dt (a0 / 2 + j dt / 6)). With ``shift``, a joint whose
-    final position differs from its profile's end by more than 1e-12 has its positions moved by
-    that difference times min(t / t_end, 1) before t_end."""
+def _sample_pieces(flat, piece_map, duration_map, brake_dofs, brake_values, times, lengths, shift):
+    """``_sample_numbers`` (returns its q, v, a): joint i's ten constant-jerk pieces
+    (``_PIECE_MAP``) from its ``_ROW`` numbers in ``flat`` (for the joints ``brake_dofs``, the
+    brake phases' t, p, v, a, j from ``brake_values`` instead): piece k starts at the sum of the
+    durations before it and covers the samples from the first at or after its start to the first
+    at or after the next's; at time dt into it, a = a0 + j dt, v = v0 + dt (a0 + j dt / 2),
+    q = p0 + dt (v0 + dt (a0 / 2 + j dt / 6)). With ``shift``, a joint whose final position
+    differs from its profile's end by more than 1e-12 has its positions moved by that difference
+    times min(t / t_end, 1) before t_end."""
     pieces = piece_map.shape[1]
     q, v, a = np.empty(lengths.sum()), np.empty(lengths.sum()), np.empty(lengths.sum())
+    brake_of = np.full(lengths.shape[0], -1)  # each joint's row of brake_values, -1 without a brake
+    for index in range(brake_dofs.shape[0]):
+        brake_of[brake_dofs[index]] = index
     starts = np.empty(pieces + 1)
     first = np.empty(pieces + 1, dtype=np.int64)
     offset = 0
