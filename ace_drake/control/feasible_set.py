@@ -207,7 +207,7 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     fast at a position limit); for a batch, that of its first such start (``feasible_sets_batch``
     reports each start instead)."""
     sets, feasible, reasons = feasible_sets_batch(q0, v0, a0, limits, control, period)
-    if not np.all(feasible):
+    if not feasible.all():
         raise InfeasibleStartError(reasons[int(np.argmin(feasible.ravel()))])
     return sets
 

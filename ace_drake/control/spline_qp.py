@@ -131,7 +131,7 @@ class SegmentQp:
         q0, v0, a0, q_terminal, v_terminal = (np.asarray(x, dtype=float) for x in (q0, v0, a0, q_terminal, v_terminal))
         shape = q0.shape
         if len(shape) != 2 or shape[1] != 8 or not all(x.shape == shape for x in (v0, a0, q_terminal, v_terminal)):
-            self._invalid(q0, v0, a0, q_terminal, v_terminal)
+            self._raise_invalid(q0, v0, a0, q_terminal, v_terminal)
         rows, M = shape[0], self.knots
         # The bounds (B, 8, M + rows) of [x; rows x] with the start's contribution moved to the
         # right, the cost's linear term (B, 8, M) and the KKT right-hand side [-f; b] (8 B, M + 2).
@@ -140,7 +140,7 @@ class SegmentQp:
         limits = self.limits
         if not _row_bounds(q0, v0, a0, q_terminal, v_terminal, self._times, self._rows_start, self._hessian_cross, limits.acceleration,
                            limits.velocity, limits.jerk, limits.lower, limits.upper, lower, upper, linear, right):
-            self._invalid(q0, v0, a0, q_terminal, v_terminal)
+            self._raise_invalid(q0, v0, a0, q_terminal, v_terminal)
         if self.solver == "daqp":
             accelerations, status, failed = self._solve_daqp(linear, lower, upper, right)
         else:
@@ -151,7 +151,7 @@ class SegmentQp:
         return self._checked(q0, v0, a0, accelerations, q_terminal, v_terminal, status, failed)
 
     @staticmethod
-    def _invalid(*values) -> None:
+    def _raise_invalid(*values) -> None:
         raise ValueError(f"SegmentQp.solve_batch: q0, v0, a0, q_terminal, v_terminal must each be (B, 8) finite values, got shapes {[np.shape(x) for x in values]}")
 
     def _solve_daqp(self, linear, lower, upper, right):
@@ -270,6 +270,8 @@ def _row_bounds(q0, v0, a0, q_terminal, v_terminal, times, rows_start, hessian_c
                 right[r, k] = -linear[b, j, k]
                 upper[b, j, k] = acceleration[j]
                 lower[b, j, k] = -acceleration[j]
+            # The terminal acceleration starts the reset: no more than its jerk-limited ramp to
+            # zero can take without passing the velocity limit.
             lower[b, j, M - 1] = -acceleration_room(-x4, velocity[j], acceleration[j], jerk[j])
             upper[b, j, M - 1] = acceleration_room(x4, velocity[j], acceleration[j], jerk[j])
             for k in range(N - 1):

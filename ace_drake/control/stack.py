@@ -153,6 +153,7 @@ class ControlStack:
         self.resets = ResetPlanner(self.limits, self.period)
         self.collision_check = collision_check
         self._initial_plans: dict = {}  # initial_plan's results by their exact inputs (see there)
+        self._twice_braking = 2.0 * (self.control.stop_fraction * self.limits.acceleration)  # 2 A_s (action_towards)
 
     @property
     def segment_duration(self) -> float:
@@ -323,10 +324,9 @@ class ControlStack:
         q, v = np.asarray(q, dtype=float), np.asarray(v, dtype=float)
         sets = feasible_sets(q, v, a, self.limits, self.control, self.period)
         error = np.asarray(q_goal, dtype=float) - q
-        braking = self.control.stop_fraction * self.limits.acceleration
-        v_target = np.sign(error) * np.minimum(self.limits.velocity, np.sqrt(2.0 * braking * np.abs(error)))
+        v_target = np.sign(error) * np.minimum(self.limits.velocity, np.sqrt(self._twice_braking * np.abs(error)))
         q_target = q + 0.5 * (v + v_target) * self.segment_duration
-        return np.clip(inverse_map_action(q_target, v_target, sets), -1.0, 1.0)
+        return np.minimum(np.maximum(inverse_map_action(q_target, v_target, sets), -1.0), 1.0)  # np.clip without its overhead
 
     def protective_stop(self, q, v, a) -> tuple[JointTrajectory, bool]:
         """The fastest stop within the command limits from (q, v, a), and whether it is

@@ -9,7 +9,6 @@ prismatic joints in m, revolute in rad.
 from __future__ import annotations
 
 import dataclasses
-
 import math
 
 import numba
@@ -69,8 +68,6 @@ class CommandLimits:
             "velocity": int(np.sum(np.any(np.abs(trajectory.v) > self.velocity * (1 + tolerance), axis=-1))),
             "acceleration": int(np.sum(np.any(np.abs(trajectory.a) > self.acceleration * (1 + tolerance), axis=-1))),
         }
-
-
 
 
 @numba.njit(cache=True)
