@@ -162,3 +162,52 @@ def test_a_batch_of_starts_gives_each_start_its_sets_exactly():
     assert 10 <= np.sum(~feasible) < 60
     with pytest.raises(InfeasibleStartError, match="gantry_x"):  # the first infeasible start's
         feasible_sets(q, v, a, LIMITS, CONTROL, PERIOD)
+
+
+def reference_map_action(action, sets):
+    """``map_action`` in NumPy (its former form): the reference of the compiled loop."""
+    action = np.asarray(action, dtype=float)
+    delta = np.swapaxes(action.reshape(*action.shape[:-1], 2, 8), -1, -2)
+    size = np.max(np.abs(delta), axis=-1)
+    shaped = delta * sets.scale
+    beta = sets.boundary_distance(shaped)
+    step = np.where(size > 0.0, size * np.where(np.isfinite(beta), beta, 0.0), 0.0)
+    y = sets.centre + step[..., None] * shaped
+    return y[..., 0], y[..., 1]
+
+
+def reference_inverse_map_action(q_terminal, v_terminal, sets):
+    """``inverse_map_action`` in NumPy (its former form): the reference of the compiled loop."""
+    y = np.stack([np.asarray(q_terminal, dtype=float), np.asarray(v_terminal, dtype=float)], axis=-1)
+    offset = y - sets.centre
+    to_boundary = sets.boundary_distance(offset)
+    unscaled = offset / sets.scale
+    largest = np.max(np.abs(unscaled), axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        delta = np.where((largest > 0.0)[..., None], unscaled / (largest * to_boundary)[..., None], 0.0)
+    pairs = np.swapaxes(delta, -1, -2)
+    return pairs.reshape(*pairs.shape[:-2], ACTION_SIZE)
+
+
+@pytest.mark.parametrize("count", [1, 5, 64])
+def test_the_compiled_mapping_and_inverse_equal_the_numpy_reference_bit_for_bit(count):
+    rng = np.random.default_rng(count)
+    starts = [invariant_state(seed, edge=bool(seed % 2)) for seed in range(count)]
+    q0, v0, a0 = (np.array([start[k] for start in starts]) for k in range(3))
+    sets, _, _ = feasible_sets_batch(q0, v0, a0, LIMITS, CONTROL, PERIOD)
+    action = rng.uniform(-1.0, 1.0, (count, ACTION_SIZE))
+    action[0, :3] = 0.0
+    action[0, 8] = 0.0  # joint 0 at the centre
+    action[-1, 4] = action[-1, 12] = 1.0  # a corner
+    for got, expected in zip(map_action(action, sets), reference_map_action(action, sets)):
+        np.testing.assert_array_equal(got, expected)
+    q, v = reference_map_action(action, sets)
+    q, v = q + rng.normal(0.0, 0.05, q.shape), v.copy()  # some beyond the boundary
+    q[0, 1], v[-1, 2] = sets.centre[0, 1, 0], np.nan
+    v[0, 1] = sets.centre[0, 1, 1]  # at the centre
+    np.testing.assert_array_equal(inverse_map_action(q, v, sets), reference_inverse_map_action(q, v, sets))
+    # Broadcast: one start's sets for many actions.
+    one = sets[0]
+    for got, expected in zip(map_action(action, one), reference_map_action(action, one)):
+        np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(inverse_map_action(q, v, one), reference_inverse_map_action(q, v, one))

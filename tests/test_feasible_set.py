@@ -134,3 +134,28 @@ def test_a_non_finite_joint_has_an_empty_set_and_leaves_the_others_alone(bad):
         np.testing.assert_array_equal(getattr(sets, field.name)[~bad_joints], getattr(clean, field.name)[~bad_joints])
     with pytest.raises(InfeasibleStartError, match="gantry_x"):
         feasible_sets(q[2], v[2], a[2], LIMITS, CONTROL, PERIOD)
+
+
+def reference_boundary_distance(sets: FeasibleSets, direction: np.ndarray) -> np.ndarray:
+    """``FeasibleSets.boundary_distance`` in NumPy (its former form): the reference of the kernel."""
+    along = np.einsum("...jek,...jk->...je", sets.normals, direction)  # n_e . d
+    room = sets.offsets - np.einsum("...jek,...jk->...je", sets.normals, sets.centre)  # b_e - n_e . c >= 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        candidates = np.where(along > 1e-300, room / along, np.inf)
+    return np.min(candidates, axis=-1)
+
+
+@pytest.mark.parametrize("count", [1, 3, 64])
+def test_the_boundary_distance_kernel_equals_the_numpy_reference_bit_for_bit(count):
+    rng = np.random.default_rng(20 + count)
+    q, v, a = random_starts(rng, count)
+    q[0, 3] = np.nan  # an empty set with NaN fields
+    sets, _ = feasible_set._feasible_sets(q, v, a, LIMITS, CONTROL, PERIOD)
+    direction = rng.normal(size=(count, 8, 2)) * sets.scale
+    direction[0, 1] = 0.0  # no edge ahead: inf
+    direction[-1, 2, 0] = np.nan
+    np.testing.assert_array_equal(sets.boundary_distance(direction), reference_boundary_distance(sets, direction))
+    # Broadcast: one start's sets against many directions, and many starts' against one.
+    one = sets[0]
+    np.testing.assert_array_equal(one.boundary_distance(direction), reference_boundary_distance(one, direction))
+    np.testing.assert_array_equal(sets.boundary_distance(direction[0]), reference_boundary_distance(sets, direction[0]))

@@ -73,3 +73,23 @@ def test_feedforward_command_makes_the_delayed_joint_follow_a_motion():
     assert np.max(np.abs(error)) < 2e-4  # rad; against 0.3 rad of motion and 3.2 ms of lag uncompensated
     lagging = simulate_joint(joint, 0.3 * np.sin(omega * t_n), period)
     assert np.max(np.abs(lagging[100:] - 0.3 * np.sin(omega * t_n[100:]))) > 10 * np.max(np.abs(error))
+
+
+def test_the_segment_propagation_equals_period_by_period_propagation_bit_for_bit():
+    """``propagate_samples`` (the two holds' coefficients computed once) against ``propagate``
+    over one period at a time: under-, over- and critically damped joints, whole and fractional
+    delays, a batch of environments."""
+    from ace_drake.control.joint_model import JointPropagator
+
+    joints = [ProcessModel(1.0, w, zeta, delay).to_state_space() for w, zeta, delay in
+              [(800.0, 0.7, 0.003), (300.0, 1.0, 0.0023), (150.0, 2.5, 0.0), (1000.0, 0.2, 0.0049), (500.0, 1.0, 0.001)]]
+    propagator = JointPropagator(joints, 1e-3)
+    rng = np.random.default_rng(3)
+    zeta, u_old, u_new = rng.normal(size=(3, 5, 2)), rng.normal(size=(3, 32, 5)), rng.normal(size=(3, 32, 5))
+    samples = propagator.propagate_samples(zeta, u_old, u_new)
+    for row in range(3):
+        state = zeta[row]
+        np.testing.assert_array_equal(samples[row, 0], state)
+        for period in range(32):
+            state = propagator.propagate(state, u_old[row, period], u_new[row, period], 1e-3)
+            np.testing.assert_array_equal(samples[row, period + 1], state)

@@ -74,6 +74,72 @@ def single_joint_duration(q, v, a, target, dof) -> float:
     return trajectory.duration
 
 
+def reference_sample_numbers(numbers, brakes, n, times, lengths, at_rest, shift):
+    """``reset._sample_numbers`` in NumPy (its former form): the reference of the compiled
+    ``_sample_pieces``."""
+    from ace_drake.control import reset
+
+    flat = np.array(numbers, dtype=float)
+    rows = reset._ROW * np.arange(n)
+    piece_map = reset._PIECE_MAP_REST if at_rest else reset._PIECE_MAP
+    pieces = flat.take((piece_map[:, None, :] + rows[None, :, None]).reshape(len(piece_map), n * reset._PIECES))  # (5 fields, n * 10 pieces)
+    durations = flat.take(reset._DURATION_MAP[None, :] + rows[:, None])  # (n, 11)
+    for dof, brake in brakes:
+        durations[dof, 1:3] = brake.t
+        row = slice(dof * reset._PIECES, dof * reset._PIECES + 2)
+        pieces[1, row], pieces[2, row], pieces[3, row], pieces[4, row] = brake.p, brake.v, brake.a, brake.j
+    starts = np.cumsum(durations, axis=1)
+    pieces[0] = starts[:, :-1].ravel()
+    first = np.minimum(np.searchsorted(times, starts), lengths[:, None])
+    counts = (first[:, 1:] - first[:, :-1]).ravel()
+    start, p0, v0, a0, j = np.repeat(pieces, counts, axis=1)
+    t = times[np.arange(start.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)]
+    dt = t - start
+    jerk_dt = dt * j
+    a = a0 + jerk_dt
+    v = v0 + dt * (a0 + 0.5 * jerk_dt)
+    q = p0 + dt * (v0 + dt * (0.5 * a0 + jerk_dt * (1.0 / 6.0)))
+    if shift:
+        shortfall = flat[reset._END :: reset._ROW] - flat[reset._PROFILE_END :: reset._ROW]
+        offsets = np.cumsum(lengths) - lengths
+        for dof in np.flatnonzero(np.abs(shortfall) > 1e-12):
+            end = starts[dof, 9]
+            rows = slice(offsets[dof], offsets[dof] + lengths[dof])
+            joint_times = t[rows]
+            progress = np.minimum(joint_times / (end if end > 0.0 else 1.0), 1.0)
+            q[rows] += shortfall[dof] * np.where(joint_times < end, progress, 0.0)
+    return q, v, a
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_compiled_sampler_equals_the_numpy_reference_bit_for_bit(seed):
+    """Resets and stops of several joint sets with brakes (beyond the limits), targets Ruckig
+    ends short of (shifted), and joints sampled over different lengths."""
+    from ace_drake.control import reset
+
+    rng = np.random.default_rng(seed)
+    numbers, brakes, lengths = [], [], []
+    planner = ResetPlanner(LIMITS, PERIOD)
+    for trajectory in range(3):
+        q, v, a = rng.uniform(LIMITS.lower, LIMITS.upper), rng.uniform(-1.2, 1.2, 8) * V, rng.uniform(-1.2, 1.2, 8) * A
+        target = rng.uniform(LIMITS.lower, LIMITS.upper)
+        if (seed + trajectory) % 2:
+            planner.plan_stop(q, v, a)
+            ends = None
+        else:
+            planner.plan_reset(q, v, a, target)
+            ends = (target + rng.choice([0.0, 1e-9], 8)).tolist()  # some a little off the profiles' ends
+        reset._profile_numbers(planner._trajectory.profiles[0], ends, numbers, brakes, 8 * trajectory)
+        lengths += [int(planner.duration / PERIOD) + rng.integers(-20, 20)] * 8
+    assert brakes
+    lengths = np.maximum(np.array(lengths), 1)
+    times = np.arange(lengths.max()) * PERIOD
+    for at_rest, shift in ((False, False), (True, False), (True, True)):
+        got = reset._sample_numbers(numbers, brakes, len(lengths), times, lengths, at_rest, shift)
+        for x, y in zip(got, reference_sample_numbers(numbers, brakes, len(lengths), times, lengths, at_rest, shift)):
+            np.testing.assert_array_equal(x, y)
+
+
 # ----------------------------------------------------------------------------------------------
 # The vectorised sampler
 # ----------------------------------------------------------------------------------------------

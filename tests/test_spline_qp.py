@@ -143,3 +143,86 @@ def test_a_batch_solves_each_row_as_solve_does():
                 np.testing.assert_array_equal(getattr(got.trajectory, field), getattr(expected.trajectory, field))
     with pytest.raises(ValueError, match="solve_batch"):
         QP.solve_batch(q[0], v[0], a[0], q_terminal[0], v_terminal[0])
+
+
+def reference_acceleration_bounds(limits, v):
+    """``CommandLimits.acceleration_bounds`` in NumPy (its former form)."""
+    upper = np.sqrt(2.0 * limits.jerk * np.maximum(limits.velocity - v, 0.0))
+    lower = np.sqrt(2.0 * limits.jerk * np.maximum(limits.velocity + v, 0.0))
+    return -np.minimum(limits.acceleration, lower), np.minimum(limits.acceleration, upper)
+
+
+def reference_row_bounds(qp, q0, v0, a0, q_terminal, v_terminal):
+    """The QP's bounds (B, 8, M + rows) of [x; rows x] and linear term (B, 8, M) in NumPy (the
+    former ``SegmentQp._row_bounds``): the reference of the compiled ``_row_bounds``."""
+    N, M, limits = qp.samples, qp.knots, qp.limits
+    inner = qp._times[1:N]
+    start_v = v0[..., None] + a0[..., None] * qp._rows_start[: N - 1]
+    start_q = q0[..., None] + v0[..., None] * inner + a0[..., None] * qp._rows_start[N - 1 : 2 * N - 2]
+    end_v = v0 + a0 * qp._rows_start[-2]
+    end_q = q0 + v0 * qp._times[N] + a0 * qp._rows_start[-1]
+    box = np.repeat(np.broadcast_to(limits.acceleration, q0.shape)[..., None], M, axis=-1)
+    low_box = -box
+    low_box[..., -1], box[..., -1] = reference_acceleration_bounds(limits, v_terminal)
+    speed = np.broadcast_to(limits.velocity[:, None], start_v.shape)
+    upper_q, lower_q = (np.broadcast_to(x[:, None], start_q.shape) for x in (limits.upper, limits.lower))
+    v_gap, q_gap = (v_terminal - end_v)[..., None], (q_terminal - end_q)[..., None]
+    upper = np.concatenate([box, speed - start_v, upper_q - start_q, v_gap, q_gap], axis=-1)
+    lower = np.concatenate([low_box, -speed - start_v, lower_q - start_q, v_gap, q_gap], axis=-1)
+    return lower, upper, a0[..., None] * qp._hessian_cross
+
+
+def reference_samples(qp, q0, v0, knots, q_terminal, v_terminal):
+    """The splines' samples (B, N + 1, 8) and worst violations (B,) in NumPy (the former body of
+    ``SegmentQp._checked``): the reference of the compiled ``_samples``."""
+    from ace_drake.control.spline_qp import _product
+
+    rows, N, limits = q0.shape[0], qp.samples, qp.limits
+    v = (v0.reshape(-1, 1) + _product(knots, qp._velocity_map.T)).reshape(rows, 8, N + 1)
+    q = (q0.reshape(-1, 1) + v0.reshape(-1, 1) * qp._times + _product(knots, qp._position_map.T)).reshape(rows, 8, N + 1)
+    a = _product(knots, qp._interpolation.T).reshape(rows, 8, N + 1)
+    knots = knots.reshape(rows, 8, -1)
+    worst = np.max(np.stack([
+        np.max(np.abs(knots[..., 1:]) - limits.acceleration[:, None], axis=(1, 2)),
+        np.max(np.abs(v) - limits.velocity[:, None], axis=(1, 2)),
+        np.max(np.maximum(q - limits.upper[:, None], limits.lower[:, None] - q), axis=(1, 2)),
+        np.max(np.abs(v[..., -1] - v_terminal), axis=1),
+        np.max(np.abs(q[..., -1] - q_terminal), axis=1),
+    ]), axis=0)
+    return [np.ascontiguousarray(np.swapaxes(x, 1, 2)) for x in (q, v, a)], np.maximum(worst, 0.0)
+
+
+@pytest.mark.parametrize("count", [1, 5, 40])
+def test_the_compiled_bounds_and_samples_equal_the_numpy_reference_bit_for_bit(count):
+    from ace_drake.control import spline_qp
+    from tests.test_action_mapping import batch_of_starts
+
+    rng = np.random.default_rng(count)
+    q0, v0, a0 = batch_of_starts(count)
+    q_terminal = q0 + rng.normal(0.0, 0.01, q0.shape)
+    v_terminal = rng.uniform(-1.1, 1.1, q0.shape) * LIMITS.velocity  # some beyond the limit: the bound closes
+    rows, M = count, QP.knots
+    lower, upper = np.empty((rows, 8, QP._sense.size)), np.empty((rows, 8, QP._sense.size))
+    linear, right = np.empty((rows, 8, M)), np.empty((rows * 8, M + 2))
+    assert spline_qp._row_bounds(q0, v0, a0, q_terminal, v_terminal, QP._times, QP._rows_start, QP._hessian_cross, LIMITS.acceleration,
+                                 LIMITS.velocity, LIMITS.jerk, LIMITS.lower, LIMITS.upper, lower, upper, linear, right)
+    expected = reference_row_bounds(QP, q0, v0, a0, q_terminal, v_terminal)
+    for got, reference in zip((lower, upper, linear), expected):
+        np.testing.assert_array_equal(got, reference)
+    np.testing.assert_array_equal(right, np.concatenate([-expected[2], expected[1][..., -2:]], axis=-1).reshape(rows * 8, M + 2))
+    v_terminal[0, 0] = np.nan
+    assert not spline_qp._row_bounds(q0, v0, a0, q_terminal, v_terminal, QP._times, QP._rows_start, QP._hessian_cross, LIMITS.acceleration,
+                                     LIMITS.velocity, LIMITS.jerk, LIMITS.lower, LIMITS.upper, lower, upper, linear, right)
+    np.testing.assert_array_equal(LIMITS.acceleration_bounds(v_terminal), reference_acceleration_bounds(LIMITS, v_terminal))
+    # Samples: knots within and beyond the limits, and a NaN in the last row.
+    knots = np.concatenate([a0[..., None], rng.uniform(-1.05, 1.05, (rows, 8, M)) * LIMITS.acceleration[:, None]], axis=-1).reshape(rows * 8, M + 1)
+    knots[-1, 3] = np.nan
+    q, v, a = (np.empty((rows, QP.samples + 1, 8)) for _ in range(3))
+    worst = np.empty(rows)
+    spline_qp._samples(q0, v0, knots, spline_qp._product(knots, QP._velocity_map.T), spline_qp._product(knots, QP._position_map.T),
+                       spline_qp._product(knots, QP._interpolation.T), QP._times, q_terminal, v_terminal, LIMITS.acceleration,
+                       LIMITS.velocity, LIMITS.lower, LIMITS.upper, q, v, a, worst)
+    (q_ref, v_ref, a_ref), worst_ref = reference_samples(QP, q0, v0, knots, q_terminal, v_terminal)
+    for got, reference in ((q, q_ref), (v, v_ref), (a, a_ref), (worst, worst_ref)):
+        np.testing.assert_array_equal(got, reference)
+    assert np.isnan(worst[-1])

@@ -83,18 +83,32 @@ class FeasibleSets:
         """The sets of the starts ``index`` selects along the leading dimensions."""
         if not self.batch_shape:
             raise IndexError("FeasibleSets: the sets of one start have no batch dimension to index")
-        return FeasibleSets(*(getattr(self, field.name)[index] for field in dataclasses.fields(self)))
+        return FeasibleSets(*(getattr(self, name)[index] for name in _FIELDS))
+
+    def joint_arrays(self, batch: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The sets broadcast to the leading dimensions ``batch`` and flattened over them and the
+        joints, for the compiled loops: centre, scale (S, 2), normals (S, 2K, 2), offsets (S, 2K),
+        C-contiguous (views when the batch is the sets' own)."""
+        arrays = []
+        for name in ("centre", "scale", "normals", "offsets"):
+            x = getattr(self, name)
+            core = x.shape[x.ndim - _CORE_NDIM[name] :]  # (8, ...)
+            if x.shape[: x.ndim - len(core)] != batch:
+                x = np.broadcast_to(x, batch + core)
+            arrays.append(np.ascontiguousarray(x).reshape((-1,) + core[1:]))
+        return tuple(arrays)
 
     def boundary_distance(self, direction: np.ndarray) -> np.ndarray:
         """t (..., 8) such that centre + t * direction lies on the polygon's boundary, for
         directions (..., 8, 2) in (q, v) units (broadcast against the sets' batch); inf for a
-        zero direction."""
+        zero direction. One compiled loop (``_boundary_distance``)."""
         direction = np.asarray(direction, dtype=float)
-        along = np.einsum("...jek,...jk->...je", self.normals, direction)  # n_e . d
-        room = self.offsets - np.einsum("...jek,...jk->...je", self.normals, self.centre)  # b_e - n_e . c >= 0
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            candidates = np.where(along > 1e-300, room / along, np.inf)
-        return np.min(candidates, axis=-1)
+        batch = self.batch_shape if direction.shape == self.centre.shape else np.broadcast_shapes(direction.shape[:-2], self.batch_shape)
+        centre, _, normals, offsets = self.joint_arrays(batch)
+        out = np.empty(batch + self.centre.shape[-2:-1])
+        direction = np.ascontiguousarray(np.broadcast_to(direction, out.shape + (2,))).reshape(-1, 2)
+        _boundary_distance(normals, offsets, centre, direction, out.reshape(-1))
+        return out
 
     def contains(self, y: np.ndarray, tolerance: float = 1e-9) -> np.ndarray:
         """Whether terminal states y (..., 8, 2) lie in each joint's polygon, (..., 8) booleans."""
@@ -102,6 +116,37 @@ class FeasibleSets:
         excess = np.einsum("...jek,...jk->...je", self.normals, y) - self.offsets
         scale = np.abs(self.offsets) + 1.0
         return np.all(excess <= tolerance * scale, axis=-1)
+
+
+_FIELDS = tuple(field.name for field in dataclasses.fields(FeasibleSets))
+
+
+_CORE_NDIM = {"centre": 2, "scale": 2, "vertices": 3, "normals": 3, "offsets": 2}  # each field's dimensions after the batch
+
+
+@numba.njit(cache=True)
+def _boundary_distance(normals, offsets, centre, direction, out):
+    """``FeasibleSets.boundary_distance`` of S polygons: normals (S, E, 2), offsets (S, E), centre
+    and direction (S, 2), into out (S,)."""
+    for s in range(normals.shape[0]):
+        out[s] = edge_distance(normals[s], offsets[s], centre[s, 0], centre[s, 1], direction[s, 0], direction[s, 1])
+
+
+@numba.njit(cache=True)
+def edge_distance(normals, offsets, c0, c1, d0, d1):
+    """t such that (c0, c1) + t (d0, d1) lies on the boundary of the polygon normals (E, 2) . y <=
+    offsets (E,): over the edges e with n_e . d > 1e-300, the smallest (b_e - n_e . c) / (n_e . d)
+    (NaN if any is NaN, as NumPy's min); inf if there are none (a zero direction). The one
+    definition, which the action mapping's kernels call too."""
+    smallest = np.inf
+    for e in range(normals.shape[0]):
+        along = normals[e, 0] * d0 + normals[e, 1] * d1
+        room = offsets[e] - (normals[e, 0] * c0 + normals[e, 1] * c1)
+        candidate = room / along if along > 1e-300 else np.inf
+        if candidate != candidate:
+            return candidate
+        smallest = min(smallest, candidate)
+    return smallest
 
 
 def ramp_time(control: ControlParams, period: float) -> float:
@@ -162,7 +207,7 @@ def feasible_sets(q0, v0, a0, limits: CommandLimits, control: ControlParams, per
     fast at a position limit); for a batch, that of its first such start (``feasible_sets_batch``
     reports each start instead)."""
     sets, feasible, reasons = feasible_sets_batch(q0, v0, a0, limits, control, period)
-    if not np.all(feasible):
+    if not feasible.all():
         raise InfeasibleStartError(reasons[int(np.argmin(feasible.ravel()))])
     return sets
 
@@ -171,8 +216,10 @@ def feasible_sets_batch(q0, v0, a0, limits: CommandLimits, control: ControlParam
     """``feasible_sets`` for starts (..., 8) that reports an empty set per start instead of
     raising: (sets, feasible (...) booleans, reasons), reasons a flat list (one per start, in C
     order) of "" or the message InfeasibleStartError would carry. Where a start is infeasible its
-    sets are finite but meaningless."""
-    q0, v0, a0 = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (q0, v0, a0)))
+    sets are finite but meaningless. The arrays returned are read-only."""
+    q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q0, v0, a0))
+    if not q0.shape == v0.shape == a0.shape:
+        q0, v0, a0 = np.broadcast_arrays(q0, v0, a0)
     if q0.shape[-1:] != (len(JOINT_NAMES),):
         raise ValueError(f"feasible_sets: q0, v0, a0 must have {len(JOINT_NAMES)} joints in the last dimension, got shape {q0.shape}")
     batch = q0.shape[:-1]
@@ -186,15 +233,18 @@ def feasible_sets_batch(q0, v0, a0, limits: CommandLimits, control: ControlParam
     else:
         sets, feasible = _feasible_sets(*flat, limits, control, period)
         reasons = [""] * feasible.shape[0]
-        for row in np.flatnonzero(~np.all(feasible, axis=-1)):
-            empty = [name for name, ok in zip(JOINT_NAMES, feasible[row]) if not ok]
-            reasons[row] = f"no feasible terminal state for joint(s) {empty} from q={flat[0][row]}, v={flat[1][row]}, a={flat[2][row]}"
-        feasible = np.all(feasible, axis=-1)
-        for array in (*(getattr(sets, field.name) for field in dataclasses.fields(sets)), feasible):
+        if not feasible.all():
+            for row in np.flatnonzero(~feasible.all(axis=-1)):
+                empty = [name for name, ok in zip(JOINT_NAMES, feasible[row]) if not ok]
+                reasons[row] = f"no feasible terminal state for joint(s) {empty} from q={flat[0][row]}, v={flat[1][row]}, a={flat[2][row]}"
+        feasible = feasible.all(axis=-1)
+        for array in (*(getattr(sets, name) for name in _FIELDS), feasible):
             array.flags.writeable = False
         _LAST_SETS[:] = [key, (sets, feasible, tuple(reasons))]
-    shaped = FeasibleSets(*(getattr(sets, field.name).reshape(batch + getattr(sets, field.name).shape[1:]) for field in dataclasses.fields(sets)))
-    return shaped, feasible.reshape(batch), list(reasons)
+    if len(batch) != 1:  # the sets are computed for a flat batch of starts
+        sets = FeasibleSets(*(getattr(sets, name).reshape(batch + getattr(sets, name).shape[1:]) for name in _FIELDS))
+        feasible = feasible.reshape(batch)
+    return sets, feasible, list(reasons)
 
 
 _LAST_SETS: list = [None, None]  # feasible_sets_batch's last (key, result)
@@ -264,14 +314,22 @@ def _polygons(q0, v0, a0, lower, upper, V, A, reach_fraction, h, rest, ramp, rea
             excess_upper = max(ramped_v - V_j, 0.0)
             excess_lower = max(-ramped_v - V_j, 0.0)
             low, high = max(-V_j, v1 - A_r * rest), min(V_j, v1 + A_r * rest)
+            # The first and the last grid velocity with hi >= lo: scanned inwards from each end,
+            # stopping at the first found (the set usually spans most of the grid).
             first, last = -1, -1
             for g in range(grid.size):
                 l, u = _side_bounds(q1, v1, excess_upper, excess_lower, low + grid[g] * (high - low), lower[j], upper[j], V_j, A_j,
                                     reach_fraction, h, rest, ramp, reaction_time, stop_fraction)
                 if u >= l:
-                    if first < 0:
-                        first = g
-                    last = g
+                    first = g
+                    break
+            if first >= 0:
+                for g in range(grid.size - 1, first - 1, -1):
+                    l, u = _side_bounds(q1, v1, excess_upper, excess_lower, low + grid[g] * (high - low), lower[j], upper[j], V_j, A_j,
+                                        reach_fraction, h, rest, ramp, reaction_time, stop_fraction)
+                    if u >= l:
+                        last = g
+                        break
             feasible[b, j] = first >= 0
             if first < 0:  # an empty set: finite but meaningless polygons over the whole range
                 first, last = 0, grid.size - 1

@@ -232,22 +232,39 @@ def _propagate_many(zeta, u_old, u_new, elapsed, fractional, equilibrium, half_t
 
 @numba.njit(cache=True)
 def _propagate_samples(zeta, u_old, u_new, period, fractional, equilibrium, half_trace, A_shifted, omega_squared, out):
-    """``JointPropagator.propagate_samples`` into ``out`` (B, m + 1, n, 2)."""
+    """``JointPropagator.propagate_samples`` into ``out`` (B, m + 1, n, 2): ``_propagate`` over
+    each period T in turn, with the two holds' coefficients (``_hold_coefficients`` of f_i and
+    T - f_i, the same every period) computed once."""
+    n = zeta.shape[1]
+    first, second = np.empty((n, 3)), np.empty((n, 3))
+    for i in range(n):
+        first[i, 0], first[i, 1], first[i, 2] = _hold_coefficients(i, fractional[i], half_trace, omega_squared)
+        second[i, 0], second[i, 1], second[i, 2] = _hold_coefficients(i, period - fractional[i], half_trace, omega_squared)
     for row in range(zeta.shape[0]):
         out[row, 0] = zeta[row]
         for sample in range(u_old.shape[1]):
-            _propagate(out[row, sample], u_old[row, sample], u_new[row, sample], period, fractional, equilibrium, half_trace, A_shifted, omega_squared, out[row, sample + 1])
+            for i in range(n):
+                q, q_dot = out[row, sample, i, 0], out[row, sample, i, 1]
+                if period > fractional[i]:
+                    q, q_dot = _hold_with(i, q, q_dot, u_old[row, sample, i], first[i, 0], first[i, 1], first[i, 2], equilibrium, A_shifted)
+                    q, q_dot = _hold_with(i, q, q_dot, u_new[row, sample, i], second[i, 0], second[i, 1], second[i, 2], equilibrium, A_shifted)
+                else:
+                    q, q_dot = _hold(i, q, q_dot, u_old[row, sample, i], period, equilibrium, half_trace, A_shifted, omega_squared)
+                out[row, sample + 1, i, 0] = q
+                out[row, sample + 1, i, 1] = q_dot
 
 
 @numba.njit(cache=True)
 def _hold(i, q, q_dot, u, duration, equilibrium, half_trace, A_shifted, omega_squared):
     """Joint i's zeta_eq(u) + e^{A s} (zeta - zeta_eq(u)) after holding u for s = ``duration``."""
-    q_eq = equilibrium[i, 0] * u
-    q_dot_eq = equilibrium[i, 1] * u
-    d0 = q - q_eq
-    d1 = q_dot - q_dot_eq
-    s0 = A_shifted[i, 0, 0] * d0 + A_shifted[i, 0, 1] * d1
-    s1 = A_shifted[i, 1, 0] * d0 + A_shifted[i, 1, 1] * d1
+    cosine, sine_over_omega, scale = _hold_coefficients(i, duration, half_trace, omega_squared)
+    return _hold_with(i, q, q_dot, u, cosine, sine_over_omega, scale, equilibrium, A_shifted)
+
+
+@numba.njit(cache=True)
+def _hold_coefficients(i, duration, half_trace, omega_squared):
+    """Joint i's e^{A s} = scale (cosine I + sine_over_omega (A - m I)) for s = ``duration``
+    (class docstring): (cosine, sine_over_omega, scale)."""
     w2 = omega_squared[i]
     if w2 > 0.0:
         omega = math.sqrt(w2)
@@ -257,7 +274,18 @@ def _hold(i, q, q_dot, u, duration, equilibrium, half_trace, A_shifted, omega_sq
         cosine, sine_over_omega = math.cosh(kappa * duration), math.sinh(kappa * duration) / kappa
     else:
         cosine, sine_over_omega = 1.0, duration
-    scale = math.exp(half_trace[i] * duration)
+    return cosine, sine_over_omega, math.exp(half_trace[i] * duration)
+
+
+@numba.njit(cache=True)
+def _hold_with(i, q, q_dot, u, cosine, sine_over_omega, scale, equilibrium, A_shifted):
+    """``_hold`` given its coefficients (``_hold_coefficients``)."""
+    q_eq = equilibrium[i, 0] * u
+    q_dot_eq = equilibrium[i, 1] * u
+    d0 = q - q_eq
+    d1 = q_dot - q_dot_eq
+    s0 = A_shifted[i, 0, 0] * d0 + A_shifted[i, 0, 1] * d1
+    s1 = A_shifted[i, 1, 0] * d0 + A_shifted[i, 1, 1] * d1
     return q_eq + scale * (cosine * d0 + sine_over_omega * s0), q_dot_eq + scale * (cosine * d1 + sine_over_omega * s1)
 
 

@@ -17,7 +17,7 @@ Both are sampled every ``period`` s into a ``JointTrajectory`` without calling
 ``Trajectory.at_time`` per sample: each joint's Ruckig profile is a chain of at most ten
 constant-jerk pieces (two of the brake pre-trajectory that Ruckig prepends when the start state
 will exceed a limit, the seven phases of the profile, then a hold at constant acceleration), and
-``sample_profiles`` evaluates them for all samples and joints at once with NumPy.
+``sample_profiles`` evaluates them for all samples and joints in one compiled loop.
 
 Position limits. Ruckig (community version) does not enforce position limits, so a reset or stop
 stays within [lower, upper] only if it starts where a jerk-limited stop can: ``is_reset_safe``.
@@ -43,10 +43,10 @@ from __future__ import annotations
 
 import array
 import atexit
-import functools
 import math
 import weakref
 
+import numba
 import numpy as np
 import ruckig
 
@@ -84,15 +84,6 @@ _PIECE_MAP = np.array(
 _PIECE_MAP_REST = _PIECE_MAP.copy()
 _PIECE_MAP_REST[1:4, -1] = (_END, _ZERO, _ZERO)
 _DURATION_MAP = np.array([_ZERO, _ZERO, _ZERO, *range(0, 7), _INF])  # cumulative sum: piece starts, inf
-
-
-@functools.lru_cache(maxsize=16)
-def _gather_indices(n: int, at_rest: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Indices into the flat (n * _ROW) numbers: the pieces (5, n * 10) and durations (n, 11)."""
-    rows = _ROW * np.arange(n)
-    piece_map = _PIECE_MAP_REST if at_rest else _PIECE_MAP
-    pieces = (piece_map[:, None, :] + rows[None, :, None]).reshape(len(piece_map), n * _PIECES)
-    return pieces, _DURATION_MAP[None, :] + rows[:, None]
 
 
 def sample_profiles(profiles, times: np.ndarray, at_rest: bool = False, final: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -144,42 +135,66 @@ def _profile_numbers(profiles, ends: list[float] | None, numbers: list[float], b
 def _sample_numbers(numbers: list[float], brakes: list, n: int, times: np.ndarray, lengths: np.ndarray, at_rest: bool, shift: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The samples of n joints' profiles (``_profile_numbers``) at times[:lengths[i]] for joint i
     (times sorted, s): q, v, a flat, joint after joint (sum(lengths),). ``shift``: move each
-    joint's positions onto its final position (``sample_profiles``)."""
+    joint's positions onto its final position (``sample_profiles``). One compiled loop
+    (``_sample_pieces``)."""
     flat = np.frombuffer(array.array("d", numbers))
-    piece_indices, duration_indices = _gather_indices(n, at_rest)
-    pieces = flat.take(piece_indices)  # (5 fields, n * 10 pieces)
-    durations = flat.take(duration_indices)  # (n, 11)
-    for dof, brake in brakes:
-        durations[dof, 1:3] = brake.t
-        row = slice(dof * _PIECES, dof * _PIECES + 2)
-        pieces[1, row], pieces[2, row], pieces[3, row], pieces[4, row] = brake.p, brake.v, brake.a, brake.j
-    starts = np.cumsum(durations, axis=1)  # (n, 11): Ruckig's t_sum after the brake, then inf
-    pieces[0] = starts[:, :-1].ravel()
+    brake_dofs, brake_values = _NO_BRAKE_DOFS, _NO_BRAKES
+    if brakes:
+        brake_dofs = np.array([dof for dof, _ in brakes], dtype=np.int64)
+        brake_values = np.array([(*brake.t, *brake.p, *brake.v, *brake.a, *brake.j) for _, brake in brakes], dtype=float)
+    return _sample_pieces(flat, _PIECE_MAP_REST if at_rest else _PIECE_MAP, _DURATION_MAP, brake_dofs, brake_values, np.asarray(times, dtype=float),
+                          np.asarray(lengths, dtype=np.int64), shift)
 
-    # Piece k of a joint covers the samples from the first at or after its start to the first at or
-    # after the next piece's start (times is sorted): repeat each piece's fields that many times.
-    first = np.minimum(np.searchsorted(times, starts), lengths[:, None])
-    counts = (first[:, 1:] - first[:, :-1]).ravel()
-    start, p0, v0, a0, j = np.repeat(pieces, counts, axis=1)
-    uniform = bool(np.all(lengths == times.size))
-    # Each sample's time: joint after joint, times[:lengths[i]].
-    t = np.tile(times, n) if uniform else times[np.arange(start.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)]
-    dt = t - start
-    jerk_dt = dt * j
-    a = a0 + jerk_dt
-    v = v0 + dt * (a0 + 0.5 * jerk_dt)
-    q = p0 + dt * (v0 + dt * (0.5 * a0 + jerk_dt * (1.0 / 6.0)))
-    if shift:
-        shortfall = flat[_END::_ROW] - flat[_PROFILE_END::_ROW]  # final - p[7]
-        drifting = np.flatnonzero(np.abs(shortfall) > 1e-12)  # round-off below that is left alone
-        if drifting.size:
-            offsets = np.cumsum(lengths) - lengths
-            for dof in drifting:  # few: the joints whose profile ends short of the target
-                end = starts[dof, 9]
-                rows = slice(offsets[dof], offsets[dof] + lengths[dof])
-                joint_times = t[rows]
-                progress = np.minimum(joint_times / (end if end > 0.0 else 1.0), 1.0)
-                q[rows] += shortfall[dof] * np.where(joint_times < end, progress, 0.0)
+
+_NO_BRAKE_DOFS, _NO_BRAKES = np.empty(0, dtype=np.int64), np.empty((0, 10))  # _sample_numbers without brakes
+
+
+@numba.njit(cache=True)
+def _sample_pieces(flat, piece_map, duration_map, brake_dofs, brake_values, times, lengths, shift):
+    """``_sample_numbers`` (returns its q, v, a): joint i's ten constant-jerk pieces
+    (``_PIECE_MAP``) from its ``_ROW`` numbers in ``flat`` (for the joints ``brake_dofs``, the
+    brake phases' t, p, v, a, j from ``brake_values`` instead): piece k starts at the sum of the
+    durations before it and covers the samples from the first at or after its start to the first
+    at or after the next's; at time dt into it, a = a0 + j dt, v = v0 + dt (a0 + j dt / 2),
+    q = p0 + dt (v0 + dt (a0 / 2 + j dt / 6)). With ``shift``, a joint whose final position
+    differs from its profile's end by more than 1e-12 has its positions moved by that difference
+    times min(t / t_end, 1) before t_end."""
+    pieces = piece_map.shape[1]
+    q, v, a = np.empty(lengths.sum()), np.empty(lengths.sum()), np.empty(lengths.sum())
+    brake_of = np.full(lengths.shape[0], -1)  # each joint's row of brake_values, -1 without a brake
+    for index in range(brake_dofs.shape[0]):
+        brake_of[brake_dofs[index]] = index
+    starts = np.empty(pieces + 1)
+    first = np.empty(pieces + 1, dtype=np.int64)
+    offset = 0
+    for i in range(lengths.shape[0]):
+        base, length, brake = i * _ROW, lengths[i], brake_of[i]
+        total = 0.0
+        for k in range(pieces + 1):  # the pieces' starts: a cumulative sum of the durations
+            duration = brake_values[brake, k - 1] if brake >= 0 and (k == 1 or k == 2) else flat[base + duration_map[k]]
+            total = duration if k == 0 else total + duration
+            starts[k] = total
+            first[k] = min(np.searchsorted(times, total), length)
+        for k in range(pieces):
+            start = starts[k]
+            if brake >= 0 and k < 2:
+                p0, v0, a0, jerk = brake_values[brake, 2 + k], brake_values[brake, 4 + k], brake_values[brake, 6 + k], brake_values[brake, 8 + k]
+            else:
+                p0, v0, a0, jerk = flat[base + piece_map[1, k]], flat[base + piece_map[2, k]], flat[base + piece_map[3, k]], flat[base + piece_map[4, k]]
+            for sample in range(first[k], first[k + 1]):
+                dt = times[sample] - start
+                jerk_dt = dt * jerk
+                a[offset + sample] = a0 + jerk_dt
+                v[offset + sample] = v0 + dt * (a0 + 0.5 * jerk_dt)
+                q[offset + sample] = p0 + dt * (v0 + dt * (0.5 * a0 + jerk_dt * (1.0 / 6.0)))
+        shortfall = flat[base + _END] - flat[base + _PROFILE_END]  # final - p[7]
+        if shift and abs(shortfall) > 1e-12:  # round-off below that is left alone
+            end = starts[pieces - 1]  # where the profile ends
+            for sample in range(length):
+                t = times[sample]
+                progress = min(t / (end if end > 0.0 else 1.0), 1.0)
+                q[offset + sample] += shortfall * (progress if t < end else 0.0)
+        offset += length
     return q, v, a
 
 
@@ -330,18 +345,17 @@ class ResetPlanner:
         q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
         if q.ndim != 2:
             raise ValueError(f"plan_reset_batch: q, v, a must be (B, {_DOFS}), got shape {q.shape}")
-        target = np.broadcast_to(np.asarray(q_target, dtype=float), q.shape) if np.shape(q_target) in ((_DOFS,), q.shape) else q_target
-        try:
-            states = np.stack([q, v, a, target], axis=1)  # (B, 4, 8)
-        except ValueError:
-            states = None
-        if states is None or states.shape != (q.shape[0], 4, _DOFS) or not np.isfinite(states).all():
-            for row in range(q.shape[0]):
-                self._validated("plan_reset", ("q", "v", "a", "q_target"), (q[row], v[row], a[row], np.asarray(target)[row] if np.ndim(target) == 2 else target))
+        states = None
+        if q.shape[1:] == (_DOFS,) and v.shape == q.shape and a.shape == q.shape and np.shape(q_target) in ((_DOFS,), q.shape):
+            states = np.empty((q.shape[0], 4, _DOFS))  # (B, 4, 8): q, v, a, target
+            states[:, 0], states[:, 1], states[:, 2], states[:, 3] = q, v, a, np.asarray(q_target, dtype=float)
+        if states is None or not np.isfinite(states).all():
+            for row in range(q.shape[0]):  # the first bad vector raises, named
+                self._validated("plan_reset", ("q", "v", "a", "q_target"), (q[row], v[row], a[row], q_target[row] if np.ndim(q_target) == 2 else q_target))
             raise ValueError(f"plan_reset_batch: q, v, a, q_target must be (B, {_DOFS}) finite values (q_target may be ({_DOFS},)), got shapes {q.shape}, {v.shape}, {a.shape}, {np.shape(q_target)}")
-        outside = np.flatnonzero(~np.all((self._lower <= states[:, 3]) & (states[:, 3] <= self._upper), axis=-1))
-        if outside.size:
-            self._check_target("plan_reset", states[outside[0], 3])
+        inside = (self._lower <= states[:, 3]) & (states[:, 3] <= self._upper)
+        if not inside.all():
+            self._check_target("plan_reset", states[np.flatnonzero(~inside.all(axis=-1))[0], 3])
         rows = states.shape[0]
         plans: list[JointTrajectory | None] = [None] * rows
         errors = [""] * rows

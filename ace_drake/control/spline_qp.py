@@ -27,9 +27,10 @@ from __future__ import annotations
 import dataclasses
 
 import daqp
+import numba
 import numpy as np
 
-from ace_drake.control.trajectory import CommandLimits
+from ace_drake.control.trajectory import CommandLimits, acceleration_room
 from ace_drake.robot.trajectory import JointTrajectory
 
 EQUALITY = 5  # DAQP's sense flag for an equality row
@@ -104,6 +105,9 @@ class SegmentQp:
         kkt = np.block([[hessian[1:, 1:], equality_rows.T], [equality_rows, np.zeros((2, 2))]])
         self._kkt_inverse = np.linalg.inv(kkt)
         self._all_rows = np.ascontiguousarray(rows[:, 1:])  # unscaled, over a_1 .. a_M
+        # The right-hand matrices of the per-call products (transposed views, as they were taken per call).
+        self._kkt_inverse_T, self._inequality_rows_T = self._kkt_inverse.T, self._all_rows[:-2].T
+        self._velocity_map_T, self._position_map_T, self._interpolation_T = self._velocity_map.T, self._position_map.T, self._interpolation.T
         self._daqp = daqp.Model()
         self._daqp.settings = {**self._daqp.settings, "primal_tol": 1e-9}
         self._daqp.setup(self._hessian, np.zeros(M), self._rows, np.ones(self._sense.size), -np.ones(self._sense.size), self._sense)
@@ -126,13 +130,19 @@ class SegmentQp:
         where one binds, in row then joint order (as a loop of ``solve`` would)."""
         q0, v0, a0, q_terminal, v_terminal = (np.asarray(x, dtype=float) for x in (q0, v0, a0, q_terminal, v_terminal))
         shape = q0.shape
-        if len(shape) != 2 or shape[1] != 8 or not all(x.shape == shape and np.all(np.isfinite(x)) for x in (q0, v0, a0, q_terminal, v_terminal)):
-            raise ValueError(f"SegmentQp.solve_batch: q0, v0, a0, q_terminal, v_terminal must each be (B, 8) finite values, got shapes {[np.shape(x) for x in (q0, v0, a0, q_terminal, v_terminal)]}")
-        lower, upper = self._row_bounds(q0, v0, a0, q_terminal, v_terminal)  # (B, 8, M + rows)
-        linear = a0[..., None] * self._hessian_cross  # (B, 8, M)
-        rows = shape[0]
+        if len(shape) != 2 or shape[1] != 8 or not all(x.shape == shape for x in (v0, a0, q_terminal, v_terminal)):
+            self._raise_invalid(q0, v0, a0, q_terminal, v_terminal)
+        rows, M = shape[0], self.knots
+        # The bounds (B, 8, M + rows) of [x; rows x] with the start's contribution moved to the
+        # right, the cost's linear term (B, 8, M) and the KKT right-hand side [-f; b] (8 B, M + 2).
+        lower, upper = np.empty((rows, 8, self._sense.size)), np.empty((rows, 8, self._sense.size))
+        linear, right = np.empty((rows, 8, M)), np.empty((rows * 8, M + 2))
+        limits = self.limits
+        if not _row_bounds(q0, v0, a0, q_terminal, v_terminal, self._times, self._rows_start, self._hessian_cross, limits.acceleration,
+                           limits.velocity, limits.jerk, limits.lower, limits.upper, lower, upper, linear, right):
+            self._raise_invalid(q0, v0, a0, q_terminal, v_terminal)
         if self.solver == "daqp":
-            accelerations, status, failed = self._solve_daqp(linear, lower, upper)
+            accelerations, status, failed = self._solve_daqp(linear, lower, upper, right)
         else:
             solved = [self._solve_program(linear[row], lower[row], upper[row]) for row in range(rows)]
             failed = np.array([x is None for x, _ in solved], dtype=bool)
@@ -140,45 +150,29 @@ class SegmentQp:
             status = [text for _, text in solved]
         return self._checked(q0, v0, a0, accelerations, q_terminal, v_terminal, status, failed)
 
-    def _row_bounds(self, q0, v0, a0, q_terminal, v_terminal):
-        """Bounds (B, 8, N + rows) of [x; rows x], the start's contribution moved to the right,
-        for starts and targets (B, 8)."""
-        N, M, limits = self.samples, self.knots, self.limits
-        inner = self._times[1:N]
-        start_v = v0[..., None] + a0[..., None] * self._rows_start[: N - 1]
-        start_q = q0[..., None] + v0[..., None] * inner + a0[..., None] * self._rows_start[N - 1 : 2 * N - 2]
-        end_v = v0 + a0 * self._rows_start[-2]
-        end_q = q0 + v0 * self._times[N] + a0 * self._rows_start[-1]
-        box = np.repeat(np.broadcast_to(limits.acceleration, q0.shape)[..., None], M, axis=-1)
-        low_box = -box
-        # The terminal acceleration starts the reset: no more than its jerk-limited ramp to zero
-        # can take without passing the velocity limit.
-        low_box[..., -1], box[..., -1] = limits.acceleration_bounds(v_terminal)
-        speed = np.broadcast_to(limits.velocity[:, None], start_v.shape)
-        upper_q, lower_q = (np.broadcast_to(x[:, None], start_q.shape) for x in (limits.upper, limits.lower))
-        v_gap, q_gap = (v_terminal - end_v)[..., None], (q_terminal - end_q)[..., None]
-        upper = np.concatenate([box, speed - start_v, upper_q - start_q, v_gap, q_gap], axis=-1)
-        lower = np.concatenate([low_box, -speed - start_v, lower_q - start_q, v_gap, q_gap], axis=-1)
-        return lower, upper
+    @staticmethod
+    def _raise_invalid(*values) -> None:
+        raise ValueError(f"SegmentQp.solve_batch: q0, v0, a0, q_terminal, v_terminal must each be (B, 8) finite values, got shapes {[np.shape(x) for x in values]}")
 
-    def _solve_daqp(self, linear, lower, upper):
-        """The QP per joint (of rows (B, 8, ...)): the equality-constrained optimum where it
-        meets every bound (then it is the QP's optimum), else DAQP on a scaled problem: unknowns
-        x = a / A and each row divided by its norm, so row . a <= b becomes (row / |row|) . x <=
-        b / (A |row|), and the cost 0.5 a' H a + f' a becomes (up to the factor A^2) 0.5 x' H x +
-        (f / A)' x. H and the rows are then the same for every joint: one DAQP workspace, set up
-        once, takes new cost vectors and bounds. Returns the accelerations (B, 8, M), each
-        row's status and whether it failed (B,) (a row stops at its first joint DAQP fails on)."""
+    def _solve_daqp(self, linear, lower, upper, right):
+        """The QP per joint (of rows (B, 8, ...); right: the KKT right-hand sides [-f; b] (8 B,
+        M + 2)): the equality-constrained optimum where it meets every bound (then it is the
+        QP's optimum), else DAQP on a scaled problem: unknowns x = a / A and each row divided by
+        its norm, so row . a <= b becomes (row / |row|) . x <= b / (A |row|), and the cost
+        0.5 a' H a + f' a becomes (up to the factor A^2) 0.5 x' H x + (f / A)' x. H and the rows
+        are then the same for every joint: one DAQP workspace, set up once, takes new cost
+        vectors and bounds. Returns the accelerations (B, 8, M), each row's status and whether it
+        failed (B,) (a row stops at its first joint DAQP fails on)."""
         M = self.knots
         rows = linear.shape[0]
-        right = np.concatenate([-linear, upper[..., -2:]], axis=-1).reshape(rows * 8, M + 2)  # [-f; b]
-        solution = _product(right, self._kkt_inverse.T)[:, :M]
-        values = np.concatenate([solution, _product(solution, self._all_rows[:-2].T)], axis=1)
-        slack = self.tolerance * 1e-3
+        solution = _product(right, self._kkt_inverse_T)[:, :M]
         flat_lower, flat_upper, flat_linear = (x.reshape(rows * 8, -1) for x in (lower, upper, linear))
-        inside = np.all((values >= flat_lower[:, :-2] - slack) & (values <= flat_upper[:, :-2] + slack), axis=1)
+        inside = np.empty(rows * 8, dtype=np.bool_)
+        _meets_bounds(solution, _product(solution, self._inequality_rows_T), flat_lower, flat_upper, self.tolerance * 1e-3, inside)
         status = ["daqp: solved"] * rows
         failed = np.zeros(rows, dtype=bool)
+        if inside.all():
+            return solution.reshape(rows, 8, M), status, failed
         for index in np.flatnonzero(~inside):
             row, joint = divmod(int(index), 8)
             if failed[row]:
@@ -232,31 +226,17 @@ class SegmentQp:
         ``failed`` in the solver keep their status and no samples."""
         rows, M, N = q0.shape[0], self.knots, self.samples
         knots = np.concatenate([a0[..., None], accelerations], axis=-1).reshape(rows * 8, M + 1)
-        v = (v0.reshape(-1, 1) + _product(knots, self._velocity_map.T)).reshape(rows, 8, N + 1)
-        q = (q0.reshape(-1, 1) + v0.reshape(-1, 1) * self._times + _product(knots, self._position_map.T)).reshape(rows, 8, N + 1)
-        a = _product(knots, self._interpolation.T).reshape(rows, 8, N + 1)
-        knots = knots.reshape(rows, 8, M + 1)
+        # Samples as (B, N + 1, 8), contiguous per row, and each row's worst violation.
+        q, v, a, worst = np.empty((rows, N + 1, 8)), np.empty((rows, N + 1, 8)), np.empty((rows, N + 1, 8)), np.empty(rows)
         limits, tolerance = self.limits, self.tolerance
-        worst = np.max(
-            np.stack(
-                [
-                    np.max(np.abs(knots[..., 1:]) - limits.acceleration[:, None], axis=(1, 2)),
-                    np.max(np.abs(v) - limits.velocity[:, None], axis=(1, 2)),
-                    np.max(np.maximum(q - limits.upper[:, None], limits.lower[:, None] - q), axis=(1, 2)),
-                    np.max(np.abs(v[..., -1] - v_terminal), axis=1),
-                    np.max(np.abs(q[..., -1] - q_terminal), axis=1),
-                ]
-            ),
-            axis=0,
-        )
-        worst = np.maximum(worst, 0.0)
-        status = list(status)
+        _samples(q0, v0, knots, _product(knots, self._velocity_map_T), _product(knots, self._position_map_T), _product(knots, self._interpolation_T),
+                 self._times, q_terminal, v_terminal, limits.acceleration, limits.velocity, limits.lower, limits.upper, q, v, a, worst)
         success = ~failed & np.isfinite(worst) & (worst <= tolerance)
-        worst = np.where(failed, np.inf, worst)
-        for row in np.flatnonzero(~failed & ~success):
-            status[row] = f"{status[row]}, but a constraint is violated by {worst[row]:.3g}"
-        # Samples as (B, N + 1, 8), contiguous per row.
-        q, v, a = (np.ascontiguousarray(np.swapaxes(x, 1, 2)) for x in (q, v, a))
+        if not success.all():
+            status = list(status)
+            worst = np.where(failed, np.inf, worst)
+            for row in np.flatnonzero(~failed & ~success):
+                status[row] = f"{status[row]}, but a constraint is violated by {worst[row]:.3g}"
         return SegmentBatch(self.period, success, status, worst, q, v, a)
 
 
@@ -265,6 +245,95 @@ def _product(x: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     row's result does not depend on the batch it is in (one (8 B, k) product rounds differently
     with B, and OpenBLAS runs it on threads that here cost far more than they save)."""
     return np.matmul(x.reshape(-1, 8, x.shape[-1]), matrix).reshape(x.shape[0], matrix.shape[1])
+
+
+@numba.njit(cache=True)
+def _row_bounds(q0, v0, a0, q_terminal, v_terminal, times, rows_start, hessian_cross, acceleration, velocity, jerk, lower_q, upper_q,
+                lower, upper, linear, right):
+    """For starts and targets (B, 8) (rad or m, per s, per s^2): the bounds lower, upper (B, 8, M
+    + 2 (N - 1) + 2) of [x; rows x] (x the knot accelerations a_1 .. a_M: box |a_k| <= A, the
+    last within ``acceleration_room`` of v_T, so that the reset can start there; then v_1 ..
+    v_{N-1} within +-V, q_1 .. q_{N-1} within the position limits, then v_N = v_T, q_N = q_T),
+    with the start's contribution (rows_start: each row's a_0 coefficient) moved to the right;
+    the cost's linear term a_0 H_cross (B, 8, M) and the KKT right-hand side [-f; b] (8 B, M +
+    2). False if an input is not finite (the outputs are then meaningless)."""
+    B, M, N = q0.shape[0], linear.shape[2], times.shape[0] - 1
+    finite = True
+    for b in range(B):
+        for j in range(8):
+            x0, x1, x2, x3, x4 = q0[b, j], v0[b, j], a0[b, j], q_terminal[b, j], v_terminal[b, j]
+            if not (np.isfinite(x0) and np.isfinite(x1) and np.isfinite(x2) and np.isfinite(x3) and np.isfinite(x4)):
+                finite = False
+            r = 8 * b + j
+            for k in range(M):
+                linear[b, j, k] = x2 * hessian_cross[k]
+                right[r, k] = -linear[b, j, k]
+                upper[b, j, k] = acceleration[j]
+                lower[b, j, k] = -acceleration[j]
+            # The terminal acceleration starts the reset: no more than its jerk-limited ramp to
+            # zero can take without passing the velocity limit.
+            lower[b, j, M - 1] = -acceleration_room(-x4, velocity[j], acceleration[j], jerk[j])
+            upper[b, j, M - 1] = acceleration_room(x4, velocity[j], acceleration[j], jerk[j])
+            for k in range(N - 1):
+                start_v = x1 + x2 * rows_start[k]
+                upper[b, j, M + k] = velocity[j] - start_v
+                lower[b, j, M + k] = -velocity[j] - start_v
+                start_q = x0 + x1 * times[k + 1] + x2 * rows_start[N - 1 + k]
+                upper[b, j, M + N - 1 + k] = upper_q[j] - start_q
+                lower[b, j, M + N - 1 + k] = lower_q[j] - start_q
+            v_gap = x4 - (x1 + x2 * rows_start[2 * N - 2])
+            q_gap = x3 - (x0 + x1 * times[N] + x2 * rows_start[2 * N - 1])
+            lower[b, j, M + 2 * N - 2] = upper[b, j, M + 2 * N - 2] = right[r, M] = v_gap
+            lower[b, j, M + 2 * N - 1] = upper[b, j, M + 2 * N - 1] = right[r, M + 1] = q_gap
+    return finite
+
+
+@numba.njit(cache=True)
+def _meets_bounds(solution, values, lower, upper, slack, inside):
+    """inside (R,): whether joint problem r's accelerations solution[r] (M) and row values
+    values[r] (2 (N - 1)) lie within its inequality bounds lower[r], upper[r] (their first M + 2
+    (N - 1) entries), to within ``slack``."""
+    M = solution.shape[1]
+    for r in range(solution.shape[0]):
+        ok = True
+        for k in range(lower.shape[1] - 2):
+            x = solution[r, k] if k < M else values[r, k - M]
+            if not (x >= lower[r, k] - slack and x <= upper[r, k] + slack):
+                ok = False
+                break
+        inside[r] = ok
+
+
+@numba.njit(cache=True)
+def _samples(q0, v0, knots, velocity_terms, position_terms, accelerations, times, q_terminal, v_terminal, acceleration, velocity, lower, upper,
+             q, v, a, worst):
+    """The splines' samples q, v, a (B, N + 1, 8) from the starts (B, 8) and the knot
+    accelerations' contributions (8 B, N + 1) (v = v0 + velocity_terms, q = q0 + v0 t +
+    position_terms), and each row's largest violation (B,) of |a_k| <= A at the knots (8 B, M +
+    1; k >= 1), |v| <= V, the position limits and the terminal state, at least 0 (NaN if any is
+    NaN)."""
+    B, samples = q0.shape[0], times.shape[0]
+    for b in range(B):
+        largest, nan = -np.inf, False
+        for j in range(8):
+            r = 8 * b + j
+            for k in range(1, knots.shape[1]):
+                x = abs(knots[r, k]) - acceleration[j]
+                nan |= x != x
+                largest = max(largest, x)
+            for k in range(samples):
+                v[b, k, j] = v0[b, j] + velocity_terms[r, k]
+                q[b, k, j] = q0[b, j] + v0[b, j] * times[k] + position_terms[r, k]
+                a[b, k, j] = accelerations[r, k]
+                x = abs(v[b, k, j]) - velocity[j]
+                y = max(q[b, k, j] - upper[j], lower[j] - q[b, k, j])
+                nan |= x != x or y != y
+                largest = max(largest, x, y)
+            x = abs(v[b, samples - 1, j] - v_terminal[b, j])
+            y = abs(q[b, samples - 1, j] - q_terminal[b, j])
+            nan |= x != x or y != y
+            largest = max(largest, x, y)
+        worst[b] = np.nan if nan else max(largest, 0.0)
 
 
 @dataclasses.dataclass(frozen=True)

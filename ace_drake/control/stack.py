@@ -153,6 +153,7 @@ class ControlStack:
         self.resets = ResetPlanner(self.limits, self.period)
         self.collision_check = collision_check
         self._initial_plans: dict = {}  # initial_plan's results by their exact inputs (see there)
+        self._twice_braking = 2.0 * (self.control.stop_fraction * self.limits.acceleration)  # 2 A_s (action_towards)
 
     @property
     def segment_duration(self) -> float:
@@ -227,6 +228,9 @@ class ControlStack:
         if not q.shape[0]:
             return stages
         sets, mapped, infeasible = feasible_sets_batch(q, v, a, self.limits, self.control, self.period)
+        if mapped.all():  # the common case: every row (no copies of the sets)
+            target_q, target_v = map_action(actions, sets)
+            return [Stage(True, (target_q[row], target_v[row])) for row in range(q.shape[0])]
         for row in np.flatnonzero(~mapped):
             stages[row] = Stage(False, reason=f"infeasible start: {infeasible[row]}")
         rows = np.flatnonzero(mapped)
@@ -240,9 +244,11 @@ class ControlStack:
         """``segment`` for B starts (q, v, a) (B, 8) each and the mapping's Stages (B,): a failed
         target passes its reason on; the others' QPs at once (``SegmentQp.solve_batch``)."""
         stages = [Stage(False, reason=target.reason) if not target.ok else None for target in targets]
-        rows = np.array([row for row, stage in enumerate(stages) if stage is None], dtype=int)
-        if rows.size:
-            q, v, a = (np.asarray(x, dtype=float)[rows] for x in (q, v, a))
+        rows = [row for row, stage in enumerate(stages) if stage is None]
+        if rows:
+            q, v, a = (np.asarray(x, dtype=float) for x in (q, v, a))
+            if len(rows) < len(targets):
+                q, v, a = q[rows], v[rows], a[rows]
             target_q = np.array([targets[row].value[0] for row in rows])
             target_v = np.array([targets[row].value[1] for row in rows])
             solved = self.qp.solve_batch(q, v, a, target_q, target_v)
@@ -318,10 +324,9 @@ class ControlStack:
         q, v = np.asarray(q, dtype=float), np.asarray(v, dtype=float)
         sets = feasible_sets(q, v, a, self.limits, self.control, self.period)
         error = np.asarray(q_goal, dtype=float) - q
-        braking = self.control.stop_fraction * self.limits.acceleration
-        v_target = np.sign(error) * np.minimum(self.limits.velocity, np.sqrt(2.0 * braking * np.abs(error)))
+        v_target = np.sign(error) * np.minimum(self.limits.velocity, np.sqrt(self._twice_braking * np.abs(error)))
         q_target = q + 0.5 * (v + v_target) * self.segment_duration
-        return np.clip(inverse_map_action(q_target, v_target, sets), -1.0, 1.0)
+        return np.minimum(np.maximum(inverse_map_action(q_target, v_target, sets), -1.0), 1.0)  # np.clip without its overhead
 
     def protective_stop(self, q, v, a) -> tuple[JointTrajectory, bool]:
         """The fastest stop within the command limits from (q, v, a), and whether it is

@@ -9,7 +9,9 @@ prismatic joints in m, revolute in rad.
 from __future__ import annotations
 
 import dataclasses
+import math
 
+import numba
 import numpy as np
 
 from ace_drake.control.params import ControlParams
@@ -52,9 +54,11 @@ class CommandLimits:
         |v| <= V (v + a^2 / (2 J) <= V for a > 0, mirrored), so that a reset or stop that starts
         there stays within the velocity limits."""
         v = np.asarray(v, dtype=float)
-        upper = np.sqrt(2.0 * self.jerk * np.maximum(self.velocity - v, 0.0))
-        lower = np.sqrt(2.0 * self.jerk * np.maximum(self.velocity + v, 0.0))
-        return -np.minimum(self.acceleration, lower), np.minimum(self.acceleration, upper)
+        shape = np.broadcast_shapes(v.shape, self.velocity.shape)
+        flat = np.ascontiguousarray(np.broadcast_to(v, shape)).reshape(-1, self.velocity.shape[0])
+        lower, upper = np.empty(flat.shape), np.empty(flat.shape)
+        _acceleration_bounds(flat, self.velocity, self.acceleration, self.jerk, lower, upper)
+        return lower.reshape(shape), upper.reshape(shape)
 
     def violations(self, trajectory: JointTrajectory, tolerance: float = 1e-9) -> dict[str, int]:
         """How many samples break each bound (position, velocity, acceleration), with a relative
@@ -66,3 +70,20 @@ class CommandLimits:
         }
 
 
+@numba.njit(cache=True)
+def acceleration_room(v, V, A, J):
+    """The largest acceleration (per s^2) towards +v allowed at velocity v (per s) for a joint
+    with limits V, A, J (``CommandLimits.acceleration_bounds``: min(A, sqrt(2 J max(V - v, 0))));
+    NaN for a NaN v. The one definition, which the spline QP's kernel calls too."""
+    if np.isnan(v):
+        return np.nan
+    return min(A, math.sqrt(2.0 * J * max(V - v, 0.0)))
+
+
+@numba.njit(cache=True)
+def _acceleration_bounds(v, V, A, J, lower, upper):
+    """``CommandLimits.acceleration_bounds`` of velocities v (n, 8) into lower, upper (n, 8)."""
+    for i in range(v.shape[0]):
+        for j in range(v.shape[1]):
+            lower[i, j] = -acceleration_room(-v[i, j], V[j], A[j], J[j])
+            upper[i, j] = acceleration_room(v[i, j], V[j], A[j], J[j])

@@ -352,9 +352,12 @@ class TrajectoryCollisionChecker:
         bounded = self._bounded_ungated if gated is self._gated_pairs else np.array([p for p in self._bounded.tolist() if p not in gated], dtype=int)
         swept_open, smallest, X_WB = self._bounds.open_intervals(q, bend, BLOCK_SAMPLES, bounded, self.margin)
         min_distance = min(self.influence, smallest)
-        failing = np.flatnonzero(swept_open.any(axis=1))
         if not pairs and gated is self._gated_pairs and self._unbounded_gated:  # the common case: the swept boxes' pairs only
+            if not swept_open.any():  # and all of them cleared
+                return bounded[:0], swept_open[:0], min_distance, X_WB
+            failing = np.flatnonzero(swept_open.any(axis=1))
             return bounded[failing], swept_open[failing], min_distance, X_WB
+        failing = np.flatnonzero(swept_open.any(axis=1))
         pairs += bounded[failing].tolist()
         rows += list(swept_open[failing])
         for p in self._unbounded:  # pairs only the exact stage can check
@@ -648,6 +651,8 @@ class _Gate:
     def __post_init__(self):
         for array in (self.joints, self.origin, self.width, self.counts):  # shared by the checkers of one model
             array.setflags(write=False)
+        # box_touches' per-joint (joint, origin, width, table size) as plain Python numbers, read once
+        object.__setattr__(self, "_axes", tuple(zip(self.joints.tolist(), self.origin.tolist(), self.width.tolist(), self.counts.shape)))
 
     @staticmethod
     def from_boxes(pair: int, joints: np.ndarray, lower: np.ndarray, upper: np.ndarray, boxes: list) -> "_Gate":
@@ -686,7 +691,7 @@ class _Gate:
     def box_touches(self, lower: list[float], upper: list[float]) -> bool:
         """``touched`` for one box [lower, upper] (8,), in plain Python (fast)."""
         index = []
-        for j, origin, width, size in zip(self.joints.tolist(), self.origin.tolist(), self.width.tolist(), self.counts.shape):
+        for j, origin, width, size in self._axes:
             i0 = min(max(math.floor((lower[j] - origin) / width), 0), size - 2)
             i1 = min(max(math.floor((upper[j] - origin) / width), 0), size - 2) + 1
             index.append((i0, i1))

@@ -37,7 +37,13 @@ class SegmentActionMapper(LeafSystem):
 
     def CalcTarget(self, context, output):
         actions = self.action_port.Eval(context)
-        acting = np.flatnonzero(actions[:, ACTION_SIZE] > 0.5)
+        acting = actions[:, ACTION_SIZE] > 0.5
+        if acting.all():  # the common case: every row, no copies
+            start, actions = self.segment_start_state_port.Eval(context), actions[:, :ACTION_SIZE]
+            joints = start.shape[1] // 3
+            output.set_value(tuple(self.stack.map_batch(start[:, :joints], start[:, joints : 2 * joints], start[:, 2 * joints :], actions)))
+            return
+        acting = np.flatnonzero(acting)
         stages = [Stage(False, reason=NO_ACTION)] * self.batch
         if acting.size:
             start = self.segment_start_state_port.Eval(context)[acting]

@@ -57,6 +57,10 @@ class SegmentJointPlant(LeafSystem):
         joints = len(JOINT_NAMES)
         self.history = int(self.propagator.whole_periods.max()) + 2
         self._columns = np.arange(joints)
+        # Rows of [history, stream] holding each period's delayed inputs: u[n - k_i] (newer) and
+        # u[n - k_i - 1] (older), (T, 8); the same every tick.
+        self._newer = np.arange(timing.samples)[:, None] - self.propagator.whole_periods[None, :] + self.history
+        self._older = self._newer - 1
         default = JointPlantState(np.zeros((self.batch, joints, 2)), np.zeros((self.batch, self.history, joints)))
         self._state_index = self.DeclareAbstractState(AbstractValue.Make(default))
         self.command_stream_port = self.DeclareAbstractInputPort("command_stream", AbstractValue.Make(np.zeros((self.batch, timing.samples, joints))))
@@ -103,10 +107,8 @@ class SegmentJointPlant(LeafSystem):
         current = self.plant_state(context)
         stream = self.command_stream_port.Eval(context)
         commands = np.concatenate([current.commands, stream], axis=1)  # u[n0 - H] ... u[n0 + T - 1]
-        period = np.arange(self.timing.samples)[:, None]
-        newer = period - self.propagator.whole_periods[None, :] + self.history  # row of u[n - k_i]
-        u_new = commands[:, newer, self._columns]
-        u_old = commands[:, newer - 1, self._columns]
+        u_new = commands[:, self._newer, self._columns]
+        u_old = commands[:, self._older, self._columns]
         zeta = self.propagator.propagate_samples(current.zeta, u_old, u_new)
         value.set_value((JointMotion(self.propagator, zeta, u_old, u_new), commands[:, -self.history :]))
 

@@ -16,10 +16,17 @@ from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
 from ace_drake.systems.safety_supervisor import STATUS_SIZE, SupervisorState
 
 
-def plan_rows(plan: JointTrajectory, plan_start: int, samples: np.ndarray) -> np.ndarray:
-    """Row indices of ``plan`` (started at episode sample ``plan_start``) at episode ``samples``:
-    before its start its first row, after its end its last (``plan_state``'s rule)."""
-    return np.clip(samples - plan_start, 0, plan.samples)
+def plan_samples(plan: JointTrajectory, plan_start: int, first: int, out: np.ndarray) -> None:
+    """Fills out (k, 8) with the commanded positions of ``plan`` (started at episode sample
+    ``plan_start``) at episode samples first .. first + k - 1: before its start its first row,
+    after its end its last (``plan_state``'s rule), as slices of its samples."""
+    count, last = out.shape[0], plan.samples
+    start = first - plan_start  # the plan's row at out[0]
+    lead = min(max(-start, 0), count)  # samples before the plan's start
+    inside = min(max(last + 1 - start, 0), count)  # samples up to its end
+    out[:lead] = plan.q[0]
+    out[lead:inside] = plan.q[start + lead : start + inside]
+    out[inside:] = plan.q[last]
 
 
 class SegmentSafetySupervisor(LeafSystem):
@@ -135,10 +142,11 @@ class SegmentSafetySupervisor(LeafSystem):
         current = self.supervisor_states(context)
         ticks = self.episode_ticks_port.Eval(context)
         curtain = self.light_curtain_port.Eval(context) > 0.5
+        first_samples, boundaries = self.timing.first_sample(ticks).tolist(), self.timing.boundary_sample(ticks).tolist()
         decided = []
         segments = resets = None
         for row, state in enumerate(current):
-            sample = int(self.timing.first_sample(ticks[row]))
+            sample = first_samples[row]
             updated = state
             if curtain[row] and not state.stopped:
                 stop, free = self.stack.protective_stop(*plan_state(state.plan, max(sample - state.plan_start, 0)))
@@ -148,11 +156,11 @@ class SegmentSafetySupervisor(LeafSystem):
                     updated = dataclasses.replace(state, stopped=True, last_reason="protective stop would collide: keeping the checked plan")
             elif not curtain[row] and state.stopped:
                 updated = dataclasses.replace(state, stopped=False)
-            elif not curtain[row] and ticks[row] >= 1 and (state.hold_until is None or self.timing.boundary_sample(ticks[row]) >= state.hold_until):
+            elif not curtain[row] and ticks[row] >= 1 and (state.hold_until is None or boundaries[row] >= state.hold_until):
                 if segments is None:
                     segments, resets = self.segment_port.Eval(context), self.reset_port.Eval(context)
                 decision = decide_segment(self.stack, segments[row], resets[row])
-                boundary = int(self.timing.boundary_sample(ticks[row]))
+                boundary = boundaries[row]
                 if decision.accepted:
                     updated = dataclasses.replace(state, plan=decision.plan, plan_start=boundary, accepted=state.accepted + 1)
                 elif decision.refused:
@@ -165,17 +173,15 @@ class SegmentSafetySupervisor(LeafSystem):
 
     # ------------------------------------------------------------------------------ outputs
     def CalcCommandStream(self, context, output):
-        ticks = self.episode_ticks_port.Eval(context)
+        first_samples = self.timing.first_sample(self.episode_ticks_port.Eval(context)).tolist()
         previous = self.supervisor_states(context)
         stream = np.empty((self.batch, self.timing.samples, len(JOINT_NAMES)))
-        offsets = np.arange(self.timing.samples)
         for row, state in enumerate(self._decision_cache.Eval(context)):
-            samples = self.timing.first_sample(ticks[row]) + offsets
-            stream[row] = state.plan.q[plan_rows(state.plan, state.plan_start, samples)]
-            before = samples < state.plan_start  # a plan decided at the boundary: the old plan until then
-            if before.any():
+            first = first_samples[row]
+            plan_samples(state.plan, state.plan_start, first, stream[row])
+            if first < state.plan_start:  # a plan decided at the boundary: the old plan until then
                 old = previous[row]
-                stream[row, before] = old.plan.q[plan_rows(old.plan, old.plan_start, samples[before])]
+                plan_samples(old.plan, old.plan_start, first, stream[row, : state.plan_start - first])
         output.set_value(stream)
 
     def CalcSegmentStartState(self, context, output):
@@ -194,6 +200,6 @@ class SegmentSafetySupervisor(LeafSystem):
 
     def _states_at(self, context, samples: np.ndarray) -> np.ndarray:
         out = np.empty((self.batch, SEGMENT_START_STATE_SIZE))
-        for row, state in enumerate(self.supervisor_states(context)):
-            out[row] = np.concatenate(plan_state(state.plan, max(int(samples[row]) - state.plan_start, 0)))
+        for row, (state, sample) in enumerate(zip(self.supervisor_states(context), samples.tolist())):
+            out[row] = np.concatenate(plan_state(state.plan, max(sample - state.plan_start, 0)))
         return out
