@@ -6,7 +6,7 @@ import pytest
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
 from ace_drake.config import MODELS_DIR
 from ace_drake.contracts import HIT_PREDICTION_SIZE
-from ace_drake.control.hit_prediction import HitPredictor, Prediction, joint_lag
+from ace_drake.control.hit_prediction import IMMINENT_MARGIN, KEEP_TOLERANCE, Flight, HitPredictor, Prediction, joint_lag
 from ace_drake.control.params import ControlParams, ReturnerParams
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.flight import rk4_step
@@ -227,3 +227,67 @@ def test_compiled_predict_and_bounce_behind_are_the_python_reference_bit_for_bit
     assert {ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR} <= kinds and past_the_table > 0 and bounces > 10
     with pytest.raises(ValueError, match="NaN"):
         predictor.predict(np.full(9, np.nan))
+
+
+def reference_candidates(predictor, flight, prediction, include_current=False, keep=None):
+    """``HitPredictor.candidates`` with its ranking in NumPy: the reference the compiled ranking
+    (``_hit_order``) equals."""
+    params = predictor.params
+    table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
+    first_is_bounce = bool(table_contacts) and table_contacts[0][1] == ContactKind.TABLE and table_contacts[0][2][0] < 0.0
+    if flight.bounce_time is not None:
+        remembered = flight.bounce_time - flight.clock
+        if first_is_bounce and abs(table_contacts[0][0] - remembered) < IMMINENT_MARGIN:
+            bounce, after = table_contacts[0][0], table_contacts[1:]
+        elif remembered <= IMMINENT_MARGIN:
+            bounce, after = remembered, table_contacts
+        else:
+            return []
+    elif first_is_bounce:
+        bounce, after = table_contacts[0][0], table_contacts[1:]
+        if bounce < predictor.segment + IMMINENT_MARGIN:
+            flight.bounce_time = flight.clock + bounce
+    else:
+        return []
+    end = after[0][0] if after else np.inf
+    times, states = prediction.times, prediction.states
+    first = 0 if include_current else predictor._samples_per_segment
+    index = np.arange(first, len(times), predictor._samples_per_segment)
+    index = index[(times[index] > bounce) & (times[index] < end)]
+    z, x = states[index, 2], states[index, 0]
+    index = index[(z >= params.hit_height_min) & (z <= params.hit_height_max) & (x >= params.hit_x_min) & (states[index, 3] < 0.0)]
+    if index.size == 0:
+        return []
+    after_bounce = np.flatnonzero((times > bounce) & (times < end))
+    apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
+    order = sorted(index, key=lambda i: abs(times[i] - apex))
+    if keep is not None:
+        kept = [i for i in order if abs(times[i] - keep) < KEEP_TOLERANCE]
+        order = kept + [i for i in order if i not in kept]
+    return order
+
+
+def test_candidates_are_the_numpy_reference(predictor):
+    # Fresh and remembered bounces (re-timed, behind, too far ahead), with and without the
+    # current segment, kept hits on a candidate, off the grid, or none; a half-segment predictor
+    # (samples between the boundaries).
+    half = HitPredictor(PARAMS, ReturnerParams(prediction_step=0.016), predictor.segment, predictor.lead, predictor.lag)
+    rng = np.random.default_rng(5)
+    ranked = 0
+    for dut in (predictor, half):
+        for estimate in np.concatenate([_estimates_along_flights(), _random_estimates(100, 4)]):
+            prediction = dut.predict(estimate)
+            bounce = dut.bounce_behind(estimate)
+            for include_current in (False, True):
+                for bounce_time in (bounce, 0.004, -0.2, 0.3, None):
+                    clock = float(rng.choice([0.0, 0.032]))
+                    preferred = dut.candidates(Flight(clock=clock, bounce_time=bounce_time), prediction, include_current)
+                    keeps = [None, 0.5 * dut.segment] + ([float(prediction.times[preferred[-1]])] if preferred else [])
+                    for keep in keeps:
+                        mine, theirs = Flight(clock=clock, bounce_time=bounce_time), Flight(clock=clock, bounce_time=bounce_time)
+                        actual = dut.candidates(mine, prediction, include_current, keep)
+                        expected = reference_candidates(dut, theirs, prediction, include_current, keep)
+                        assert actual == expected and mine == theirs
+                        assert all(type(i) is np.int64 for i in actual)
+                        ranked += len(actual) > 1 and keep is not None and actual[0] != preferred[0]
+    assert ranked > 20

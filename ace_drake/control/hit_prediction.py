@@ -211,23 +211,12 @@ class HitPredictor:
         else:
             return []  # no bounce on the robot's half ahead: an invalid shot, not to be touched
         end = after[0][0] if after else np.inf
-        times, states = prediction.times, prediction.states
         # Hits at a segment boundary after the next (k >= 1), or from the one in the segment being
         # commanded (k = 0) with include_current.
         first = 0 if include_current else self._samples_per_segment
-        index = np.arange(first, len(times), self._samples_per_segment)
-        index = index[(times[index] > bounce) & (times[index] < end)]
-        z, x = states[index, 2], states[index, 0]
-        index = index[(z >= params.hit_height_min) & (z <= params.hit_height_max) & (x >= params.hit_x_min) & (states[index, 3] < 0.0)]
-        if index.size == 0:
-            return []
-        after_bounce = np.flatnonzero((times > bounce) & (times < end))
-        apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
-        order = sorted(index, key=lambda i: abs(times[i] - apex))
-        if keep is not None:
-            kept = [i for i in order if abs(times[i] - keep) < KEEP_TOLERANCE]
-            order = kept + [i for i in order if i not in kept]
-        return order
+        order = _hit_order(prediction.times, prediction.states, bounce, end, first, self._samples_per_segment, params.hit_height_min,
+                           params.hit_height_max, params.hit_x_min, np.nan if keep is None else keep)
+        return list(order)
 
 
 
@@ -370,3 +359,42 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
         if robot_bounces >= 2 or state[0] < hit_x_min or falling_out or now - first_sample > horizon:
             break
     return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], True
+
+
+@numba.njit(cache=True)
+def _hit_order(times, states, bounce, end, first, every, height_min, height_max, x_min, keep):
+    """``HitPredictor.candidates``' ranking of a prediction's samples times (J,) s, states (J, 9):
+    the indices first, first + every, ... strictly between ``bounce`` and ``end`` (s) where the
+    ball is in the hit window (height_min <= z <= height_max m, x >= x_min m, v_x < 0), nearest in
+    time to the top of the bounce (the highest sample strictly between bounce and end, the first
+    of equals) first, equals in index order; then the one within KEEP_TOLERANCE of ``keep`` (s;
+    NaN: none) moved to the front. Returns the indices (int64, possibly none)."""
+    index = np.empty(times.size, dtype=np.int64)
+    count = 0
+    for i in range(first, times.size, every):
+        if times[i] > bounce and times[i] < end:
+            z, x = states[i, 2], states[i, 0]
+            if z >= height_min and z <= height_max and x >= x_min and states[i, 3] < 0.0:
+                index[count] = i
+                count += 1
+    if count == 0:
+        return index[:0]
+    top, highest = -1, 0.0  # np.argmax's rule: the first maximum, a NaN counting as one
+    for i in range(times.size):
+        if times[i] > bounce and times[i] < end:
+            height = states[i, 2]
+            if top < 0 or (not np.isnan(highest) and (height > highest or np.isnan(height))):
+                top, highest = i, height
+    index = index[:count]
+    ranked = index[np.argsort(np.abs(times[index] - times[top]), kind="mergesort")]  # stable: equals keep their order
+    order = np.empty(count, dtype=np.int64)
+    moved = 0
+    for i in ranked:
+        if abs(times[i] - keep) < KEEP_TOLERANCE:
+            order[moved] = i
+            moved += 1
+    for i in ranked:
+        if not abs(times[i] - keep) < KEEP_TOLERANCE:
+            order[moved] = i
+            moved += 1
+    return order
