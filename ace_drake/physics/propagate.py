@@ -263,17 +263,14 @@ def guard_gaps(states: np.ndarray, kinds: Sequence[ContactKind], params: BallPhy
 def first_contact_time(x0, h, crossing, kinds, params):
     """Earliest contact time tau (M,) s within each ball's step, and the index (M,) of its kind in
     ``kinds``, for balls x0 (M, 9) with steps h (M,) s whose guards ``crossing`` (M, len(kinds))
-    bool go from positive to non-positive over the step (``locate_root`` on each)."""
-    tau = np.full(x0.shape[0], np.inf)
-    kind_index = np.zeros(x0.shape[0], dtype=int)
-    for k, kind in enumerate(kinds):
-        rows = np.flatnonzero(crossing[:, k])
-        if rows.size == 0:
-            continue
-        tau_k = locate_root(x0[rows], h[rows], lambda s, _tau: contact_gap(kind, s, params), params)
-        better = tau_k < tau[rows]
-        tau[rows[better]] = tau_k[better]
-        kind_index[rows[better]] = k
+    bool go from positive to non-positive over the step: ``locate_root`` on each, ties to the
+    earlier kind. Compiled, ball by ball (``_first_contact_rows``: ``_locate_root_one`` is
+    ``locate_root``'s iteration operation for operation, and its rows are independent)."""
+    x0 = np.ascontiguousarray(x0, dtype=float)
+    tau, kind_index = np.empty(x0.shape[0]), np.empty(x0.shape[0], dtype=np.int64)
+    _first_contact_rows(x0, np.ascontiguousarray(h, dtype=float), np.ascontiguousarray(crossing, dtype=np.bool_),
+                        np.array([int(kind) for kind in kinds], dtype=np.int64), _contact_constants(params), *flight_constants(params.aero),
+                        tau, kind_index)
     return tau, kind_index
 
 
@@ -482,6 +479,22 @@ def _simulate_ball(x, duration, dt, n_steps, kinds, stops, c, drag_scale, densit
         times[step + 1] = t
         states[step + 1] = x
     return count, stop
+
+
+@numba.njit(cache=True)
+def _first_contact_rows(x0, h, crossing, kinds, c, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                        drag_table_scale, magnus_scale, tau, kind_index):
+    """``first_contact_time`` of balls x0 (M, 9), steps h (M,), crossings (M, K) of the ContactKind
+    values ``kinds`` (K,), into tau (M,) and kind_index (M,) (c: ``_contact_constants``)."""
+    k1, k2, k3, k4, trial, x1 = np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9)
+    for i in range(x0.shape[0]):
+        tau[i], kind_index[i] = np.inf, 0
+        for k in range(kinds.shape[0]):
+            if crossing[i, k]:
+                tau_k = _locate_root_one(kinds[k], x0[i], h[i], c, drag_scale, density_ratio, slope, radius, offset, cap, weight,
+                                         drag_model, magnus_model, drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
+                if tau_k < tau[i]:
+                    tau[i], kind_index[i] = tau_k, k
 
 
 @numba.njit(cache=True)

@@ -306,9 +306,6 @@ class _Segment:
         t0, h = self.times[k], self.steps[k]
         x = self.samples[rows, k].copy()
         gaps = guard_gaps(x, self.kinds, params)
-        clear = np.ones(rows.size, dtype=bool)  # the racket gap > 0 now
-        if self.racket is not None:
-            clear = contact.racket_gap(x[:, POSITION], self.p_WR[rows, k], self.R_WR[rows, k], params.racket, self.radius) > 0.0
         remaining, elapsed = h.copy(), np.zeros(rows.size)
         changed = np.zeros(rows.size, dtype=bool)
         for _ in range(MAX_EVENTS_PER_STEP):
@@ -324,13 +321,12 @@ class _Segment:
             static = np.flatnonzero(crossing.any(axis=-1))
             if static.size:
                 tau[static], kind_index[static] = first_contact_time(x0[static], h0[static], crossing[static], self.kinds, params)
-            clear1 = np.ones(live.size, dtype=bool)
             if self.racket is not None:
-                tau_racket, clear1 = self._racket_crossing(rows[live], k[live], x0, x1, h0, t0[live] + elapsed[live], elapsed[live] == 0.0, clear[live])
+                tau_racket = self._racket_crossing(rows[live], k[live], x0, x1, h0, t0[live] + elapsed[live], elapsed[live] == 0.0)
                 earlier = tau_racket < tau
                 tau[earlier], kind_index[earlier] = tau_racket[earlier], RACKET
             free = np.isinf(tau)
-            x[live[free]], gaps[live[free]], clear[live[free]] = x1[free], gaps1[free], clear1[free]
+            x[live[free]], gaps[live[free]] = x1[free], gaps1[free]
             remaining[live[free]] = 0.0
             hit = np.flatnonzero(~free)
             if hit.size == 0:
@@ -348,19 +344,17 @@ class _Segment:
                 i = touched[j]
                 x[i] = self._apply_static_contact(rows[i], kind_index[hit[j]], t0[i] + elapsed[i], x_pre[j])
             gaps[touched] = guard_gaps(x[touched], self.kinds, params)
-            if self.racket is not None:
-                p, R, _, _ = self.racket.state_at(rows[touched], t0[touched] + elapsed[touched])
-                clear[touched] = contact.racket_gap(x[touched, POSITION], p, R, params.racket, self.radius) > 0.0
         unfinished = np.flatnonzero(remaining > 0.0)  # more than MAX_EVENTS_PER_STEP contacts: fly on
         if unfinished.size:
             x[unfinished] = rk4_step(x[unfinished], remaining[unfinished], params.aero)
         return x, changed
 
-    def _racket_crossing(self, envs, k, x0, x1, h0, t_start, at_sample, clear0):
+    def _racket_crossing(self, envs, k, x0, x1, h0, t_start, at_sample):
         """The first time (s after t_start; inf if none) within (0, h0] at which each ball's racket
-        gap goes from positive to non-positive, and whether the gap is positive at h0 (the step's
-        end). x0, x1 (m, 9): the ball at t_start and t_start + h0; at_sample: t_start is the
-        sample time times[k]; clear0: the gap is positive at t_start."""
+        gap goes from positive to non-positive. x0, x1 (m, 9): the ball at t_start and t_start +
+        h0; at_sample: t_start is the sample time times[k]. The gap at t_start is needed only where
+        the screens leave the step open, so it is computed only there (each row's gap is the same
+        whatever rows it is computed with)."""
         params = self.params
         p_R0, R_R0 = self.p_WR[envs, k].copy(), self.R_WR[envs, k].copy()
         moved = np.flatnonzero(~at_sample)
@@ -370,19 +364,17 @@ class _Segment:
         speed = ball_speed + self.racket_speed[envs, k]
         d0, d1 = _distances(x0[:, POSITION], p_R0), _distances(x1[:, POSITION], self.p_WR[envs, k + 1])
         tau = np.full(envs.size, np.inf)
-        clear1 = np.ones(envs.size, dtype=bool)
         c = np.flatnonzero(0.5 * (d0 + d1 - speed * h0) - self.reach <= GAP_SCREEN_MARGIN)
         if c.size == 0:
-            return tau, clear1
+            return tau
         # The exact gaps at the ends and the gap's rate: most steps near the blade end here.
         g0 = contact.racket_gap(x0[c, POSITION], p_R0[c], R_R0[c], params.racket, self.radius)
         g1 = contact.racket_gap(x1[c, POSITION], self.p_WR[envs[c], k[c] + 1], self.R_WR[envs[c], k[c] + 1], params.racket, self.radius)
         gap_rate = self._gap_rate(speed[c], envs[c], k[c])
-        clear1[c] = g1 > 0.0
         close = 0.5 * (g0 + g1 - gap_rate * h0[c]) <= GAP_SCREEN_MARGIN
-        c, gap_rate = c[close], gap_rate[close]
+        c, gap_rate, clear0 = c[close], gap_rate[close], g0[close] > 0.0  # clear0: the gap is positive at t_start
         if c.size == 0:
-            return tau, clear1
+            return tau
         count = np.clip(np.ceil(gap_rate * h0[c] / SUBSAMPLE_TRAVEL), 1, MAX_SUBSAMPLES).astype(int)
         owner = np.repeat(np.arange(c.size), count)
         first = np.cumsum(count) - count
@@ -395,11 +387,10 @@ class _Segment:
         if inner.size:
             p_R[inner], R_R[inner] = self.racket.state_at(envs[c][owner[inner]], t_start[c][owner[inner]] + s[inner])[:2]
         positive = contact.racket_gap(balls[:, POSITION], p_R, R_R, params.racket, self.radius) > 0.0
-        before = np.where(j == 1, clear0[c][owner], np.roll(positive, 1))
-        clear1[c] = positive[last]
+        before = np.where(j == 1, clear0[owner], np.roll(positive, 1))
         crossing = np.flatnonzero(before & ~positive)
         if crossing.size == 0:
-            return tau, clear1
+            return tau
         found, index = np.unique(owner[crossing], return_index=True)  # each owner's first crossing
         index = crossing[index]
         lower = np.where(j[index] == 1, 0.0, s[index - 1])
@@ -411,7 +402,7 @@ class _Segment:
             return contact.racket_gap(states[:, POSITION], p, R, params.racket, self.radius)
 
         tau[rows] = locate_root(x0[rows], s[index], gap, params, lower=lower)
-        return tau, clear1
+        return tau
 
     def _apply_racket_contacts(self, envs: np.ndarray, tau: np.ndarray, pre: np.ndarray) -> np.ndarray:
         """The states (m, 9) after racket contacts of environments envs (m,) at tau (m,) s after
