@@ -256,7 +256,7 @@ def guard_gaps(states: np.ndarray, kinds: Sequence[ContactKind], params: BallPhy
     gaps = np.empty((states.shape[0], len(kinds)))
     for k, kind in enumerate(kinds):
         bound = contact_gap_lower_bound(kind, states[:, POSITION], params)
-        gaps[:, k] = bound if np.all(bound > GAP_SCREEN_MARGIN) else contact_gap(kind, states, params)
+        gaps[:, k] = bound if (bound > GAP_SCREEN_MARGIN).all() else contact_gap(kind, states, params)
     return gaps
 
 

@@ -162,15 +162,15 @@ def propagate_segment(
     active = np.ones(n_balls, dtype=bool) if active is None else np.asarray(active)
     if active.shape != (n_balls,) or active.dtype != bool:
         raise ValueError(f"propagate_segment: active must be a bool array ({n_balls},), got {active.dtype} {active.shape}")
-    if not np.all(np.isfinite(states[active])):
+    if not np.isfinite(states[active]).all():  # array methods: np.all's dispatch costs more than the test here
         raise ValueError("propagate_segment: states of active rows contain NaN or inf")
     start_times = np.asarray(start_times, dtype=float)
-    if start_times.shape != (n_balls,) or not np.all(np.isfinite(start_times)):
+    if start_times.shape != (n_balls,) or not np.isfinite(start_times).all():
         raise ValueError(f"propagate_segment: start_times must be ({n_balls},) finite seconds, got shape {start_times.shape}")
     times, steps = _time_grid(float(duration), float(dt))
     perturb_seeds = None if perturb_seeds is None else _integers("perturb_seeds", perturb_seeds, n_balls)
     event_counts = np.zeros(n_balls, dtype=int) if event_counts is None else _integers("event_counts", event_counts, n_balls)
-    if np.any(event_counts < 0):
+    if (event_counts < 0).any():
         raise ValueError(f"propagate_segment: event_counts must be >= 0, got {event_counts}")
     if racket is not None:
         _check_racket(racket, times, n_balls)
@@ -212,7 +212,7 @@ def _integers(name: str, values, n_balls: int) -> np.ndarray:
 
 def _check_racket(racket: RacketMotion, times: np.ndarray, n_balls: int) -> None:
     racket_times = np.asarray(racket.times, dtype=float)
-    if racket_times.shape != times.shape or not np.max(np.abs(racket_times - times)) <= 1e-12:
+    if racket_times.shape != times.shape or not np.abs(racket_times - times).max() <= 1e-12:
         raise ValueError(f"propagate_segment: racket.times must be the step times {times.shape} (0, dt, ..., duration), got {racket_times.shape}")
     expected = {"p_WR": (3,), "R_WR": (3, 3), "w_WR": (3,), "v_WR": (3,)}
     values = [np.asarray(getattr(racket, name)) for name in expected]
@@ -243,9 +243,9 @@ class _Segment:
         if racket is not None:
             p, R, w, v = (np.asarray(a, dtype=float) for a in (racket.p_WR, racket.R_WR, racket.w_WR, racket.v_WR))
             self.p_WR, self.R_WR, self.w_WR, self.v_WR = p, R, w, v
-            self.racket_speed, self.racket_turn = np.empty((n_balls, n_steps)), np.empty((n_balls, n_steps))  # m/s, rad/s
+            self.racket_speed = np.empty((n_balls, n_steps))  # m/s
             _speed_bound_rows(v, RACKET_ACCELERATION_BOUND * steps, self.racket_speed)
-            _speed_bound_rows(w, RACKET_ANGULAR_ACCELERATION_BOUND * steps, self.racket_turn)
+            self._racket_turn = None  # rad/s, computed when first needed (``racket_turn``)
 
     # ------------------------------------------------------------------ the passes
     def propagate(self, rows: np.ndarray) -> None:
@@ -290,6 +290,16 @@ class _Segment:
             flags[env[exact], k[exact]] = True
             flagged = flagged or exact.any()
         return bool(flagged)
+
+    @property
+    def racket_turn(self) -> np.ndarray:
+        """(B, n) rad/s: a bound on the racket's angular speed over each step (``_speed_bound`` of
+        its angular velocity samples, with RACKET_ANGULAR_ACCELERATION_BOUND); needed only near the
+        blade, so computed on first use."""
+        if self._racket_turn is None:
+            self._racket_turn = np.empty(self.racket_speed.shape)
+            _speed_bound_rows(self.w_WR, RACKET_ANGULAR_ACCELERATION_BOUND * self.steps, self._racket_turn)
+        return self._racket_turn
 
     def _gap_rate(self, speed, env, k):
         """A bound (m/s) on the racket gap's rate over step k of environments env, given the bound
