@@ -118,9 +118,10 @@ class HitPredictor:
         preferred hit (s; ``keep``: ``preferred_hit``), ball state there (p m, v m/s, w rad/s)],
         or zeros without a valid estimate or a hit."""
         hit = self.preferred_hit(estimate, keep) if valid else None
-        if hit is None:
-            return np.zeros(HIT_PREDICTION_SIZE)
-        return np.concatenate([[1.0, hit[0]], hit[1]])
+        features = np.zeros(HIT_PREDICTION_SIZE)
+        if hit is not None:
+            features[0], features[1], features[2:] = 1.0, hit[0], hit[1]
+        return features
 
     def bounce_behind(self, estimate: np.ndarray, horizon: float = 1.0, dt: float = 0.02) -> float | None:
         """When (s, < 0: before the observation) the ball of ``estimate`` (9,) bounced on the
