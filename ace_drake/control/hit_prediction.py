@@ -29,7 +29,7 @@ from ace_drake.control.joint_model import ramp_tracking_lag
 from ace_drake.control.params import ControlParams, ReturnerParams
 from ace_drake.physics.flight import flight_constants, rk4_one
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.physics.propagate import MAX_EVENTS_PER_STEP, ContactKind, _contact_constants, _simulate_ball
+from ace_drake.physics.propagate import ContactKind, contact_constants, simulate_ball_arrays
 from ace_drake.robot.params import RobotScenario
 
 _PREDICTION_KINDS = (ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR)  # predict's guards, in its order
@@ -84,7 +84,7 @@ class HitPredictor:
         self._samples_per_segment = max(1, round(segment / params.prediction_step))
         self._step = segment / self._samples_per_segment
         self._flight = flight_constants(physics.aero)  # the compiled kernels' constants
-        self._contact = _contact_constants(physics)
+        self._contact = contact_constants(physics)
 
     @classmethod
     def for_robot(cls, scenario: RobotScenario, control: ControlParams, physics: BallPhysicsParams, params: ReturnerParams | None = None) -> HitPredictor:
@@ -262,26 +262,11 @@ def _grown(array, size):
 
 
 @numba.njit(cache=True)
-def _leg(state, duration, dt, kinds, stops, c, flight):
-    """``propagate.simulate_ball`` of one ball state (9,) (not changed) for ``duration`` s in steps
-    of dt s with the contact ``kinds`` (ContactKind values), stopping at those with ``stops``:
-    (times (n+1,), states (n+1, 9), event kinds, times, states before and after (count,), the
-    index of the stopping event or -1)."""
-    n_steps = int(math.ceil(duration / dt - 1e-9))
-    times, states = np.empty(n_steps + 1), np.empty((n_steps + 1, 9))
-    capacity = MAX_EVENTS_PER_STEP * n_steps
-    event_kinds, event_times = np.empty(capacity, dtype=np.int64), np.empty(capacity)
-    event_pre, event_post = np.empty((capacity, 9)), np.empty((capacity, 9))
-    count, stop = _simulate_ball(state.copy(), duration, dt, n_steps, kinds, stops, c, *flight, times, states, event_kinds,
-                                 event_times, event_pre, event_post)
-    return times, states, event_kinds[:count], event_times[:count], event_pre[:count], event_post[:count], stop
-
-
-@numba.njit(cache=True)
 def _predict(estimate, first_sample, step, segment, table_length, table_width, hit_x_min, hit_height_min, horizon, c, *flight):
     """``HitPredictor.predict`` of one ball estimate (9,): its legs, the bookkeeping between them
-    and its stopping rule, in ``predict``'s order of operations. ``c``: the contact constants
-    (``propagate._contact_constants``); ``flight``: ``flight_constants``. Returns (times (J,),
+    and its stopping rule, in ``predict``'s order of operations; each leg is
+    ``propagate.simulate_ball_arrays``. ``c``: the contact constants
+    (``propagate.contact_constants``); ``flight``: ``flight_constants``. Returns (times (J,),
     states (J, 9), the contacts' times (K,), ContactKind values (K,) and states just before
     (K, 9), whether every leg started from a finite state)."""
     times, states = np.empty(64), np.empty((64, 9))
@@ -300,7 +285,7 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
         if lead_in > 1e-9:
             if not np.all(np.isfinite(state)):
                 return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], False
-            _, leg_states, event_kinds, event_times, event_pre, event_post, stopped = _leg(state, lead_in, lead_in, kinds, stops, c, flight)
+            _, leg_states, event_kinds, event_times, event_pre, event_post, stopped = simulate_ball_arrays(state, lead_in, lead_in, kinds, stops, c, *flight)
             events = event_kinds.size
             if stopped < 0:
                 state, now = leg_states[-1].copy(), upcoming
@@ -315,8 +300,8 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
         if stopped < 0:
             if not np.all(np.isfinite(state)):
                 return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], False
-            leg_times, leg_states, event_kinds, event_times, event_pre, event_post, stopped = _leg(
-                state, duration - lead_in, step, kinds, stops, c, flight)
+            leg_times, leg_states, event_kinds, event_times, event_pre, event_post, stopped = simulate_ball_arrays(
+                state, duration - lead_in, step, kinds, stops, c, *flight)
             offset = now
             kept = leg_times.size - 1
             if stopped >= 0:  # the samples before the stop

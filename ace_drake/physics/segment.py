@@ -57,8 +57,8 @@ from ace_drake.physics.propagate import (
     MAX_EVENTS_PER_STEP,
     ContactEvent,
     ContactKind,
-    _contact_constants,
-    _gap_one,
+    contact_constants,
+    contact_gap_one,
     apply_impact,
     first_contact_time,
     guard_gaps,
@@ -190,13 +190,13 @@ def _time_grid(duration: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _physics_constants(params: BallPhysicsParams) -> tuple[np.ndarray, tuple[float, ...], float]:
-    """The fast pass's constants of ``params``: ``propagate._contact_constants``,
+    """The fast pass's constants of ``params``: ``propagate.contact_constants``,
     ``flight_constants`` and the racket screen's reach (``contact.blade_half_diagonal`` plus the
     ball's radius, m). Kept for the last params object seen (frozen, so the same object has the
     same values; a rally passes the same one every tick)."""
     if _LAST_CONSTANTS[0] is not params:
         reach = contact.blade_half_diagonal(params.racket) + params.aero.ball_radius
-        _LAST_CONSTANTS[:] = [params, (_contact_constants(params), flight_constants(params.aero), reach)]
+        _LAST_CONSTANTS[:] = [params, (contact_constants(params), flight_constants(params.aero), reach)]
     return _LAST_CONSTANTS[1]
 
 
@@ -234,8 +234,8 @@ class _Segment:
         self.start_times, self.perturb_seeds, self.event_counts = start_times, perturb_seeds, event_counts
         self.kinds = DEFAULT_KINDS
         self.radius = params.aero.ball_radius
-        contact_constants, flight, self.reach = _physics_constants(params)  # reach: the screen's sphere, m
-        self.constants = contact_constants, flight  # the fast pass's
+        gap_constants, flight, self.reach = _physics_constants(params)  # reach: the screen's sphere, m
+        self.constants = gap_constants, flight  # the fast pass's
         n_balls, n_steps = states.shape[0], self.steps.size
         self.samples = np.repeat(states[:, None, :], n_steps + 1, axis=1)
         self.events: list[list[ContactEvent]] = [[] for _ in range(n_balls)]
@@ -278,8 +278,8 @@ class _Segment:
         screen cannot clear get the exact gaps at their ends (here, in NumPy) with the gap's rate."""
         near = np.zeros(flags.shape, dtype=bool)
         speed = np.empty(flags.shape)
-        contact_constants, flight = self.constants
-        flagged, screened = _fly_and_flag(self.samples, rows, first, self.steps, _KIND_VALUES, contact_constants, self.racket is not None,
+        gap_constants, flight = self.constants
+        flagged, screened = _fly_and_flag(self.samples, rows, first, self.steps, _KIND_VALUES, gap_constants, self.racket is not None,
                                           self.p_WR, self.racket_speed, self.reach, flags, near, speed, *flight)
         if screened:  # the same bound on the exact gaps at the ends, with the gap's rate
             env, k = np.nonzero(near)
@@ -522,7 +522,7 @@ def _fly_and_flag(samples, rows, first, steps, kinds, c, with_racket, p_WR, rack
                   drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model, drag_table_scale, magnus_scale):
     """``_Segment._fast_pass``' compiled part, in place: for each of ``rows``, samples[row] (n+1, 9)
     from sample first[i] on by RK4 steps (``rk4_trajectory``'s), then flags[row] (n,) the steps
-    where a guard of ``kinds`` (ContactKind values; ``propagate._gap_one``, c its constants) goes
+    where a guard of ``kinds`` (ContactKind values; ``propagate.contact_gap_one``, c its constants) goes
     from positive to non-positive, and, with_racket, near[row] the steps the racket's distance
     screen cannot clear: the ball's centre and the blade's (p_WR (B, n+1, 3)) move apart or
     together at most at ``speed`` (the ball's speed bound plus racket_speed (B, n), stored in
@@ -538,11 +538,11 @@ def _fly_and_flag(samples, rows, first, steps, kinds, c, with_racket, p_WR, rack
             rk4_one(x[k], steps[k], drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
                     drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x[k + 1])
         for j in range(kinds.size):
-            positive[j] = _gap_one(kinds[j], x[0], c) > 0.0
+            positive[j] = contact_gap_one(kinds[j], x[0], c) > 0.0
         for k in range(steps.size):
             crossing = False
             for j in range(kinds.size):
-                positive_next[j] = _gap_one(kinds[j], x[k + 1], c) > 0.0
+                positive_next[j] = contact_gap_one(kinds[j], x[k + 1], c) > 0.0
                 crossing = crossing or (positive[j] and not positive_next[j])
             positive[:] = positive_next
             flags[rows[i], k] = crossing
