@@ -262,6 +262,14 @@ def _grown(array, size):
 
 
 @numba.njit(cache=True)
+def _with_contact(times, kinds, states, count, time, kind, state):
+    """The contact arrays (times, kinds, states) with (time, kind, state) in row ``count``."""
+    times, kinds, states = _grown(times, count + 1), _grown(kinds, count + 1), _grown(states, count + 1)
+    times[count], kinds[count], states[count] = time, kind, state
+    return times, kinds, states
+
+
+@numba.njit(cache=True)
 def _predict(estimate, first_sample, step, segment, table_length, table_width, hit_x_min, hit_height_min, horizon, c, *flight):
     """``HitPredictor.predict`` of one ball estimate (9,): its legs, the bookkeeping between them
     and its stopping rule, in ``predict``'s order of operations; each leg is
@@ -275,6 +283,7 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
     kinds, stops = _LEG_KINDS, _LEG_STOPS
     now, state = 0.0, estimate.copy()
     robot_bounces = 0
+    finite = True
     while True:
         # One leg: to the next sample time, then on in steps of dt, up to a stopping contact.
         upcoming = first_sample + step * samples
@@ -283,23 +292,25 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
         stopped, offset = -1, now
         event_kinds, event_times, event_pre, event_post = np.empty(0, dtype=np.int64), np.empty(0), np.empty((0, 9)), np.empty((0, 9))
         if lead_in > 1e-9:
-            if not np.all(np.isfinite(state)):
-                return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], False
-            _, leg_states, event_kinds, event_times, event_pre, event_post, stopped = simulate_ball_arrays(state, lead_in, lead_in, kinds, stops, c, *flight)
-            events = event_kinds.size
+            finite = np.all(np.isfinite(state))
+            if not finite:
+                break
+            _, leg_states, event_kinds, event_times, event_pre, event_post, stopped = simulate_ball_arrays(
+                state, lead_in, lead_in, kinds, stops, c, *flight)
             if stopped < 0:
                 state, now = leg_states[-1].copy(), upcoming
-                contact_times, contact_kinds, contact_states = _grown(contact_times, contacts + events), _grown(contact_kinds, contacts + events), _grown(contact_states, contacts + events)
-                for e in range(events):
-                    contact_times[contacts], contact_kinds[contacts], contact_states[contacts] = now - lead_in + event_times[e], event_kinds[e], event_pre[e]
+                for e in range(event_kinds.size):
+                    contact_times, contact_kinds, contact_states = _with_contact(
+                        contact_times, contact_kinds, contact_states, contacts, now - lead_in + event_times[e], event_kinds[e], event_pre[e])
                     contacts += 1
                 times, states = _grown(times, samples + 1), _grown(states, samples + 1)
                 times[samples], states[samples] = now, state
                 samples += 1
                 offset = now
         if stopped < 0:
-            if not np.all(np.isfinite(state)):
-                return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], False
+            finite = np.all(np.isfinite(state))
+            if not finite:
+                break
             leg_times, leg_states, event_kinds, event_times, event_pre, event_post, stopped = simulate_ball_arrays(
                 state, duration - lead_in, step, kinds, stops, c, *flight)
             offset = now
@@ -316,19 +327,17 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
                     j += 1
             states[samples : samples + kept] = leg_states[1 : 1 + kept]
             samples += kept
-        events = event_kinds.size
-        room = contacts + events + 1
-        contact_times, contact_kinds, contact_states = _grown(contact_times, room), _grown(contact_kinds, room), _grown(contact_states, room)
-        for e in range(events):
+        for e in range(event_kinds.size):
             if e != stopped:
-                contact_times[contacts], contact_kinds[contacts], contact_states[contacts] = offset + event_times[e], event_kinds[e], event_pre[e]
+                contact_times, contact_kinds, contact_states = _with_contact(
+                    contact_times, contact_kinds, contact_states, contacts, offset + event_times[e], event_kinds[e], event_pre[e])
                 contacts += 1
         if stopped >= 0:
             now = offset + event_times[stopped]
             pre, kind = event_pre[stopped], event_kinds[stopped]
             on_table = abs(pre[0]) <= 0.5 * table_length and abs(pre[1]) <= 0.5 * table_width
             if kind == _TABLE_PLANE and on_table:
-                contact_times[contacts], contact_kinds[contacts], contact_states[contacts] = now, _TABLE, pre
+                contact_times, contact_kinds, contact_states = _with_contact(contact_times, contact_kinds, contact_states, contacts, now, _TABLE, pre)
                 contacts += 1
                 robot_bounces += pre[0] < 0.0
                 state = event_post[stopped].copy()  # the table's impact map, eqs (2)-(6)
@@ -336,7 +345,7 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
                 kinds, stops = _PAST_TABLE_KINDS, _PAST_TABLE_STOPS  # past the table
                 state = pre.copy()
             else:
-                contact_times[contacts], contact_kinds[contacts], contact_states[contacts] = now, kind, pre
+                contact_times, contact_kinds, contact_states = _with_contact(contact_times, contact_kinds, contact_states, contacts, now, kind, pre)
                 contacts += 1
                 break  # the floor
         else:
@@ -344,7 +353,7 @@ def _predict(estimate, first_sample, step, segment, table_length, table_width, h
         falling_out = robot_bounces >= 1 and state[5] < 0.0 and state[2] < hit_height_min
         if robot_bounces >= 2 or state[0] < hit_x_min or falling_out or now - first_sample > horizon:
             break
-    return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], True
+    return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], finite
 
 
 @numba.njit(cache=True)
