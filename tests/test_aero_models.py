@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from ace_drake.config import ConfigError, from_dict
-from ace_drake.control.hit_prediction import _PREDICTION_KINDS, _simulate_rows
+from ace_drake.control.hit_prediction import _PREDICTION_KINDS, HitPredictor
+from ace_drake.control.params import ReturnerParams
 from ace_drake.perception import ekf_kernels
 from ace_drake.perception.ball_ekf import BallEkf
 from ace_drake.physics.flight import (
@@ -22,7 +23,7 @@ from ace_drake.physics.flight import (
     make_state,
 )
 from ace_drake.physics.params import AeroParams, BallPhysicsParams, load_ball_params
-from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.physics.propagate import ContactKind, simulate, simulate_ball
 
 SPIN_RATIO = AeroParams(drag_model="spin_ratio")
 REFINED = AeroParams(magnus_model="refined")
@@ -185,13 +186,15 @@ def test_hit_prediction_legs_are_simulate_with_the_models(aero):
         make_state([1.0, -0.2, 0.6], [-4.0, 0.3, 2.0], [0.0, 150.0, -60.0]),
     ])
     durations, dts = np.array([0.25, 0.2]), np.array([0.008, 0.01])
-    legs = _simulate_rows(starts, durations, dts, np.zeros(2, dtype=bool), physics)
     stops = (ContactKind.TABLE_PLANE, ContactKind.FLOOR)
-    for n in range(2):
+    for n in range(2):  # the predictor's legs (simulate_ball's compiled loop)
         reference = simulate(starts[n], physics, durations[n], dt=dts[n], kinds=_PREDICTION_KINDS, stop_on=stops)
-        np.testing.assert_array_equal(legs.final_state[n], reference.final_state[0])
-        assert (legs.stop_events[n] is not None) == (n == 0)
-    assert not np.array_equal(legs.final_state, _simulate_rows(starts, durations, dts, np.zeros(2, dtype=bool), BallPhysicsParams()).final_state)
+        leg = simulate_ball(starts[n], physics, durations[n], dt=dts[n], kinds=_PREDICTION_KINDS, stop_on=stops)
+        np.testing.assert_array_equal(leg.final_state, reference.final_state)
+        assert (leg.stop_events[0] is not None) == (n == 0)
+    # The compiled predictor flies the selected models.
+    predictor, default = (HitPredictor(p, ReturnerParams(), 0.032, 0.005, 0.01) for p in (physics, BallPhysicsParams()))
+    assert not np.array_equal(predictor.predict(starts[1]).states, default.predict(starts[1]).states)
 
 
 @pytest.mark.parametrize("aero", MODELS[1:], ids=MODEL_IDS[1:])

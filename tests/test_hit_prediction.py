@@ -6,10 +6,11 @@ import pytest
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
 from ace_drake.config import MODELS_DIR
 from ace_drake.contracts import HIT_PREDICTION_SIZE
-from ace_drake.control.hit_prediction import HitPredictor, joint_lag
+from ace_drake.control.hit_prediction import IMMINENT_MARGIN, KEEP_TOLERANCE, Flight, HitPredictor, Prediction, joint_lag
 from ace_drake.control.params import ControlParams, ReturnerParams
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.physics.flight import rk4_step
+from ace_drake.physics.propagate import ContactKind, simulate, simulate_ball
 from ace_drake.robot.model import load_scenario
 
 PARAMS = BallPhysicsParams()
@@ -128,25 +129,165 @@ def test_features_batch_is_features_of_each_row(predictor):
         predictor.features_batch(np.zeros(9), np.ones(1, bool), np.zeros(1))
 
 
-def test_predict_batch_and_bounce_behind_batch_are_the_single_ball_results(predictor):
-    estimates = _estimates_along_flights()
-    predictions = predictor.predict_batch(estimates)
-    bounces = predictor.bounce_behind_batch(estimates)
-    kinds, past_the_table = set(), 0
-    for estimate, batched, bounce in zip(estimates, predictions, bounces):
-        single = predictor.predict(estimate)
-        np.testing.assert_array_equal(batched.times, single.times)
-        np.testing.assert_array_equal(batched.states, single.states)
-        assert [(t, k) for t, k, _ in batched.contacts] == [(t, k) for t, k, _ in single.contacts]
-        for (_, _, a), (_, _, b) in zip(batched.contacts, single.contacts):
+def reference_bounce_behind(predictor, estimate, horizon=1.0, dt=0.02):
+    """``HitPredictor.bounce_behind`` in Python on ``rk4_step``: the reference the compiled one equals."""
+    table, radius = predictor.physics.table, predictor.physics.aero.ball_radius
+    state = np.asarray(estimate, dtype=float)
+    for step in range(1, int(round(horizon / dt)) + 1):
+        before, state = state, rk4_step(state, -dt, predictor.physics.aero)
+        if state[0] > 0.0:
+            return None  # back over the net first: the ball is still to bounce
+        if state[2] < radius:
+            fraction = (before[2] - radius) / (before[2] - state[2])
+            x, y = before[:2] + fraction * (state[:2] - before[:2])
+            on_table = -0.5 * table.length <= x <= 0.0 and abs(y) <= 0.5 * table.width
+            return -(step - 1 + fraction) * dt if on_table else None
+    return None
+
+
+def reference_predict(predictor, estimate):
+    """``HitPredictor.predict`` in Python, its legs by ``simulate_ball``: the reference the
+    compiled one equals."""
+    params, table = predictor.params, predictor.physics.table
+    kinds = (ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR)
+    stops = (ContactKind.TABLE_PLANE, ContactKind.FLOOR)
+    first_sample = predictor.lead + predictor.lag
+    step = predictor.segment / predictor._samples_per_segment
+    times, states, contacts = [], [], []
+    now, state = 0.0, np.asarray(estimate, dtype=float)
+    while True:
+        upcoming = first_sample + step * len(times)
+        lead_in = upcoming - now
+        duration = lead_in + 8 * predictor.segment
+        leg = simulate_ball(state, predictor.physics, lead_in, dt=lead_in, kinds=kinds, stop_on=stops) if lead_in > 1e-9 else None
+        if leg is None or leg.stop_events[0] is None:
+            if leg is not None:
+                state, now = leg.final_state[0], upcoming
+                contacts += [(now - lead_in + e.time, e.kind, e.state_pre) for e in leg.events[0]]
+                times.append(now)
+                states.append(state)
+            leg = simulate_ball(state, predictor.physics, duration - lead_in, dt=step, kinds=kinds, stop_on=stops)
+            offset = now
+            stopped = leg.stop_events[0]
+            kept = leg.times[1:] if stopped is None else leg.times[1:][leg.times[1:] < stopped.time]
+            times.extend(offset + kept)
+            states.extend(leg.states[1 : 1 + kept.size, 0])
+        else:
+            offset, stopped = now, leg.stop_events[0]
+        contacts += [(offset + e.time, e.kind, e.state_pre) for e in leg.events[0] if e is not stopped]
+        if stopped is not None:
+            now = offset + stopped.time
+            on_table = abs(stopped.state_pre[0]) <= 0.5 * table.length and abs(stopped.state_pre[1]) <= 0.5 * table.width
+            if stopped.kind == ContactKind.TABLE_PLANE and on_table:
+                contacts.append((now, ContactKind.TABLE, stopped.state_pre))
+                state = stopped.state_post
+            elif stopped.kind == ContactKind.TABLE_PLANE:
+                kinds, stops = (ContactKind.NET, ContactKind.FLOOR), (ContactKind.FLOOR,)
+                state = stopped.state_pre
+            else:
+                contacts.append((now, stopped.kind, stopped.state_pre))
+                break
+        else:
+            now, state = times[-1], states[-1]
+        robot_bounces = sum(kind == ContactKind.TABLE and pre[0] < 0.0 for _, kind, pre in contacts)
+        falling_out = robot_bounces >= 1 and state[5] < 0.0 and state[2] < params.hit_height_min
+        if robot_bounces >= 2 or state[0] < params.hit_x_min or falling_out or now - first_sample > params.prediction_horizon:
+            break
+    return Prediction(np.asarray(times), np.asarray(states).reshape(-1, 9), contacts)
+
+
+def _random_estimates(count, seed):
+    """Balls over and around the table, coming or not, with any spin."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate([rng.uniform([-1.8, -1.0, -0.1], [1.8, 1.0, 0.8], (count, 3)), rng.uniform([-14.0, -4.0, -4.0], [6.0, 4.0, 5.0], (count, 3)),
+                           rng.uniform(-400.0, 400.0, (count, 3))], axis=1)
+
+
+@pytest.mark.parametrize("lead", [0.005, 0.0])
+def test_compiled_predict_and_bounce_behind_are_the_python_reference_bit_for_bit(lead):
+    # lead 0 with no lag: the first sample is at the observation (no first leg).
+    predictor = HitPredictor.for_robot(load_scenario(MODELS_DIR / "scenario.yaml"), ControlParams(), PARAMS)
+    if lead == 0.0:
+        predictor = HitPredictor(PARAMS, ReturnerParams(), predictor.segment, 0.0, 0.0)
+    kinds, past_the_table, bounces = set(), 0, 0
+    for estimate in np.concatenate([_estimates_along_flights(), _random_estimates(300, 3)]):
+        expected, actual = reference_predict(predictor, estimate), predictor.predict(estimate)
+        np.testing.assert_array_equal(actual.times, expected.times)
+        np.testing.assert_array_equal(actual.states, expected.states)
+        assert [(t, k) for t, k, _ in actual.contacts] == [(t, k) for t, k, _ in expected.contacts]
+        assert all(type(t) is float and type(k) is ContactKind for t, k, _ in actual.contacts)
+        for (_, _, a), (_, _, b) in zip(actual.contacts, expected.contacts):
             np.testing.assert_array_equal(a, b)
-        kinds |= {k for _, k, _ in single.contacts}
-        robot_bounce = any(k == ContactKind.TABLE and pre[0] < 0.0 for _, k, pre in single.contacts)
-        past_the_table += not robot_bounce and any(k == ContactKind.FLOOR for _, k, _ in single.contacts)
-        behind = predictor.bounce_behind(estimate)
-        assert (np.isnan(bounce) and behind is None) or bounce == behind
-    assert {ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR} <= kinds and past_the_table > 0
-    assert np.isfinite(bounces).sum() > 10
-    assert predictor.predict_batch(np.zeros((0, 9))) == []
-    one = predictor.predict_batch(estimates[5:6])[0]  # B = 1
-    np.testing.assert_array_equal(one.states, predictor.predict(estimates[5]).states)
+        kinds |= {k for _, k, _ in expected.contacts}
+        robot_bounce = any(k == ContactKind.TABLE and pre[0] < 0.0 for _, k, pre in expected.contacts)
+        past_the_table += not robot_bounce and any(k == ContactKind.FLOOR for _, k, _ in expected.contacts)
+        behind = reference_bounce_behind(predictor, estimate)
+        assert predictor.bounce_behind(estimate) == behind
+        bounces += behind is not None
+    assert {ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR} <= kinds and past_the_table > 0 and bounces > 10
+    with pytest.raises(ValueError, match="NaN"):
+        predictor.predict(np.full(9, np.nan))
+
+
+def reference_candidates(predictor, flight, prediction, include_current=False, keep=None):
+    """``HitPredictor.candidates`` with its ranking in NumPy: the reference the compiled ranking
+    (``_hit_order``) equals."""
+    params = predictor.params
+    table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
+    first_is_bounce = bool(table_contacts) and table_contacts[0][1] == ContactKind.TABLE and table_contacts[0][2][0] < 0.0
+    if flight.bounce_time is not None:
+        remembered = flight.bounce_time - flight.clock
+        if first_is_bounce and abs(table_contacts[0][0] - remembered) < IMMINENT_MARGIN:
+            bounce, after = table_contacts[0][0], table_contacts[1:]
+        elif remembered <= IMMINENT_MARGIN:
+            bounce, after = remembered, table_contacts
+        else:
+            return []
+    elif first_is_bounce:
+        bounce, after = table_contacts[0][0], table_contacts[1:]
+        if bounce < predictor.segment + IMMINENT_MARGIN:
+            flight.bounce_time = flight.clock + bounce
+    else:
+        return []
+    end = after[0][0] if after else np.inf
+    times, states = prediction.times, prediction.states
+    first = 0 if include_current else predictor._samples_per_segment
+    index = np.arange(first, len(times), predictor._samples_per_segment)
+    index = index[(times[index] > bounce) & (times[index] < end)]
+    z, x = states[index, 2], states[index, 0]
+    index = index[(z >= params.hit_height_min) & (z <= params.hit_height_max) & (x >= params.hit_x_min) & (states[index, 3] < 0.0)]
+    if index.size == 0:
+        return []
+    after_bounce = np.flatnonzero((times > bounce) & (times < end))
+    apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
+    order = sorted(index, key=lambda i: abs(times[i] - apex))
+    if keep is not None:
+        kept = [i for i in order if abs(times[i] - keep) < KEEP_TOLERANCE]
+        order = kept + [i for i in order if i not in kept]
+    return order
+
+
+def test_candidates_are_the_numpy_reference(predictor):
+    # Fresh and remembered bounces (re-timed, behind, too far ahead), with and without the
+    # current segment, kept hits on a candidate, off the grid, or none; a half-segment predictor
+    # (samples between the boundaries).
+    half = HitPredictor(PARAMS, ReturnerParams(prediction_step=0.016), predictor.segment, predictor.lead, predictor.lag)
+    rng = np.random.default_rng(5)
+    ranked = 0
+    for dut in (predictor, half):
+        for estimate in np.concatenate([_estimates_along_flights(), _random_estimates(100, 4)]):
+            prediction = dut.predict(estimate)
+            bounce = dut.bounce_behind(estimate)
+            for include_current in (False, True):
+                for bounce_time in (bounce, 0.004, -0.2, 0.3, None):
+                    clock = float(rng.choice([0.0, 0.032]))
+                    preferred = dut.candidates(Flight(clock=clock, bounce_time=bounce_time), prediction, include_current)
+                    keeps = [None, 0.5 * dut.segment] + ([float(prediction.times[preferred[-1]])] if preferred else [])
+                    for keep in keeps:
+                        mine, theirs = Flight(clock=clock, bounce_time=bounce_time), Flight(clock=clock, bounce_time=bounce_time)
+                        actual = dut.candidates(mine, prediction, include_current, keep)
+                        expected = reference_candidates(dut, theirs, prediction, include_current, keep)
+                        assert actual == expected and mine == theirs
+                        assert all(type(i) is np.int64 for i in actual)
+                        ranked += len(actual) > 1 and keep is not None and actual[0] != preferred[0]
+    assert ranked > 20

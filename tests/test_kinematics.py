@@ -196,3 +196,35 @@ def test_a_wrong_shape_is_refused(dut):
         dut.racket_state(np.zeros(8), 0.0)
     with pytest.raises(ValueError, match=r"same shape.*\(2, 8\) and \(3, 8\)"):
         dut.racket_state(np.zeros((2, 8)), np.zeros((3, 8)))
+
+
+def reference_quaternion(R):
+    """Drake's RotationMatrix::ToQuaternion in NumPy, one matrix at a time: the reference of the
+    compiled ``_quaternion_one``."""
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    if trace >= R[0, 0] and trace >= R[1, 1] and trace >= R[2, 2]:
+        q = [1.0 + trace, R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        q = [R[2, 1] - R[1, 2], 1.0 - (trace - 2.0 * R[0, 0]), R[0, 1] + R[1, 0], R[0, 2] + R[2, 0]]
+    elif R[1, 1] >= R[2, 2]:
+        q = [R[0, 2] - R[2, 0], R[0, 1] + R[1, 0], 1.0 - (trace - 2.0 * R[1, 1]), R[1, 2] + R[2, 1]]
+    else:
+        q = [R[1, 0] - R[0, 1], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], 1.0 - (trace - 2.0 * R[2, 2])]
+    scale = (-1.0 if q[0] < 0.0 else 1.0) / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return np.array([x * scale for x in q])
+
+
+def test_end_effector_state_is_the_racket_state_and_its_quaternion_bit_for_bit(scenario, dut):
+    q, v = random_states(scenario, 400, seed=3)
+    q, v = q.reshape(20, 20, -1), v.reshape(20, 20, -1)  # any leading dimensions
+    state = dut.end_effector_state(q, v)
+    p, R, w, v_WR = dut.racket_state(q, v)
+    assert state.shape == (20, 20, 13)
+    np.testing.assert_array_equal(state[..., :3], p)
+    np.testing.assert_array_equal(state[..., 7:10], v_WR)
+    np.testing.assert_array_equal(state[..., 10:], w)
+    quaternions = np.array([reference_quaternion(M) for M in R.reshape(-1, 3, 3)])
+    np.testing.assert_array_equal(state[..., 3:7].reshape(-1, 4), quaternions)
+    # Each branch of the conversion: the trace, then each diagonal entry, the largest.
+    branches = {int(np.argmax([np.trace(M), M[0, 0], M[1, 1], M[2, 2]])) for M in R.reshape(-1, 3, 3)}
+    assert len(branches) >= 3

@@ -18,7 +18,16 @@ from ace_drake.physics.flight import (
     rk4_trajectory,
 )
 from ace_drake.physics.params import AeroParams, BallPhysicsParams
-from ace_drake.physics.propagate import ContactKind, apply_impact, contact_gap, contact_gap_lower_bound, simulate, simulate_ball
+from ace_drake.physics.propagate import (
+    ContactKind,
+    apply_impact,
+    contact_gap,
+    contact_gap_lower_bound,
+    first_contact_time,
+    locate_root,
+    simulate,
+    simulate_ball,
+)
 
 PARAMS = BallPhysicsParams()
 AERO = PARAMS.aero
@@ -483,3 +492,36 @@ def test_ball_entering_the_table_footprint_below_the_surface_is_no_table_contact
     # The same ball 5 cm above the surface falls onto the table top.
     above = make_state([0.5, 0.5 * PARAMS.table.width + 0.1, 0.05], [0.0, -3.0, 0.0])
     assert simulate(above, PARAMS, 0.3, kinds=(ContactKind.TABLE,)).events[0][0].kind == ContactKind.TABLE
+
+
+def reference_first_contact_time(x0, h, crossing, kinds, params):
+    """``first_contact_time`` on NumPy's ``locate_root``: the reference of the compiled one."""
+    tau = np.full(x0.shape[0], np.inf)
+    kind_index = np.zeros(x0.shape[0], dtype=int)
+    for k, kind in enumerate(kinds):
+        rows = np.flatnonzero(crossing[:, k])
+        if rows.size == 0:
+            continue
+        tau_k = locate_root(x0[rows], h[rows], lambda s, _tau, kind=kind: contact_gap(kind, s, params), params)
+        better = tau_k < tau[rows]
+        tau[rows[better]] = tau_k[better]
+        kind_index[rows[better]] = k
+    return tau, kind_index
+
+
+@pytest.mark.parametrize("kinds", [(ContactKind.TABLE, ContactKind.NET, ContactKind.FLOOR), (ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR)])
+def test_compiled_first_contact_time_is_locate_root_on_each_guard(kinds):
+    # Steps of 1 to 40 ms that cross one guard or several (the earliest wins, ties to the earlier kind).
+    rng = np.random.default_rng(12)
+    state = np.concatenate([rng.uniform([-1.6, -0.9, -0.8], [1.6, 0.9, 0.4], (4000, 3)), rng.uniform([-12.0, -3.0, -6.0], [12.0, 3.0, 3.0], (4000, 3)),
+                            rng.uniform(-500.0, 500.0, (4000, 3))], axis=1)
+    h = rng.choice([0.001, 0.008, 0.032, 0.04], 4000)
+    gaps0 = np.stack([contact_gap(kind, state, PARAMS) for kind in kinds], axis=-1)
+    gaps1 = np.stack([contact_gap(kind, rk4_step(state, h, PARAMS.aero), PARAMS) for kind in kinds], axis=-1)
+    crossing = (gaps0 > 0.0) & (gaps1 <= 0.0)
+    rows = np.flatnonzero(crossing.any(axis=-1))
+    assert rows.size > 100 and (crossing[rows].sum(axis=-1) > 1).any()
+    tau, kind_index = first_contact_time(state[rows], h[rows], crossing[rows], kinds, PARAMS)
+    expected_tau, expected_index = reference_first_contact_time(state[rows], h[rows], crossing[rows], kinds, PARAMS)
+    np.testing.assert_array_equal(tau, expected_tau)
+    np.testing.assert_array_equal(kind_index, expected_index)

@@ -18,10 +18,10 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
 from ace_drake.diagrams import make_simulator
 from ace_drake.physics import contact
-from ace_drake.physics.flight import make_state
+from ace_drake.physics.flight import POSITION, VELOCITY, make_state, rk4_trajectory
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.physics.propagate import ContactKind, simulate
-from ace_drake.physics.segment import propagate_segment, segment_times
+from ace_drake.physics.propagate import GAP_SCREEN_MARGIN, ContactKind, guard_gaps, simulate
+from ace_drake.physics.segment import SPEED_MARGIN, _Segment, _speed_bound, propagate_segment, segment_times
 from ace_drake.systems.ball_plant import BallPlant
 
 PARAMS = BallPhysicsParams()
@@ -330,3 +330,93 @@ def test_bad_shapes_raise():
         propagate_segment(DRIVE[None], np.zeros(1), 0.016, PARAMS, motion)
     with pytest.raises(ValueError, match="racket.p_WR"):
         propagate_segment(np.stack([DRIVE, DRIVE]), np.zeros(2), SEGMENT, PARAMS, motion)
+    bad = SwingMotion([SHOTS["still_face"][1]], np.zeros(1))
+    bad.R_WR = bad.R_WR.copy()
+    bad.R_WR[0, 5, 1, 1] = np.nan
+    with pytest.raises(ValueError, match="racket.R_WR must be finite"):
+        propagate_segment(DRIVE[None], np.zeros(1), SEGMENT, PARAMS, bad)
+
+
+# ------------------------------------------------------------------------------ the compiled fast pass
+
+
+def reference_speed_bound(velocity, change):
+    """``segment._speed_bound`` in NumPy: the reference of the compiled ``_speed_bound_one``."""
+    speed = _norm(velocity)
+    return np.maximum(speed[..., :-1], speed[..., 1:]) + _norm(velocity[..., 1:, :] - velocity[..., :-1, :]) + change + SPEED_MARGIN
+
+
+def _norm(a):
+    return np.sqrt(a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2])
+
+
+def reference_flags(run, rows):
+    """The fast pass's flags in NumPy (the reference of the compiled ``_fly_and_flag`` and the
+    exact gaps after it): (flags (len(rows), n), the number of steps the distance screen could not
+    clear, the number of those the exact gaps cleared)."""
+    x = run.samples[rows]
+    m, n_points = x.shape[:2]
+    positive = guard_gaps(x.reshape(-1, 9), run.kinds, run.params).reshape(m, n_points, -1) > 0.0
+    flags = (positive[:, :-1] & ~positive[:, 1:]).any(axis=-1)
+    screened = cleared = 0
+    if run.racket is not None:
+        speed = reference_speed_bound(x[..., VELOCITY], 0.0) + run.racket_speed[rows]
+        distance = _norm(x[..., POSITION] - run.p_WR[rows])
+        near = 0.5 * (distance[:, :-1] + distance[:, 1:] - speed * run.steps) - run.reach <= GAP_SCREEN_MARGIN
+        i, k = np.nonzero(near)
+        screened = i.size
+        if i.size:
+            env = rows[i]
+            g0 = contact.racket_gap(x[i, k, POSITION], run.p_WR[env, k], run.R_WR[env, k], run.params.racket, run.radius)
+            g1 = contact.racket_gap(x[i, k + 1, POSITION], run.p_WR[env, k + 1], run.R_WR[env, k + 1], run.params.racket, run.radius)
+            near[i, k] = 0.5 * (g0 + g1 - run._gap_rate(speed[i, k], env, k) * run.steps[k]) <= GAP_SCREEN_MARGIN
+            cleared = screened - near[i, k].sum()
+        flags |= near
+    return flags, screened, cleared
+
+
+def test_speed_bounds_are_the_numpy_reference():
+    rng = np.random.default_rng(2)
+    velocity = rng.normal(0.0, 5.0, (4, 33, 3))
+    change = rng.uniform(0.0, 3.0, 32)
+    np.testing.assert_array_equal(_speed_bound(velocity, change), reference_speed_bound(velocity, change))
+    np.testing.assert_array_equal(_speed_bound(velocity[:, :2], 0.0), reference_speed_bound(velocity[:, :2], 0.0))
+    velocity[1, 4, 2] = np.nan  # np.maximum's NaN
+    np.testing.assert_array_equal(_speed_bound(velocity, change), reference_speed_bound(velocity, change))
+
+
+def test_the_compiled_fast_pass_is_the_numpy_reference():
+    # Balls over and around the table and the net (guard crossings), with rackets swung through
+    # them, beside them (the distance screen fails, the exact gaps clear) and far away; whole
+    # rows, and rows flown again from a later sample.
+    rng = np.random.default_rng(7)
+    count = 60
+    states = np.concatenate([rng.uniform([-1.6, -0.9, 0.0], [1.6, 0.9, 0.3], (count, 3)), rng.uniform([-8.0, -2.0, -3.0], [8.0, 2.0, 2.0], (count, 3)),
+                             rng.uniform(-300.0, 300.0, (count, 3))], axis=1)
+    times, steps = segment_times(SEGMENT), np.full(32, 1e-3)
+    flown = rk4_trajectory(states, steps, PARAMS.aero)
+    swings = []
+    for i in range(count):
+        t_hit = rng.uniform(0.0, SEGMENT)
+        p_ball = flown[i, int(round(t_hit * 1e3)), :3]
+        offset = [(0.0, 0.0, 0.0), (0.12, 0.0, 0.0), (0.0, 0.0, 0.5), (2.0, 0.0, 0.0)][i % 4]
+        swings.append(Swing.hitting(p_ball, t_hit, v0=rng.normal(0.0, 3.0, 3), omega=rng.normal(0.0, 10.0, 3), offset_R=offset))
+    for racket in (SwingMotion(swings, np.zeros(count)), None):
+        run = _Segment(states, np.zeros(count), times, steps, PARAMS, racket, None, np.zeros(count, dtype=np.int64), None)
+        rows = np.arange(count)
+        flags = np.zeros((count, 32), dtype=bool)
+        assert run._fast_pass(rows, np.zeros(count, dtype=np.int64), flags) == flags.any()
+        np.testing.assert_array_equal(run.samples, flown)
+        expected, screened, cleared = reference_flags(run, rows)
+        np.testing.assert_array_equal(flags, expected)
+        if racket is not None:
+            assert flags.any(axis=1).sum() > count // 4 and screened > 20 and cleared > 5
+        else:
+            assert flags.any(axis=1).sum() >= 3  # guard crossings alone
+        # Some rows again from a later sample, from another state there.
+        redo, first = rows[::3], rng.integers(1, 32, rows[::3].size)
+        run.samples[redo, first] = states[redo]
+        run._fast_pass(redo, first, flags)
+        for row, k in zip(redo, first):
+            np.testing.assert_array_equal(run.samples[row, k:], rk4_trajectory(states[row : row + 1], steps[k:], PARAMS.aero)[0])
+        np.testing.assert_array_equal(flags[redo], reference_flags(run, redo)[0])

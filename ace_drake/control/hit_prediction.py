@@ -19,6 +19,7 @@ their command (eq. (9)'s ramp-tracking lag plus half a command period of zero-or
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numba
 import numpy as np
@@ -26,19 +27,9 @@ import numpy as np
 from ace_drake.contracts import HIT_PREDICTION_SIZE
 from ace_drake.control.joint_model import ramp_tracking_lag
 from ace_drake.control.params import ControlParams, ReturnerParams
-from ace_drake.physics.flight import flight_constants, rk4_one, rk4_step
+from ace_drake.physics.flight import flight_constants, rk4_one
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.physics.propagate import (
-    GAP_SCREEN_MARGIN,
-    MAX_EVENTS_PER_STEP,
-    ContactEvent,
-    ContactKind,
-    apply_impact,
-    first_contact_time,
-    guard_gaps,
-    is_contact,
-    simulate_ball,
-)
+from ace_drake.physics.propagate import ContactKind, contact_constants, simulate_ball_arrays
 from ace_drake.robot.params import RobotScenario
 
 _PREDICTION_KINDS = (ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR)  # predict's guards, in its order
@@ -92,6 +83,8 @@ class HitPredictor:
         self.lag = lag
         self._samples_per_segment = max(1, round(segment / params.prediction_step))
         self._step = segment / self._samples_per_segment
+        self._flight = flight_constants(physics.aero)  # the compiled kernels' constants
+        self._contact = contact_constants(physics)
 
     @classmethod
     def for_robot(cls, scenario: RobotScenario, control: ControlParams, physics: BallPhysicsParams, params: ReturnerParams | None = None) -> HitPredictor:
@@ -125,28 +118,22 @@ class HitPredictor:
         preferred hit (s; ``keep``: ``preferred_hit``), ball state there (p m, v m/s, w rad/s)],
         or zeros without a valid estimate or a hit."""
         hit = self.preferred_hit(estimate, keep) if valid else None
-        if hit is None:
-            return np.zeros(HIT_PREDICTION_SIZE)
-        return np.concatenate([[1.0, hit[0]], hit[1]])
+        features = np.zeros(HIT_PREDICTION_SIZE)
+        if hit is not None:
+            features[0], features[1], features[2:] = 1.0, hit[0], hit[1]
+        return features
 
     def bounce_behind(self, estimate: np.ndarray, horizon: float = 1.0, dt: float = 0.02) -> float | None:
         """When (s, < 0: before the observation) the ball of ``estimate`` (9,) bounced on the
         robot's half, or None if it has not: its flight (eq. (1), RK4 steps of ``dt`` s) followed
         back in time for up to ``horizon`` s meets the playing surface (ball centre one radius above
         it) inside the robot's half before it crosses back over the net. The memoryless mode's
-        substitute for remembering a bounce it predicted (``ReturnerParams.memory``)."""
-        table, radius = self.physics.table, self.physics.aero.ball_radius
-        state = np.asarray(estimate, dtype=float)
-        for step in range(1, int(round(horizon / dt)) + 1):
-            before, state = state, rk4_step(state, -dt, self.physics.aero)
-            if state[0] > 0.0:
-                return None  # back over the net first: the ball is still to bounce
-            if state[2] < radius:
-                fraction = (before[2] - radius) / (before[2] - state[2])
-                x, y = before[:2] + fraction * (state[:2] - before[:2])
-                on_table = -0.5 * table.length <= x <= 0.0 and abs(y) <= 0.5 * table.width
-                return -(step - 1 + fraction) * dt if on_table else None
-        return None
+        substitute for remembering a bounce it predicted (``ReturnerParams.memory``). Compiled
+        (``_bounce_behind``): one call instead of up to horizon / dt RK4 calls."""
+        table = self.physics.table
+        state = np.array(estimate, dtype=float).reshape(9)
+        time = _bounce_behind(state, int(round(horizon / dt)), dt, table.length, table.width, *self._flight)
+        return None if np.isnan(time) else time
 
     def predict(self, estimate: np.ndarray) -> Prediction:
         """The incoming ball from the estimate (at the observation time), sampled at lead + lag +
@@ -157,65 +144,31 @@ class HitPredictor:
         The table is found as a crossing of its plane (``ContactKind.TABLE_PLANE``), kept as a
         bounce when it lies on the table: with steps this long (10 m/s x 32 ms = 0.32 m) the
         table's own guard misses a bounce within a step's travel of the table's end, where the
-        step leaves the table's footprint."""
-        params, table = self.params, self.physics.table
-        kinds = (ContactKind.TABLE_PLANE, ContactKind.NET, ContactKind.FLOOR)
-        stops = (ContactKind.TABLE_PLANE, ContactKind.FLOOR)
-        first_sample = self.lead + self.lag
-        times: list[float] = []
-        states: list[np.ndarray] = []
-        contacts: list[tuple[float, ContactKind, np.ndarray]] = []
-        now, state = 0.0, np.asarray(estimate, dtype=float)
-        while True:
-            # One leg: to the next sample time, then on in steps of dt, up to a stopping contact.
-            upcoming = first_sample + self._step * len(times)
-            lead_in = upcoming - now
-            duration = lead_in + 8 * self.segment
-            leg = simulate_ball(state, self.physics, lead_in, dt=lead_in, kinds=kinds, stop_on=stops) if lead_in > 1e-9 else None
-            if leg is None or leg.stop_events[0] is None:
-                if leg is not None:
-                    state, now = leg.final_state[0], upcoming
-                    contacts += [(now - lead_in + e.time, e.kind, e.state_pre) for e in leg.events[0]]
-                    times.append(now)
-                    states.append(state)
-                leg = simulate_ball(state, self.physics, duration - lead_in, dt=self._step, kinds=kinds, stop_on=stops)
-                offset = now
-                stopped = leg.stop_events[0]
-                kept = leg.times[1:] if stopped is None else leg.times[1:][leg.times[1:] < stopped.time]
-                times.extend(offset + kept)
-                states.extend(leg.states[1 : 1 + kept.size, 0])
-            else:
-                offset, stopped = now, leg.stop_events[0]
-            contacts += [(offset + e.time, e.kind, e.state_pre) for e in leg.events[0] if e is not stopped]
-            if stopped is not None:
-                now = offset + stopped.time
-                on_table = abs(stopped.state_pre[0]) <= 0.5 * table.length and abs(stopped.state_pre[1]) <= 0.5 * table.width
-                if stopped.kind == ContactKind.TABLE_PLANE and on_table:
-                    contacts.append((now, ContactKind.TABLE, stopped.state_pre))
-                    state = stopped.state_post  # the table's impact map, eqs (2)-(6)
-                elif stopped.kind == ContactKind.TABLE_PLANE:
-                    kinds, stops = (ContactKind.NET, ContactKind.FLOOR), (ContactKind.FLOOR,)  # past the table
-                    state = stopped.state_pre
-                else:
-                    contacts.append((now, stopped.kind, stopped.state_pre))
-                    break  # the floor
-            else:
-                now, state = times[-1], states[-1]
-            robot_bounces = sum(kind == ContactKind.TABLE and pre[0] < 0.0 for _, kind, pre in contacts)
-            falling_out = robot_bounces >= 1 and state[5] < 0.0 and state[2] < params.hit_height_min
-            if robot_bounces >= 2 or state[0] < params.hit_x_min or falling_out or now - first_sample > params.prediction_horizon:
-                break
-        return Prediction(np.asarray(times), np.asarray(states).reshape(-1, 9), contacts)
+        step leaves the table's footprint.
+
+        Compiled (``_predict``: its legs are ``propagate.simulate_ball``'s compiled loop), one call
+        per prediction; raises ValueError if the estimate, or the ball at the start of a leg, is
+        not finite (as ``simulate_ball``)."""
+        params = self.params
+        state = np.array(estimate, dtype=float).reshape(-1)
+        if state.shape != (9,):
+            raise ValueError(f"HitPredictor.predict: estimate must be 9 numbers [p, v, w], got {np.shape(estimate)}")
+        times, states, contact_times, contact_kinds, contact_states, finite = _predict(
+            state, self.lead + self.lag, self._step, self.segment, self.physics.table.length, self.physics.table.width,
+            params.hit_x_min, params.hit_height_min, params.prediction_horizon, self._contact, *self._flight,
+        )
+        if not finite:
+            raise ValueError("HitPredictor.predict: the estimate (or the predicted ball) contains NaN or inf")
+        contacts = [(float(t), _CONTACT_KINDS[k], pre) for t, k, pre in zip(contact_times, contact_kinds, contact_states)]
+        return Prediction(times, states, contacts)
 
     # ------------------------------------------------------------------ B environments at once
     def features_batch(self, estimates: np.ndarray, valid: np.ndarray, keep: np.ndarray) -> np.ndarray:
         """``features`` of B environments at once: row b of the (B, HIT_PREDICTION_SIZE) result
-        is ``features(estimates[b], valid[b], keep[b])`` bit for bit (tests/test_hit_prediction.py),
-        keep[b] NaN for None. Args: estimates (B, 9) [p m, v m/s, w rad/s] (rows that are not
-        valid may hold anything, NaN included); valid (B,) bool; keep (B,) s after the
-        observation. The prediction (``predict_batch``) and the bounce behind
-        (``bounce_behind_batch``) run vectorised over the rows; ``candidates`` runs per row (a
-        single predicting row goes through ``features``)."""
+        is ``features(estimates[b], valid[b], keep[b])`` (keep[b] NaN for None). Args: estimates
+        (B, 9) [p m, v m/s, w rad/s] (rows that are not valid may hold anything, NaN included);
+        valid (B,) bool; keep (B,) s after the observation. The rows go one by one: each row's
+        prediction is one compiled call."""
         estimates = np.asarray(estimates, dtype=float)
         if estimates.ndim != 2 or estimates.shape[1] != 9:
             raise ValueError(f"HitPredictor.features_batch: estimates must be (B, 9), got {estimates.shape}")
@@ -224,140 +177,9 @@ class HitPredictor:
         if valid.shape != (count,) or keep.shape != (count,):
             raise ValueError(f"HitPredictor.features_batch: valid and keep must be ({count},), got {valid.shape} and {keep.shape}")
         features = np.zeros((count, HIT_PREDICTION_SIZE))
-        rows = np.flatnonzero(valid & ~(estimates[:, 3] >= 0.0))  # preferred_hit's test: NaN v_x is coming
-        if rows.size == 0:
-            return features
-        if rows.size == 1:  # one ball: ``features`` itself is cheaper than the batched bookkeeping
-            row = rows[0]
+        for row in np.flatnonzero(valid & ~(estimates[:, 3] >= 0.0)):  # preferred_hit's test: NaN v_x is coming
             features[row] = self.features(estimates[row], True, float(keep[row]) if np.isfinite(keep[row]) else None)
-            return features
-        bounces = self.bounce_behind_batch(estimates[rows])
-        predictions = self.predict_batch(estimates[rows])
-        for row, bounce, prediction in zip(rows, bounces, predictions):
-            if prediction.times.size == 0:
-                continue
-            flight = Flight(bounce_time=None if np.isnan(bounce) else float(bounce))
-            kept = float(keep[row]) if np.isfinite(keep[row]) else None
-            order = self.candidates(flight, prediction, include_current=True, keep=kept)
-            if order:
-                features[row, 0], features[row, 1], features[row, 2:] = 1.0, prediction.times[order[0]], prediction.states[order[0]]
         return features
-
-    def bounce_behind_batch(self, estimates: np.ndarray, horizon: float = 1.0, dt: float = 0.02) -> np.ndarray:
-        """``bounce_behind`` of M balls (M, 9) at once: (M,) s, NaN for None; equal to it bit for
-        bit (the same RK4 steps back in time, per row)."""
-        table, radius = self.physics.table, self.physics.aero.ball_radius
-        state = np.array(estimates, dtype=float).reshape(-1, 9)
-        result = np.full(state.shape[0], np.nan)
-        rows = np.arange(state.shape[0])
-        for step in range(1, int(round(horizon / dt)) + 1):
-            if rows.size == 0:
-                break
-            before = state[rows]
-            after = rk4_step(before, -dt, self.physics.aero)
-            state[rows] = after
-            over = after[:, 0] > 0.0  # back over the net first: the ball is still to bounce
-            down = ~over & (after[:, 2] < radius)
-            if down.any():
-                b, a = before[down], after[down]
-                fraction = (b[:, 2] - radius) / (b[:, 2] - a[:, 2])
-                x = b[:, 0] + fraction * (a[:, 0] - b[:, 0])
-                y = b[:, 1] + fraction * (a[:, 1] - b[:, 1])
-                on_table = (-0.5 * table.length <= x) & (x <= 0.0) & (np.abs(y) <= 0.5 * table.width)
-                result[rows[down]] = np.where(on_table, -(step - 1 + fraction) * dt, np.nan)
-            rows = rows[~(over | down)]
-        return result
-
-    def predict_batch(self, estimates: np.ndarray) -> list[Prediction]:
-        """``predict`` of M balls (M, 9) at once: the M Predictions, each equal to ``predict`` of
-        its row bit for bit. Each of ``predict``'s legs runs for all rows still predicting in one
-        ``_simulate_rows`` call (rows have their own leg lengths and contact kinds and stop
-        independently); the bookkeeping between legs is ``predict``'s, per row."""
-        params, table = self.params, self.physics.table
-        state = np.array(estimates, dtype=float).reshape(-1, 9)
-        if not np.all(np.isfinite(state)):
-            bad = np.flatnonzero(~np.all(np.isfinite(state), axis=1))
-            raise ValueError(f"HitPredictor.predict_batch: estimates of rows {bad.tolist()} contain NaN or inf")
-        count = state.shape[0]
-        first_sample = self.lead + self.lag
-        times: list[list[np.ndarray]] = [[] for _ in range(count)]
-        states: list[list[np.ndarray]] = [[] for _ in range(count)]
-        contacts: list[list[tuple[float, ContactKind, np.ndarray]]] = [[] for _ in range(count)]
-        sample_count = np.zeros(count, dtype=np.int64)
-        now = np.zeros(count)
-        past_table = np.zeros(count, dtype=bool)  # predict's kinds (NET, FLOOR), stops (FLOOR,)
-        robot_bounces = np.zeros(count, dtype=np.int64)
-        running = np.arange(count)
-        while running.size:
-            upcoming = first_sample + self._step * sample_count[running]
-            lead_in = upcoming - now[running]
-            duration = lead_in + 8 * self.segment
-            # Leg 1: to the next sample time, one step.
-            first = lead_in > 1e-9
-            stopped: list[ContactEvent | None] = [None] * running.size
-            offset = now[running].copy()
-            if first.any():
-                idx = np.flatnonzero(first)
-                rows = running[idx]
-                leg = _simulate_rows(state[rows], lead_in[idx], lead_in[idx], past_table[rows], self.physics)
-                for j, (i, row) in enumerate(zip(idx, rows)):
-                    if leg.stop_events[j] is None:
-                        state[row], now[row] = leg.final_state[j], upcoming[i]
-                        contacts[row] += [(now[row] - lead_in[i] + e.time, e.kind, e.state_pre) for e in leg.events[j]]
-                        times[row].append(np.array([now[row]]))
-                        states[row].append(state[row][None].copy())
-                        sample_count[row] += 1
-                        offset[i] = now[row]
-                    else:
-                        stopped[i] = leg.stop_events[j]
-                        contacts[row] += [(offset[i] + e.time, e.kind, e.state_pre) for e in leg.events[j] if e is not stopped[i]]
-            # Leg 2: on in steps of dt, up to a stopping contact.
-            idx = np.flatnonzero([event is None for event in stopped])
-            if idx.size:
-                rows = running[idx]
-                leg = _simulate_rows(state[rows], duration[idx] - lead_in[idx], np.full(idx.size, self._step), past_table[rows], self.physics)
-                for j, (i, row) in enumerate(zip(idx, rows)):
-                    event = stopped[i] = leg.stop_events[j]
-                    leg_times = leg.times[1 : leg.steps[j] + 1, j]
-                    kept = leg_times if event is None else leg_times[leg_times < event.time]
-                    times[row].append(offset[i] + kept)
-                    states[row].append(leg.states[1 : 1 + kept.size, j].copy())
-                    sample_count[row] += kept.size
-                    contacts[row] += [(offset[i] + e.time, e.kind, e.state_pre) for e in leg.events[j] if e is not event]
-            done = np.zeros(running.size, dtype=bool)
-            for i, row in enumerate(running):
-                event = stopped[i]
-                if event is not None:
-                    now[row] = offset[i] + event.time
-                    pre = event.state_pre
-                    on_table = abs(pre[0]) <= 0.5 * table.length and abs(pre[1]) <= 0.5 * table.width
-                    if event.kind == ContactKind.TABLE_PLANE and on_table:
-                        contacts[row].append((now[row], ContactKind.TABLE, pre))
-                        robot_bounces[row] += pre[0] < 0.0
-                        state[row] = event.state_post  # the table's impact map, eqs (2)-(6)
-                    elif event.kind == ContactKind.TABLE_PLANE:
-                        past_table[row] = True
-                        state[row] = pre
-                    else:
-                        contacts[row].append((now[row], event.kind, pre))
-                        done[i] = True  # the floor
-                        continue
-                else:
-                    last = next(chunk for chunk in reversed(times[row]) if chunk.size)
-                    last_state = next(chunk for chunk in reversed(states[row]) if chunk.shape[0])
-                    now[row], state[row] = last[-1], last_state[-1]
-                falling_out = robot_bounces[row] >= 1 and state[row, 5] < 0.0 and state[row, 2] < params.hit_height_min
-                if robot_bounces[row] >= 2 or state[row, 0] < params.hit_x_min or falling_out or now[row] - first_sample > params.prediction_horizon:
-                    done[i] = True
-            running = running[~done]
-        return [
-            Prediction(
-                np.concatenate(times[row]) if times[row] else np.zeros(0),
-                np.concatenate(states[row]).reshape(-1, 9) if states[row] else np.zeros((0, 9)),
-                contacts[row],
-            )
-            for row in range(count)
-        ]
 
     # ------------------------------------------------------------------------------ the hit
     def candidates(self, flight: Flight, prediction: Prediction, include_current: bool = False, keep: float | None = None) -> list[int]:
@@ -390,187 +212,184 @@ class HitPredictor:
         else:
             return []  # no bounce on the robot's half ahead: an invalid shot, not to be touched
         end = after[0][0] if after else np.inf
-        times, states = prediction.times, prediction.states
         # Hits at a segment boundary after the next (k >= 1), or from the one in the segment being
         # commanded (k = 0) with include_current.
         first = 0 if include_current else self._samples_per_segment
-        index = np.arange(first, len(times), self._samples_per_segment)
-        index = index[(times[index] > bounce) & (times[index] < end)]
-        z, x = states[index, 2], states[index, 0]
-        index = index[(z >= params.hit_height_min) & (z <= params.hit_height_max) & (x >= params.hit_x_min) & (states[index, 3] < 0.0)]
-        if index.size == 0:
-            return []
-        after_bounce = np.flatnonzero((times > bounce) & (times < end))
-        apex = times[after_bounce[np.argmax(states[after_bounce, 2])]]
-        order = sorted(index, key=lambda i: abs(times[i] - apex))
-        if keep is not None:
-            kept = [i for i in order if abs(times[i] - keep) < KEEP_TOLERANCE]
-            order = kept + [i for i in order if i not in kept]
-        return order
+        order = _hit_order(prediction.times, prediction.states, bounce, end, first, self._samples_per_segment, params.hit_height_min,
+                           params.hit_height_max, params.hit_x_min, np.nan if keep is None else keep)
+        return list(order)
 
 
 
-@dataclasses.dataclass
-class _RowTrajectories:
-    """``_simulate_rows``' result for N balls: times (S+1, N) s and states (S+1, N, 9) at each
-    ball's steps (column n valid up to row steps[n]); steps (N,); final_state (N, 9); events and
-    stop_events per ball as in ``physics.propagate.Trajectory``."""
 
-    times: np.ndarray
-    states: np.ndarray
-    steps: np.ndarray
-    final_state: np.ndarray
-    events: list[list[ContactEvent]]
-    stop_events: list[ContactEvent | None]
-
-
-def _simulate_rows(initial_state: np.ndarray, durations: np.ndarray, dts: np.ndarray, past_table: np.ndarray,
-                   physics: BallPhysicsParams) -> _RowTrajectories:
-    """``physics.propagate.simulate`` of N balls (N, 9), each with its own duration (N,) s, step
-    (N,) s and ``predict``'s contact kinds: (TABLE_PLANE, NET, FLOOR) stopping on TABLE_PLANE and
-    FLOOR, or with past_table (N,) (NET, FLOOR) stopping on FLOOR. Ball n's result equals
-    ``simulate(initial_state[n], physics, durations[n], dt=dts[n], kinds, stop_on)``'s bit for
-    bit (``simulate`` takes one duration and step for all its balls; ``predict``'s legs differ
-    per ball).
-
-    Each ball goes through ``simulate``'s operations in ``simulate``'s order: per step, trial RK4
-    steps over what remains of it, and at a guard crossing the contact located
-    (``first_contact_time``) and its impact map applied, up to MAX_EVENTS_PER_STEP times. Only
-    the schedule differs: a ball whose trial step crosses a guard waits until every ball has
-    either crossed one or finished, and then all waiting balls' contacts are located in one call
-    (rows are independent there), so a leg costs a few calls per contact wave rather than per
-    step. A kind a ball does not have is masked out of its crossings, which leaves the order of
-    the others, hence the choice between simultaneous crossings, as ``simulate``'s; guards are
-    compared by sign only, as in ``simulate`` (``guard_gaps``). Impact maps are applied to all
-    table-plane or floor contacts of a wave at once (elementwise maps) and to net contacts one at
-    a time."""
-    kinds = _PREDICTION_KINDS
-    x = np.array(initial_state, dtype=float).reshape(-1, 9)
-    n_balls = x.shape[0]
-    durations, dts = np.asarray(durations, dtype=float), np.asarray(dts, dtype=float)
-    enabled = np.ones((n_balls, len(kinds)), dtype=bool)
-    enabled[past_table, 0] = False
-    stops_on_plane = ~np.asarray(past_table, dtype=bool)  # every ball stops on the floor; on the plane unless past the table
-    active = np.ones(n_balls, dtype=bool)
-    events: list[list[ContactEvent]] = [[] for _ in range(n_balls)]
-    stop_events: list[ContactEvent | None] = [None] * n_balls
-    steps = np.ceil(durations / dts - 1e-9).astype(np.int64) if n_balls else np.zeros(0, dtype=np.int64)
-    n_steps = int(steps.max()) if n_balls else 0
-    times = np.zeros((n_steps + 1, n_balls))
-    states = np.empty((n_steps + 1, n_balls, 9))
-    states[0] = x
-    gaps = guard_gaps(x, kinds, physics)
-    t, h = np.zeros(n_balls), np.zeros(n_balls)
-    step = np.zeros(n_balls, dtype=np.int64)  # each ball's current step
-    remaining, elapsed = np.zeros(n_balls), np.zeros(n_balls)
-    rounds = np.zeros(n_balls, dtype=np.int64)  # trial steps taken in the current step
-    finished = steps <= 0
-    waiting = np.zeros(n_balls, dtype=bool)
-    crossing = np.zeros((n_balls, len(kinds)), dtype=bool)
-
-    def begin(rows):
-        h[rows] = np.minimum(dts[rows], durations[rows] - t[rows])
-        remaining[rows] = np.where(active[rows], h[rows], 0.0)
-        elapsed[rows], rounds[rows] = 0.0, 0
-
-    begin(np.flatnonzero(~finished))
-    flight = flight_constants(physics.aero)
-    table_height = physics.table.surface_height
-    screened = np.full(n_balls, -1, dtype=np.int64)  # the step at which the free-flight kernel last stopped for a ball
-    while not finished.all():
-        fresh = np.flatnonzero(~finished & ~waiting & (rounds == 0) & (screened != step))
-        if fresh.size:  # whole free steps (and a stopped ball's steps) in one compiled call
-            before = step[fresh].copy()
-            _free_steps(x, t, step, steps, dts, durations, active, enabled, fresh, times, states, *flight, table_height, GAP_SCREEN_MARGIN)
-            screened[fresh] = step[fresh]
-            moved = fresh[step[fresh] > before]
-            if moved.size:
-                finished[moved] = step[moved] >= steps[moved]
-                begin(moved[~finished[moved]])
-                gaps[moved] = guard_gaps(x[moved], kinds, physics)
-            continue
-        trying = ~finished & ~waiting & (remaining > 0.0) & (rounds < MAX_EVENTS_PER_STEP)
-        ending = np.flatnonzero(~finished & ~waiting & ~trying)
-        if ending.size:  # the step is over: record it, then the next one
-            t[ending] = t[ending] + h[ending]
-            times[step[ending] + 1, ending] = t[ending]
-            states[step[ending] + 1, ending] = x[ending]
-            step[ending] += 1
-            finished[ending] = step[ending] >= steps[ending]
-            begin(ending[~finished[ending]])
-            continue
-        if trying.any():
-            rows = np.flatnonzero(trying)
-            x1 = rk4_step(x[rows], remaining[rows], physics.aero)
-            gaps1 = guard_gaps(x1, kinds, physics)
-            crossed = (gaps[rows] > 0.0) & (gaps1 <= 0.0) & enabled[rows]
-            free = ~crossed.any(axis=-1)
-            x[rows[free]], gaps[rows[free]] = x1[free], gaps1[free]
-            remaining[rows[free]] = 0.0
-            rounds[rows[free]] += 1
-            waiting[rows[~free]], crossing[rows[~free]] = True, crossed[~free]
-            continue
-        # Every ball still going has crossed a guard: locate all those contacts at once.
-        rows = np.flatnonzero(waiting)
-        x0, h0 = x[rows], remaining[rows]
-        tau, kind_index = first_contact_time(x0, h0, crossing[rows], kinds, physics)
-        x_pre = rk4_step(x0, tau, physics.aero)
-        x_post = x_pre.copy()
-        contact = np.array([is_contact(kinds[k], pre, physics) for k, pre in zip(kind_index, x_pre)], dtype=bool)
-        for k, kind in enumerate(kinds):
-            mapped = np.flatnonzero(contact & (kind_index == k))
-            if kind == ContactKind.NET:
-                for j in mapped:
-                    x_post[j] = apply_impact(kind, x_pre[j], physics)
-            elif mapped.size:
-                x_post[mapped] = apply_impact(kind, x_pre[mapped], physics)
-        for j, row in enumerate(rows):
-            if contact[j]:
-                kind = kinds[kind_index[j]]
-                event = ContactEvent(kind, t[row] + elapsed[row] + tau[j], x_pre[j].copy(), x_post[j].copy())
-                events[row].append(event)
-                if kind == ContactKind.FLOOR or (kind == ContactKind.TABLE_PLANE and stops_on_plane[row]):
-                    stop_events[row] = event
-                    active[row] = False
-                    x[row] = x_pre[j]
-                    remaining[row] = 0.0
-                    continue
-            x[row] = x_post[j]
-            remaining[row] -= tau[j]
-            elapsed[row] += tau[j]
-        rounds[rows] += 1
-        waiting[rows] = False
-        gaps[rows] = guard_gaps(x[rows], kinds, physics)
-    return _RowTrajectories(times, states, steps, x, events, stop_events)
+_CONTACT_KINDS = {int(kind): kind for kind in ContactKind}
+_TABLE, _TABLE_PLANE = int(ContactKind.TABLE), int(ContactKind.TABLE_PLANE)  # as the compiled predictor compares them
+_LEG_KINDS = np.array(_PREDICTION_KINDS, dtype=np.int64)
+_LEG_STOPS = np.array([True, False, True])  # on TABLE_PLANE and FLOOR
+_PAST_TABLE_KINDS = np.array([ContactKind.NET, ContactKind.FLOOR], dtype=np.int64)  # once the ball is past the table's end
+_PAST_TABLE_STOPS = np.array([False, True])
 
 
 @numba.njit(cache=True)
-def _free_steps(x, t, step, steps, dts, durations, active, enabled, rows, times, states,
-                drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model, drag_table_scale,
-                magnus_scale, table_height, margin):
-    """``_simulate_rows``' whole steps of the balls ``rows`` while they are plainly free: from
-    each ball's current step (none of it taken yet) on, the step h = min(dt, duration - t) by the
-    compiled RK4 step (``physics.flight``'s, as ``rk4_step``), kept when every guard the ball has
-    is above ``margin`` at its end (``contact_gap_lower_bound``'s bounds: table plane z - r, net
-    |x| - r, floor z + surface height - r; then no guard crosses, as ``simulate`` would find), and
-    recorded as ``simulate`` records it; a stopped ball's steps pass with no RK4 step, as in
-    ``simulate``. A ball stays at the first step whose end is not plainly free, for the exact
-    guards. In place on x (N, 9), t, step (N,), times (S+1, N), states (S+1, N, 9)."""
-    k1, k2, k3, k4, trial, x1 = np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9)
-    for row in rows:
-        while step[row] < steps[row]:
-            h = min(dts[row], durations[row] - t[row])
-            if active[row] and h > 0.0:
-                rk4_one(x[row], h, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
-                        drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
-                if enabled[row, 0] and not x1[2] - radius > margin:
-                    break
-                if enabled[row, 1] and not abs(x1[0]) - radius > margin:
-                    break
-                if enabled[row, 2] and not x1[2] + table_height - radius > margin:
-                    break
-                x[row] = x1
-            t[row] = t[row] + h
-            step[row] += 1
-            times[step[row], row] = t[row]
-            states[step[row], row] = x[row]
+def _bounce_behind(state, steps, dt, table_length, table_width, drag_scale, density_ratio, slope, radius, offset, cap, weight,
+                   drag_model, magnus_model, drag_table_scale, magnus_scale):
+    """``HitPredictor.bounce_behind`` of one ball state (9,) (changed in place) over ``steps`` RK4
+    steps of -dt s: the time (s) or NaN for None."""
+    k1, k2, k3, k4, trial, before = np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9)
+    for step in range(1, steps + 1):
+        before[:] = state
+        rk4_one(before, -dt, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, state)
+        if state[0] > 0.0:
+            return np.nan  # back over the net first: the ball is still to bounce
+        if state[2] < radius:
+            fraction = (before[2] - radius) / (before[2] - state[2])
+            x = before[0] + fraction * (state[0] - before[0])
+            y = before[1] + fraction * (state[1] - before[1])
+            on_table = -0.5 * table_length <= x <= 0.0 and abs(y) <= 0.5 * table_width
+            return -(step - 1 + fraction) * dt if on_table else np.nan
+    return np.nan
+
+
+@numba.njit(cache=True)
+def _grown(array, size):
+    """``array`` (N, ...) if it has room for ``size`` rows, else a copy with twice the room."""
+    if size <= array.shape[0]:
+        return array
+    bigger = np.empty((2 * size,) + array.shape[1:], dtype=array.dtype)
+    bigger[: array.shape[0]] = array
+    return bigger
+
+
+@numba.njit(cache=True)
+def _with_contact(times, kinds, states, count, time, kind, state):
+    """The contact arrays (times, kinds, states) with (time, kind, state) in row ``count``."""
+    times, kinds, states = _grown(times, count + 1), _grown(kinds, count + 1), _grown(states, count + 1)
+    times[count], kinds[count], states[count] = time, kind, state
+    return times, kinds, states
+
+
+@numba.njit(cache=True)
+def _predict(estimate, first_sample, step, segment, table_length, table_width, hit_x_min, hit_height_min, horizon, c, *flight):
+    """``HitPredictor.predict`` of one ball estimate (9,): its legs, the bookkeeping between them
+    and its stopping rule, in ``predict``'s order of operations; each leg is
+    ``propagate.simulate_ball_arrays``. ``c``: the contact constants
+    (``propagate.contact_constants``); ``flight``: ``flight_constants``. Returns (times (J,),
+    states (J, 9), the contacts' times (K,), ContactKind values (K,) and states just before
+    (K, 9), whether every leg started from a finite state)."""
+    times, states = np.empty(64), np.empty((64, 9))
+    contact_times, contact_kinds, contact_states = np.empty(8), np.empty(8, dtype=np.int64), np.empty((8, 9))
+    samples, contacts = 0, 0
+    kinds, stops = _LEG_KINDS, _LEG_STOPS
+    now, state = 0.0, estimate.copy()
+    robot_bounces = 0
+    finite = True
+    while True:
+        # One leg: to the next sample time, then on in steps of dt, up to a stopping contact.
+        upcoming = first_sample + step * samples
+        lead_in = upcoming - now
+        duration = lead_in + 8 * segment
+        stopped, offset = -1, now
+        event_kinds, event_times, event_pre, event_post = np.empty(0, dtype=np.int64), np.empty(0), np.empty((0, 9)), np.empty((0, 9))
+        if lead_in > 1e-9:
+            finite = np.all(np.isfinite(state))
+            if not finite:
+                break
+            _, leg_states, event_kinds, event_times, event_pre, event_post, stopped = simulate_ball_arrays(
+                state, lead_in, lead_in, kinds, stops, c, *flight)
+            if stopped < 0:
+                state, now = leg_states[-1].copy(), upcoming
+                for e in range(event_kinds.size):
+                    contact_times, contact_kinds, contact_states = _with_contact(
+                        contact_times, contact_kinds, contact_states, contacts, now - lead_in + event_times[e], event_kinds[e], event_pre[e])
+                    contacts += 1
+                times, states = _grown(times, samples + 1), _grown(states, samples + 1)
+                times[samples], states[samples] = now, state
+                samples += 1
+                offset = now
+        if stopped < 0:
+            finite = np.all(np.isfinite(state))
+            if not finite:
+                break
+            leg_times, leg_states, event_kinds, event_times, event_pre, event_post, stopped = simulate_ball_arrays(
+                state, duration - lead_in, step, kinds, stops, c, *flight)
+            offset = now
+            kept = leg_times.size - 1
+            if stopped >= 0:  # the samples before the stop
+                kept = 0
+                for j in range(1, leg_times.size):
+                    kept += leg_times[j] < event_times[stopped]
+            times, states = _grown(times, samples + kept), _grown(states, samples + kept)
+            j = 0
+            for k in range(1, leg_times.size):
+                if stopped < 0 or leg_times[k] < event_times[stopped]:
+                    times[samples + j] = offset + leg_times[k]
+                    j += 1
+            states[samples : samples + kept] = leg_states[1 : 1 + kept]
+            samples += kept
+        for e in range(event_kinds.size):
+            if e != stopped:
+                contact_times, contact_kinds, contact_states = _with_contact(
+                    contact_times, contact_kinds, contact_states, contacts, offset + event_times[e], event_kinds[e], event_pre[e])
+                contacts += 1
+        if stopped >= 0:
+            now = offset + event_times[stopped]
+            pre, kind = event_pre[stopped], event_kinds[stopped]
+            on_table = abs(pre[0]) <= 0.5 * table_length and abs(pre[1]) <= 0.5 * table_width
+            if kind == _TABLE_PLANE and on_table:
+                contact_times, contact_kinds, contact_states = _with_contact(contact_times, contact_kinds, contact_states, contacts, now, _TABLE, pre)
+                contacts += 1
+                robot_bounces += pre[0] < 0.0
+                state = event_post[stopped].copy()  # the table's impact map, eqs (2)-(6)
+            elif kind == _TABLE_PLANE:
+                kinds, stops = _PAST_TABLE_KINDS, _PAST_TABLE_STOPS  # past the table
+                state = pre.copy()
+            else:
+                contact_times, contact_kinds, contact_states = _with_contact(contact_times, contact_kinds, contact_states, contacts, now, kind, pre)
+                contacts += 1
+                break  # the floor
+        else:
+            now, state = times[samples - 1], states[samples - 1].copy()
+        falling_out = robot_bounces >= 1 and state[5] < 0.0 and state[2] < hit_height_min
+        if robot_bounces >= 2 or state[0] < hit_x_min or falling_out or now - first_sample > horizon:
+            break
+    return times[:samples], states[:samples], contact_times[:contacts], contact_kinds[:contacts], contact_states[:contacts], finite
+
+
+@numba.njit(cache=True)
+def _hit_order(times, states, bounce, end, first, every, height_min, height_max, x_min, keep):
+    """``HitPredictor.candidates``' ranking of a prediction's samples times (J,) s, states (J, 9):
+    the indices first, first + every, ... strictly between ``bounce`` and ``end`` (s) where the
+    ball is in the hit window (height_min <= z <= height_max m, x >= x_min m, v_x < 0), nearest in
+    time to the top of the bounce (the highest sample strictly between bounce and end, the first
+    of equals) first, equals in index order; then the one within KEEP_TOLERANCE of ``keep`` (s;
+    NaN: none) moved to the front. Returns the indices (int64, possibly none)."""
+    index = np.empty(times.size, dtype=np.int64)
+    count = 0
+    for i in range(first, times.size, every):
+        if times[i] > bounce and times[i] < end:
+            z, x = states[i, 2], states[i, 0]
+            if z >= height_min and z <= height_max and x >= x_min and states[i, 3] < 0.0:
+                index[count] = i
+                count += 1
+    if count == 0:
+        return index[:0]
+    top, highest = -1, 0.0  # np.argmax's rule: the first maximum, a NaN counting as one
+    for i in range(times.size):
+        if times[i] > bounce and times[i] < end:
+            height = states[i, 2]
+            if top < 0 or (not np.isnan(highest) and (height > highest or np.isnan(height))):
+                top, highest = i, height
+    index = index[:count]
+    ranked = index[np.argsort(np.abs(times[index] - times[top]), kind="mergesort")]  # stable: equals keep their order
+    order = np.empty(count, dtype=np.int64)
+    moved = 0
+    for i in ranked:
+        if abs(times[i] - keep) < KEEP_TOLERANCE:
+            order[moved] = i
+            moved += 1
+    for i in ranked:
+        if not abs(times[i] - keep) < KEEP_TOLERANCE:
+            order[moved] = i
+            moved += 1
+    return order

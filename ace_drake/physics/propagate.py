@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 from typing import Iterable, Sequence
 
 import numba
@@ -256,24 +257,21 @@ def guard_gaps(states: np.ndarray, kinds: Sequence[ContactKind], params: BallPhy
     gaps = np.empty((states.shape[0], len(kinds)))
     for k, kind in enumerate(kinds):
         bound = contact_gap_lower_bound(kind, states[:, POSITION], params)
-        gaps[:, k] = bound if np.all(bound > GAP_SCREEN_MARGIN) else contact_gap(kind, states, params)
+        gaps[:, k] = bound if (bound > GAP_SCREEN_MARGIN).all() else contact_gap(kind, states, params)
     return gaps
 
 
 def first_contact_time(x0, h, crossing, kinds, params):
     """Earliest contact time tau (M,) s within each ball's step, and the index (M,) of its kind in
     ``kinds``, for balls x0 (M, 9) with steps h (M,) s whose guards ``crossing`` (M, len(kinds))
-    bool go from positive to non-positive over the step (``locate_root`` on each)."""
-    tau = np.full(x0.shape[0], np.inf)
-    kind_index = np.zeros(x0.shape[0], dtype=int)
-    for k, kind in enumerate(kinds):
-        rows = np.flatnonzero(crossing[:, k])
-        if rows.size == 0:
-            continue
-        tau_k = locate_root(x0[rows], h[rows], lambda s, _tau: contact_gap(kind, s, params), params)
-        better = tau_k < tau[rows]
-        tau[rows[better]] = tau_k[better]
-        kind_index[rows[better]] = k
+    bool go from positive to non-positive over the step: ``locate_root`` on each, ties to the
+    earlier kind. Compiled, ball by ball (``_first_contact_rows``: ``_locate_root_one`` is
+    ``locate_root``'s iteration operation for operation, and its rows are independent)."""
+    x0 = np.ascontiguousarray(x0, dtype=float)
+    tau, kind_index = np.empty(x0.shape[0]), np.empty(x0.shape[0], dtype=np.int64)
+    _first_contact_rows(x0, np.ascontiguousarray(h, dtype=float), np.ascontiguousarray(crossing, dtype=np.bool_),
+                        np.array([int(kind) for kind in kinds], dtype=np.int64), contact_constants(params), *flight_constants(params.aero),
+                        tau, kind_index)
     return tau, kind_index
 
 
@@ -348,28 +346,39 @@ def simulate_ball(
         raise ValueError(f"simulate_ball: initial_state must be 9 finite numbers, got {np.shape(initial_state)}")
     kinds = tuple(ContactKind(k) for k in kinds)
     stop_on = frozenset(ContactKind(k) for k in stop_on)
-    n_steps = int(np.ceil(duration / dt - 1e-9))
-    times = np.empty(n_steps + 1)
-    states = np.empty((n_steps + 1, 9))
-    capacity = MAX_EVENTS_PER_STEP * n_steps
-    event_kinds, event_times = np.empty(capacity, dtype=np.int64), np.empty(capacity)
-    event_pre, event_post = np.empty((capacity, 9)), np.empty((capacity, 9))
-    count, stop = _simulate_ball(
-        x, float(duration), float(dt), n_steps, np.array([int(k) for k in kinds], dtype=np.int64),
-        np.array([k in stop_on for k in kinds], dtype=np.bool_), _contact_constants(params), *flight_constants(params.aero),
-        times, states, event_kinds, event_times, event_pre, event_post,
+    times, states, event_kinds, event_times, event_pre, event_post, stop = simulate_ball_arrays(
+        x, float(duration), float(dt), np.array([int(k) for k in kinds], dtype=np.int64), np.array([k in stop_on for k in kinds], dtype=np.bool_),
+        contact_constants(params), *flight_constants(params.aero),
     )
-    events = [ContactEvent(ContactKind(int(event_kinds[i])), float(event_times[i]), event_pre[i], event_post[i]) for i in range(count)]
+    events = [ContactEvent(ContactKind(int(event_kinds[i])), float(event_times[i]), event_pre[i], event_post[i]) for i in range(event_kinds.size)]
     return Trajectory(times=times, states=states[:, None, :], final_state=states[-1:].copy(), events=[events],
                       stop_events=[events[stop] if stop >= 0 else None])
 
 
-# The contact constants as ``_simulate_ball`` takes them (``_contact_constants``), by index.
+@numba.njit(cache=True)
+def simulate_ball_arrays(x, duration, dt, kinds, stops, c, *flight):
+    """``simulate_ball``'s compiled part, for compiled callers too (``control.hit_prediction``): one
+    ball x (9,) (not changed) for ``duration`` s in steps of dt s with the contact ``kinds``
+    (ContactKind values), stopping at those with ``stops`` (bool); c: ``contact_constants``,
+    flight: ``flight_constants``. Returns (times (n+1,), states (n+1, 9), the contacts' kinds,
+    times (s) and states just before and after (count,), the index of the stopping contact or
+    -1)."""
+    n_steps = int(math.ceil(duration / dt - 1e-9))
+    times, states = np.empty(n_steps + 1), np.empty((n_steps + 1, 9))
+    capacity = MAX_EVENTS_PER_STEP * n_steps
+    event_kinds, event_times = np.empty(capacity, dtype=np.int64), np.empty(capacity)
+    event_pre, event_post = np.empty((capacity, 9)), np.empty((capacity, 9))
+    count, stop = _simulate_ball(x.copy(), duration, dt, n_steps, kinds, stops, c, *flight, times, states, event_kinds, event_times,
+                                 event_pre, event_post)
+    return times, states, event_kinds[:count], event_times[:count], event_pre[:count], event_post[:count], stop
+
+
+# The contact constants as ``_simulate_ball`` takes them (``contact_constants``), by index.
 (_RADIUS, _TABLE_LENGTH, _TABLE_WIDTH, _SURFACE_HEIGHT, _FRICTION, _RESTITUTION_BASE, _RESTITUTION_SLOPE, _ROLLING_ALPHA,
  _NET_HEIGHT, _NET_OVERHANG, _NET_RESTITUTION, _NET_RETENTION, _FLOOR_RESTITUTION, _FLOOR_RETENTION) = range(14)
 
 
-def _contact_constants(params: BallPhysicsParams) -> np.ndarray:
+def contact_constants(params: BallPhysicsParams) -> np.ndarray:
     """The params' fields that ``contact``'s one-ball kernels take, as one array (the indices above)."""
     table, net, floor = params.table, params.net, params.floor
     return np.array([params.aero.ball_radius, table.length, table.width, table.surface_height, table.friction,
@@ -378,8 +387,8 @@ def _contact_constants(params: BallPhysicsParams) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _gap_one(kind, x, c):
-    """``contact_gap`` of one ball x (9,) for ContactKind ``kind``, m (c: ``_contact_constants``)."""
+def contact_gap_one(kind, x, c):
+    """``contact_gap`` of one ball x (9,) for ContactKind ``kind``, m (c: ``contact_constants``)."""
     if kind == 1:  # TABLE
         return contact.table_gap_one(x[0], x[1], x[2], c[_TABLE_LENGTH], c[_TABLE_WIDTH], c[_RADIUS])
     if kind == 2:  # NET
@@ -423,7 +432,7 @@ def _simulate_ball(x, duration, dt, n_steps, kinds, stops, c, drag_scale, densit
     x1, x_pre, x_post = np.empty(9), np.empty(9), np.empty(9)
     gaps, gaps1 = np.empty(K), np.empty(K)
     for k in range(K):
-        gaps[k] = _gap_one(kinds[k], x, c)
+        gaps[k] = contact_gap_one(kinds[k], x, c)
     active = True
     count, stop = 0, -1
     t = 0.0
@@ -440,7 +449,7 @@ def _simulate_ball(x, duration, dt, n_steps, kinds, stops, c, drag_scale, densit
                     drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
             crossed = False
             for k in range(K):
-                gaps1[k] = _gap_one(kinds[k], x1, c)
+                gaps1[k] = contact_gap_one(kinds[k], x1, c)
                 crossed = crossed or (gaps[k] > 0.0 and gaps1[k] <= 0.0)
             if not crossed:
                 x[:] = x1
@@ -471,13 +480,13 @@ def _simulate_ball(x, duration, dt, n_steps, kinds, stops, c, drag_scale, densit
                     x[:] = x_pre
                     remaining = 0.0
                     for k in range(K):
-                        gaps[k] = _gap_one(kinds[k], x, c)
+                        gaps[k] = contact_gap_one(kinds[k], x, c)
                     continue
             x[:] = x_post
             remaining -= tau
             elapsed += tau
             for k in range(K):
-                gaps[k] = _gap_one(kinds[k], x, c)
+                gaps[k] = contact_gap_one(kinds[k], x, c)
         t += h
         times[step + 1] = t
         states[step + 1] = x
@@ -485,15 +494,31 @@ def _simulate_ball(x, duration, dt, n_steps, kinds, stops, c, drag_scale, densit
 
 
 @numba.njit(cache=True)
+def _first_contact_rows(x0, h, crossing, kinds, c, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                        drag_table_scale, magnus_scale, tau, kind_index):
+    """``first_contact_time`` of balls x0 (M, 9), steps h (M,), crossings (M, K) of the ContactKind
+    values ``kinds`` (K,), into tau (M,) and kind_index (M,) (c: ``contact_constants``)."""
+    k1, k2, k3, k4, trial, x1 = np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9)
+    for i in range(x0.shape[0]):
+        tau[i], kind_index[i] = np.inf, 0
+        for k in range(kinds.shape[0]):
+            if crossing[i, k]:
+                tau_k = _locate_root_one(kinds[k], x0[i], h[i], c, drag_scale, density_ratio, slope, radius, offset, cap, weight,
+                                         drag_model, magnus_model, drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
+                if tau_k < tau[i]:
+                    tau[i], kind_index[i] = tau_k, k
+
+
+@numba.njit(cache=True)
 def _locate_root_one(kind, x0, h, c, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
                      drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1):
     """``locate_root`` (lower 0) of one ball x0 (9,) over a step h, s, for the guard of ContactKind
     ``kind``: the Illinois iteration, operation for operation (x1 (9,) is scratch)."""
-    a, g_a = 0.0, _gap_one(kind, x0, c)
+    a, g_a = 0.0, contact_gap_one(kind, x0, c)
     b = h
     rk4_one(x0, b, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model, drag_table_scale,
             magnus_scale, k1, k2, k3, k4, trial, x1)
-    g_b = _gap_one(kind, x1, c)
+    g_b = contact_gap_one(kind, x1, c)
     last_side = 0
     for _ in range(100):
         if not (b - a) > EVENT_TIME_TOLERANCE:
@@ -504,7 +529,7 @@ def _locate_root_one(kind, x0, h, c, drag_scale, density_ratio, slope, radius, o
             c_trial = 0.5 * (a + b)
         rk4_one(x0, c_trial, drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
                 drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x1)
-        g_c = _gap_one(kind, x1, c)
+        g_c = contact_gap_one(kind, x1, c)
         if g_c > 0.0:
             if last_side == 1:
                 g_b = 0.5 * g_b  # Illinois: halve the stale end

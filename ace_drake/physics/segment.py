@@ -40,13 +40,16 @@ is the same bit for bit whatever the other rows are (row independence), as long 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 from typing import Protocol
 
+import numba
 import numpy as np
 
 from ace_drake.physics import contact
 from ace_drake.physics.contact import ResidualModel
-from ace_drake.physics.flight import POSITION, VELOCITY, rk4_step, rk4_trajectory
+from ace_drake.physics.flight import POSITION, VELOCITY, flight_constants, rk4_one, rk4_step
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import (
     DEFAULT_KINDS,
@@ -55,6 +58,8 @@ from ace_drake.physics.propagate import (
     ContactEvent,
     ContactKind,
     apply_impact,
+    contact_constants,
+    contact_gap_one,
     first_contact_time,
     guard_gaps,
     is_contact,
@@ -69,6 +74,7 @@ SPEED_MARGIN = 0.5  # m/s added to the speed bounds (the RK4 dense solution's ra
 SUBSAMPLE_TRAVEL = 2e-3  # m, the relative travel between the exact racket-gap samples of a step
 MAX_SUBSAMPLES = 512  # per step: 1 km/s of relative speed at 1 ms steps
 RACKET = len(DEFAULT_KINDS)  # the racket's index after the static kinds'
+_KIND_VALUES = np.array(DEFAULT_KINDS, dtype=np.int64)  # the static kinds as the compiled fast pass takes them
 
 
 class RacketMotion(Protocol):
@@ -156,68 +162,98 @@ def propagate_segment(
     active = np.ones(n_balls, dtype=bool) if active is None else np.asarray(active)
     if active.shape != (n_balls,) or active.dtype != bool:
         raise ValueError(f"propagate_segment: active must be a bool array ({n_balls},), got {active.dtype} {active.shape}")
-    if not np.all(np.isfinite(states[active])):
+    if not np.isfinite(states[active]).all():  # array methods: np.all's dispatch costs more than the test here
         raise ValueError("propagate_segment: states of active rows contain NaN or inf")
     start_times = np.asarray(start_times, dtype=float)
-    if start_times.shape != (n_balls,) or not np.all(np.isfinite(start_times)):
+    if start_times.shape != (n_balls,) or not np.isfinite(start_times).all():
         raise ValueError(f"propagate_segment: start_times must be ({n_balls},) finite seconds, got shape {start_times.shape}")
-    times = segment_times(duration, dt)
+    times, steps = _time_grid(float(duration), float(dt))
     perturb_seeds = None if perturb_seeds is None else _integers("perturb_seeds", perturb_seeds, n_balls)
     event_counts = np.zeros(n_balls, dtype=int) if event_counts is None else _integers("event_counts", event_counts, n_balls)
-    if np.any(event_counts < 0):
+    if (event_counts < 0).any():
         raise ValueError(f"propagate_segment: event_counts must be >= 0, got {event_counts}")
     if racket is not None:
         _check_racket(racket, times, n_balls)
-    run = _Segment(states, start_times, times, params, racket, perturb_seeds, event_counts, residual)
+    run = _Segment(states, start_times, times, steps, params, racket, perturb_seeds, event_counts, residual)
     run.propagate(np.flatnonzero(active))
     return SegmentFlight(times=times, samples=run.samples, final=run.samples[:, -1].copy(), events=run.events)
 
 
+@functools.lru_cache(maxsize=8)
+def _time_grid(duration: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """``segment_times`` and ``_steps`` of a segment, read only: computed once per (duration, dt)
+    (every tick of a rally asks for the same)."""
+    times = segment_times(duration, dt)
+    steps = _steps(times)
+    times.flags.writeable = steps.flags.writeable = False
+    return times, steps
+
+
+def _physics_constants(params: BallPhysicsParams) -> tuple[np.ndarray, tuple[float, ...], float]:
+    """The fast pass's constants of ``params``: ``propagate.contact_constants``,
+    ``flight_constants`` and the racket screen's reach (``contact.blade_half_diagonal`` plus the
+    ball's radius, m). Kept for the last params object seen (frozen, so the same object has the
+    same values; a rally passes the same one every tick)."""
+    if _LAST_CONSTANTS[0] is not params:
+        reach = contact.blade_half_diagonal(params.racket) + params.aero.ball_radius
+        _LAST_CONSTANTS[:] = [params, (contact_constants(params), flight_constants(params.aero), reach)]
+    return _LAST_CONSTANTS[1]
+
+
+_LAST_CONSTANTS: list = [None, None]  # [params, its constants] (``_physics_constants``)
+
+
 def _integers(name: str, values, n_balls: int) -> np.ndarray:
     values = np.asarray(values)
-    if values.shape != (n_balls,) or not np.issubdtype(values.dtype, np.integer):
+    if values.shape != (n_balls,) or values.dtype.kind not in "iu":  # signed or unsigned integers
         raise ValueError(f"propagate_segment: {name} must be an integer array ({n_balls},), got {values.dtype} {values.shape}")
     return values.astype(np.int64)
 
 
 def _check_racket(racket: RacketMotion, times: np.ndarray, n_balls: int) -> None:
     racket_times = np.asarray(racket.times, dtype=float)
-    if racket_times.shape != times.shape or not np.max(np.abs(racket_times - times)) <= 1e-12:
+    if racket_times.shape != times.shape or not np.abs(racket_times - times).max() <= 1e-12:
         raise ValueError(f"propagate_segment: racket.times must be the step times {times.shape} (0, dt, ..., duration), got {racket_times.shape}")
     expected = {"p_WR": (3,), "R_WR": (3, 3), "w_WR": (3,), "v_WR": (3,)}
-    for name, tail in expected.items():
-        value = np.asarray(getattr(racket, name))
-        if value.shape != (n_balls, times.size) + tail or not np.all(np.isfinite(value)):
+    values = [np.asarray(getattr(racket, name)) for name in expected]
+    for name, tail, value in zip(expected, expected.values(), values):
+        if value.shape != (n_balls, times.size) + tail:
             raise ValueError(f"propagate_segment: racket.{name} must be finite {(n_balls, times.size) + tail}, got {value.shape}")
+    if not _all_finite(*values):
+        bad = next(name for name, value in zip(expected, values) if not np.all(np.isfinite(value)))
+        raise ValueError(f"propagate_segment: racket.{bad} must be finite {values[list(expected).index(bad)].shape}, got NaN or inf")
 
 
 class _Segment:
     """One call's working state: samples (B, n+1, 9) filled by the fast pass and corrected by the
     exact steps, the events, the racket's per-step speed bounds."""
 
-    def __init__(self, states, start_times, times, params, racket, perturb_seeds, event_counts, residual):
+    def __init__(self, states, start_times, times, steps, params, racket, perturb_seeds, event_counts, residual):
         self.params, self.racket, self.residual = params, racket, residual
-        self.times, self.steps = times, _steps(times)
+        self.times, self.steps = times, steps
         self.start_times, self.perturb_seeds, self.event_counts = start_times, perturb_seeds, event_counts
         self.kinds = DEFAULT_KINDS
         self.radius = params.aero.ball_radius
-        self.reach = contact.blade_half_diagonal(params.racket) + self.radius  # the screen's sphere, m
+        gap_constants, flight, self.reach = _physics_constants(params)  # reach: the screen's sphere, m
+        self.constants = gap_constants, flight  # the fast pass's
         n_balls, n_steps = states.shape[0], self.steps.size
         self.samples = np.repeat(states[:, None, :], n_steps + 1, axis=1)
         self.events: list[list[ContactEvent]] = [[] for _ in range(n_balls)]
+        self.p_WR, self.racket_speed = _NO_RACKET_POSITIONS, _NO_RACKET_SPEEDS  # the fast pass's placeholders without a racket
         if racket is not None:
             p, R, w, v = (np.asarray(a, dtype=float) for a in (racket.p_WR, racket.R_WR, racket.w_WR, racket.v_WR))
             self.p_WR, self.R_WR, self.w_WR, self.v_WR = p, R, w, v
-            self.racket_speed = _speed_bound(v, RACKET_ACCELERATION_BOUND * self.steps)  # (B, n) m/s
-            self.racket_turn = _speed_bound(w, RACKET_ANGULAR_ACCELERATION_BOUND * self.steps)  # (B, n) rad/s
+            self.racket_speed = np.empty((n_balls, n_steps))  # m/s
+            _speed_bound_rows(v, RACKET_ACCELERATION_BOUND * steps, self.racket_speed)
+            self._racket_turn = None  # rad/s, computed when first needed (``racket_turn``)
 
     # ------------------------------------------------------------------ the passes
     def propagate(self, rows: np.ndarray) -> None:
         """Fast pass for ``rows``, then their flagged steps exactly, in order (module docstring)."""
         n_steps = self.steps.size
-        self._fly(rows, np.zeros(rows.size, dtype=int))
         flags = np.zeros((self.samples.shape[0], n_steps), dtype=bool)
-        flags[rows] = self._flags(rows)
+        if not self._fast_pass(rows, np.zeros(rows.size, dtype=np.int64), flags):
+            return  # nothing flagged: most segments
         cursor = np.full(self.samples.shape[0], n_steps)
         cursor[rows] = 0
         step_index = np.arange(n_steps)
@@ -232,34 +268,38 @@ class _Segment:
             redo, k_redo = todo[changed], k[changed] + 1
             if redo.size:
                 self.samples[redo, k_redo] = x_end[changed]
-                self._fly(redo, k_redo)
-                flags[redo] = self._flags(redo)
+                self._fast_pass(redo, k_redo, flags)
 
-    def _fly(self, rows: np.ndarray, first: np.ndarray) -> None:
-        """RK4 from sample first[i] to the segment's end for each of ``rows``, no contacts."""
-        for start in np.unique(first):
-            group = rows[first == start]
-            self.samples[group, start:] = rk4_trajectory(self.samples[group, start], self.steps[start:], self.params.aero)
+    def _fast_pass(self, rows: np.ndarray, first: np.ndarray, flags: np.ndarray) -> bool:
+        """RK4 from sample first[i] to the segment's end for each of ``rows``, no contacts, and
+        flags[rows] (len(rows), n) the steps that may hold a contact (a static guard crossing, or
+        a step the racket screen cannot clear); whether any is flagged. The flight, the guards and
+        the racket's distance screen in one compiled call (``_fly_and_flag``); the steps that
+        screen cannot clear get the exact gaps at their ends (here, in NumPy) with the gap's rate."""
+        near = np.zeros(flags.shape, dtype=bool)
+        speed = np.empty(flags.shape)
+        gap_constants, flight = self.constants
+        flagged, screened = _fly_and_flag(self.samples, rows, first, self.steps, _KIND_VALUES, gap_constants, self.racket is not None,
+                                          self.p_WR, self.racket_speed, self.reach, flags, near, speed, *flight)
+        if screened:  # the same bound on the exact gaps at the ends, with the gap's rate
+            env, k = np.nonzero(near)
+            x = self.samples
+            g0 = contact.racket_gap(x[env, k, POSITION], self.p_WR[env, k], self.R_WR[env, k], self.params.racket, self.radius)
+            g1 = contact.racket_gap(x[env, k + 1, POSITION], self.p_WR[env, k + 1], self.R_WR[env, k + 1], self.params.racket, self.radius)
+            exact = 0.5 * (g0 + g1 - self._gap_rate(speed[env, k], env, k) * self.steps[k]) <= GAP_SCREEN_MARGIN
+            flags[env[exact], k[exact]] = True
+            flagged = flagged or exact.any()
+        return bool(flagged)
 
-    def _flags(self, rows: np.ndarray) -> np.ndarray:
-        """(len(rows), n) bool: the steps that may hold a contact (a static guard crossing, or a
-        step the racket screen cannot clear)."""
-        x = self.samples[rows]
-        m, n_points = x.shape[:2]
-        positive = guard_gaps(x.reshape(-1, 9), self.kinds, self.params).reshape(m, n_points, -1) > 0.0
-        flags = (positive[:, :-1] & ~positive[:, 1:]).any(axis=-1)
-        if self.racket is not None:
-            speed = _speed_bound(x[..., VELOCITY], 0.0) + self.racket_speed[rows]
-            distance = _norm(x[..., POSITION] - self.p_WR[rows])
-            near = 0.5 * (distance[:, :-1] + distance[:, 1:] - speed * self.steps) - self.reach <= GAP_SCREEN_MARGIN
-            i, k = np.nonzero(near)
-            if i.size:  # the same bound on the exact gaps at the ends, with the gap's rate
-                env = rows[i]
-                g0 = contact.racket_gap(x[i, k, POSITION], self.p_WR[env, k], self.R_WR[env, k], self.params.racket, self.radius)
-                g1 = contact.racket_gap(x[i, k + 1, POSITION], self.p_WR[env, k + 1], self.R_WR[env, k + 1], self.params.racket, self.radius)
-                near[i, k] = 0.5 * (g0 + g1 - self._gap_rate(speed[i, k], env, k) * self.steps[k]) <= GAP_SCREEN_MARGIN
-            flags |= near
-        return flags
+    @property
+    def racket_turn(self) -> np.ndarray:
+        """(B, n) rad/s: a bound on the racket's angular speed over each step (``_speed_bound`` of
+        its angular velocity samples, with RACKET_ANGULAR_ACCELERATION_BOUND); needed only near the
+        blade, so computed on first use."""
+        if self._racket_turn is None:
+            self._racket_turn = np.empty(self.racket_speed.shape)
+            _speed_bound_rows(self.w_WR, RACKET_ANGULAR_ACCELERATION_BOUND * self.steps, self._racket_turn)
+        return self._racket_turn
 
     def _gap_rate(self, speed, env, k):
         """A bound (m/s) on the racket gap's rate over step k of environments env, given the bound
@@ -276,9 +316,6 @@ class _Segment:
         t0, h = self.times[k], self.steps[k]
         x = self.samples[rows, k].copy()
         gaps = guard_gaps(x, self.kinds, params)
-        clear = np.ones(rows.size, dtype=bool)  # the racket gap > 0 now
-        if self.racket is not None:
-            clear = contact.racket_gap(x[:, POSITION], self.p_WR[rows, k], self.R_WR[rows, k], params.racket, self.radius) > 0.0
         remaining, elapsed = h.copy(), np.zeros(rows.size)
         changed = np.zeros(rows.size, dtype=bool)
         for _ in range(MAX_EVENTS_PER_STEP):
@@ -294,13 +331,12 @@ class _Segment:
             static = np.flatnonzero(crossing.any(axis=-1))
             if static.size:
                 tau[static], kind_index[static] = first_contact_time(x0[static], h0[static], crossing[static], self.kinds, params)
-            clear1 = np.ones(live.size, dtype=bool)
             if self.racket is not None:
-                tau_racket, clear1 = self._racket_crossing(rows[live], k[live], x0, x1, h0, t0[live] + elapsed[live], elapsed[live] == 0.0, clear[live])
+                tau_racket = self._racket_crossing(rows[live], k[live], x0, x1, h0, t0[live] + elapsed[live], elapsed[live] == 0.0)
                 earlier = tau_racket < tau
                 tau[earlier], kind_index[earlier] = tau_racket[earlier], RACKET
             free = np.isinf(tau)
-            x[live[free]], gaps[live[free]], clear[live[free]] = x1[free], gaps1[free], clear1[free]
+            x[live[free]], gaps[live[free]] = x1[free], gaps1[free]
             remaining[live[free]] = 0.0
             hit = np.flatnonzero(~free)
             if hit.size == 0:
@@ -318,19 +354,17 @@ class _Segment:
                 i = touched[j]
                 x[i] = self._apply_static_contact(rows[i], kind_index[hit[j]], t0[i] + elapsed[i], x_pre[j])
             gaps[touched] = guard_gaps(x[touched], self.kinds, params)
-            if self.racket is not None:
-                p, R, _, _ = self.racket.state_at(rows[touched], t0[touched] + elapsed[touched])
-                clear[touched] = contact.racket_gap(x[touched, POSITION], p, R, params.racket, self.radius) > 0.0
         unfinished = np.flatnonzero(remaining > 0.0)  # more than MAX_EVENTS_PER_STEP contacts: fly on
         if unfinished.size:
             x[unfinished] = rk4_step(x[unfinished], remaining[unfinished], params.aero)
         return x, changed
 
-    def _racket_crossing(self, envs, k, x0, x1, h0, t_start, at_sample, clear0):
+    def _racket_crossing(self, envs, k, x0, x1, h0, t_start, at_sample):
         """The first time (s after t_start; inf if none) within (0, h0] at which each ball's racket
-        gap goes from positive to non-positive, and whether the gap is positive at h0 (the step's
-        end). x0, x1 (m, 9): the ball at t_start and t_start + h0; at_sample: t_start is the
-        sample time times[k]; clear0: the gap is positive at t_start."""
+        gap goes from positive to non-positive. x0, x1 (m, 9): the ball at t_start and t_start +
+        h0; at_sample: t_start is the sample time times[k]. The gap at t_start is needed only where
+        the screens leave the step open, so it is computed only there (each row's gap is the same
+        whatever rows it is computed with)."""
         params = self.params
         p_R0, R_R0 = self.p_WR[envs, k].copy(), self.R_WR[envs, k].copy()
         moved = np.flatnonzero(~at_sample)
@@ -338,21 +372,19 @@ class _Segment:
             p_R0[moved], R_R0[moved] = self.racket.state_at(envs[moved], t_start[moved])[:2]
         ball_speed = _speed_bound(np.stack([x0[:, VELOCITY], x1[:, VELOCITY]], axis=1), 0.0)[:, 0]
         speed = ball_speed + self.racket_speed[envs, k]
-        d0, d1 = _norm(x0[:, POSITION] - p_R0), _norm(x1[:, POSITION] - self.p_WR[envs, k + 1])
+        d0, d1 = _distances(x0[:, POSITION], p_R0), _distances(x1[:, POSITION], self.p_WR[envs, k + 1])
         tau = np.full(envs.size, np.inf)
-        clear1 = np.ones(envs.size, dtype=bool)
         c = np.flatnonzero(0.5 * (d0 + d1 - speed * h0) - self.reach <= GAP_SCREEN_MARGIN)
         if c.size == 0:
-            return tau, clear1
+            return tau
         # The exact gaps at the ends and the gap's rate: most steps near the blade end here.
         g0 = contact.racket_gap(x0[c, POSITION], p_R0[c], R_R0[c], params.racket, self.radius)
         g1 = contact.racket_gap(x1[c, POSITION], self.p_WR[envs[c], k[c] + 1], self.R_WR[envs[c], k[c] + 1], params.racket, self.radius)
         gap_rate = self._gap_rate(speed[c], envs[c], k[c])
-        clear1[c] = g1 > 0.0
         close = 0.5 * (g0 + g1 - gap_rate * h0[c]) <= GAP_SCREEN_MARGIN
-        c, gap_rate = c[close], gap_rate[close]
+        c, gap_rate, clear0 = c[close], gap_rate[close], g0[close] > 0.0  # clear0: the gap is positive at t_start
         if c.size == 0:
-            return tau, clear1
+            return tau
         count = np.clip(np.ceil(gap_rate * h0[c] / SUBSAMPLE_TRAVEL), 1, MAX_SUBSAMPLES).astype(int)
         owner = np.repeat(np.arange(c.size), count)
         first = np.cumsum(count) - count
@@ -365,11 +397,10 @@ class _Segment:
         if inner.size:
             p_R[inner], R_R[inner] = self.racket.state_at(envs[c][owner[inner]], t_start[c][owner[inner]] + s[inner])[:2]
         positive = contact.racket_gap(balls[:, POSITION], p_R, R_R, params.racket, self.radius) > 0.0
-        before = np.where(j == 1, clear0[c][owner], np.roll(positive, 1))
-        clear1[c] = positive[last]
+        before = np.where(j == 1, clear0[owner], np.roll(positive, 1))
         crossing = np.flatnonzero(before & ~positive)
         if crossing.size == 0:
-            return tau, clear1
+            return tau
         found, index = np.unique(owner[crossing], return_index=True)  # each owner's first crossing
         index = crossing[index]
         lower = np.where(j[index] == 1, 0.0, s[index - 1])
@@ -381,7 +412,7 @@ class _Segment:
             return contact.racket_gap(states[:, POSITION], p, R, params.racket, self.radius)
 
         tau[rows] = locate_root(x0[rows], s[index], gap, params, lower=lower)
-        return tau, clear1
+        return tau
 
     def _apply_racket_contacts(self, envs: np.ndarray, tau: np.ndarray, pre: np.ndarray) -> np.ndarray:
         """The states (m, 9) after racket contacts of environments envs (m,) at tau (m,) s after
@@ -425,13 +456,104 @@ def _steps(times: np.ndarray) -> np.ndarray:
     return steps
 
 
-def _norm(a: np.ndarray) -> np.ndarray:
-    return np.sqrt(a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2])
-
-
 def _speed_bound(velocity: np.ndarray, change: np.ndarray | float) -> np.ndarray:
     """A bound (..., n) on the speed between consecutive samples of ``velocity`` (..., n+1, 3):
-    the larger end speed plus the change between the ends, plus ``change`` (an acceleration bound
-    times the step) and SPEED_MARGIN."""
-    speed = _norm(velocity)
-    return np.maximum(speed[..., :-1], speed[..., 1:]) + _norm(velocity[..., 1:, :] - velocity[..., :-1, :]) + change + SPEED_MARGIN
+    ``_speed_bound_one`` of each pair, plus ``change`` (n,) or a float (an acceleration bound
+    times the step)."""
+    velocity = np.ascontiguousarray(velocity, dtype=float)
+    n = velocity.shape[-2] - 1
+    change = np.ascontiguousarray(np.broadcast_to(np.asarray(change, dtype=float), (n,)))
+    out = np.empty(velocity.shape[:-2] + (n,))
+    _speed_bound_rows(velocity.reshape(-1, n + 1, 3), change, out.reshape(-1, n))
+    return out
+
+
+def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a - b| (m,) for points a, b (m, 3) (``_length``)."""
+    a, b = np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(b, dtype=float)
+    out = np.empty(a.shape[0])
+    _distance_rows(a, b, out)
+    return out
+
+
+_NO_RACKET_POSITIONS, _NO_RACKET_SPEEDS = np.zeros((0, 1, 3)), np.zeros((0, 1))  # the fast pass's racket arrays without one
+
+
+@numba.njit(cache=True)
+def _length(x, y, z):
+    """|(x, y, z)|."""
+    return math.sqrt(x * x + y * y + z * z)
+
+
+@numba.njit(cache=True)
+def _speed_bound_one(v0x, v0y, v0z, v1x, v1y, v1z, change):
+    """A bound on the speed between two velocity samples v0, v1 (m/s, or rad/s): the larger end
+    speed plus the change between the ends, plus ``change`` (an acceleration bound times the
+    step) and SPEED_MARGIN."""
+    s0, s1 = _length(v0x, v0y, v0z), _length(v1x, v1y, v1z)
+    larger = s0 if s0 >= s1 or math.isnan(s0) else s1  # np.maximum's (a NaN wins)
+    return larger + _length(v1x - v0x, v1y - v0y, v1z - v0z) + change + SPEED_MARGIN
+
+
+@numba.njit(cache=True)
+def _speed_bound_rows(velocity, change, out):
+    """``_speed_bound`` of velocity (M, n+1, 3) with change (n,) into out (M, n)."""
+    for i in range(velocity.shape[0]):
+        v = velocity[i]
+        for k in range(out.shape[1]):
+            out[i, k] = _speed_bound_one(v[k, 0], v[k, 1], v[k, 2], v[k + 1, 0], v[k + 1, 1], v[k + 1, 2], change[k])
+
+
+@numba.njit(cache=True)
+def _all_finite(p_WR, R_WR, w_WR, v_WR):
+    """Whether every value of a racket's sample arrays is finite."""
+    return np.all(np.isfinite(p_WR)) and np.all(np.isfinite(R_WR)) and np.all(np.isfinite(w_WR)) and np.all(np.isfinite(v_WR))
+
+
+@numba.njit(cache=True)
+def _distance_rows(a, b, out):
+    """``_distances`` into out (m,)."""
+    for i in range(a.shape[0]):
+        out[i] = _length(a[i, 0] - b[i, 0], a[i, 1] - b[i, 1], a[i, 2] - b[i, 2])
+
+
+@numba.njit(cache=True)
+def _fly_and_flag(samples, rows, first, steps, kinds, c, with_racket, p_WR, racket_speed, reach, flags, near, speed,
+                  drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model, drag_table_scale, magnus_scale):
+    """``_Segment._fast_pass``' compiled part, in place: for each of ``rows``, samples[row] (n+1, 9)
+    from sample first[i] on by RK4 steps (``rk4_trajectory``'s), then flags[row] (n,) the steps
+    where a guard of ``kinds`` (ContactKind values; ``propagate.contact_gap_one``, c its constants) goes
+    from positive to non-positive, and, with_racket, near[row] the steps the racket's distance
+    screen cannot clear: the ball's centre and the blade's (p_WR (B, n+1, 3)) move apart or
+    together at most at ``speed`` (the ball's speed bound plus racket_speed (B, n), stored in
+    speed[row]), so over a step of h their distance stays above (d_0 + d_1 - speed h) / 2; near
+    when that is not above ``reach`` + GAP_SCREEN_MARGIN. Returns (any step flagged, the number
+    of near steps)."""
+    k1, k2, k3, k4, trial = np.empty(9), np.empty(9), np.empty(9), np.empty(9), np.empty(9)
+    positive, positive_next = np.empty(kinds.size, dtype=np.bool_), np.empty(kinds.size, dtype=np.bool_)
+    flagged, screened = False, 0
+    for i in range(rows.size):
+        x = samples[rows[i]]
+        for k in range(first[i], steps.size):
+            rk4_one(x[k], steps[k], drag_scale, density_ratio, slope, radius, offset, cap, weight, drag_model, magnus_model,
+                    drag_table_scale, magnus_scale, k1, k2, k3, k4, trial, x[k + 1])
+        for j in range(kinds.size):
+            positive[j] = contact_gap_one(kinds[j], x[0], c) > 0.0
+        for k in range(steps.size):
+            crossing = False
+            for j in range(kinds.size):
+                positive_next[j] = contact_gap_one(kinds[j], x[k + 1], c) > 0.0
+                crossing = crossing or (positive[j] and not positive_next[j])
+            positive[:] = positive_next
+            flags[rows[i], k] = crossing
+            flagged = flagged or crossing
+            if with_racket:
+                p0, p1 = p_WR[rows[i], k], p_WR[rows[i], k + 1]
+                bound = _speed_bound_one(x[k, 3], x[k, 4], x[k, 5], x[k + 1, 3], x[k + 1, 4], x[k + 1, 5], 0.0) + racket_speed[rows[i], k]
+                d0 = _length(x[k, 0] - p0[0], x[k, 1] - p0[1], x[k, 2] - p0[2])
+                d1 = _length(x[k + 1, 0] - p1[0], x[k + 1, 1] - p1[1], x[k + 1, 2] - p1[2])
+                speed[rows[i], k] = bound
+                if 0.5 * (d0 + d1 - bound * steps[k]) - reach <= GAP_SCREEN_MARGIN:
+                    near[rows[i], k] = True
+                    screened += 1
+    return flagged, screened

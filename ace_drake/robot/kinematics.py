@@ -30,6 +30,8 @@ Accuracy against Drake (tests/test_kinematics.py): positions and rotation matric
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
@@ -168,28 +170,24 @@ class RacketKinematics:
         [p_WR (3; m), quaternion of R_WR (4; w, x, y, z; w >= 0, as Drake's ToQuaternion),
         v_WR (3; m/s), w_WR (3; rad/s)], the layout of ``RobotKinematics``' end_effector_state."""
         p, R, w, v_WR = self.racket_state(q, v)
-        quaternion = np.empty(R.shape[:-2] + (4,))
-        _to_quaternion(R.reshape(-1, 3, 3), quaternion.reshape(-1, 4))
-        return np.concatenate([p, quaternion, v_WR, w], axis=-1)
+        out = np.empty(p.shape[:-1] + (13,))
+        _end_effector_rows(p.reshape(-1, 3), R.reshape(-1, 3, 3), w.reshape(-1, 3), v_WR.reshape(-1, 3), out.reshape(-1, 13))
+        return out
 
     def _evaluate(self, q: np.ndarray, v: np.ndarray | None):
         """(p_WR, R_WR, w_WR, v_WR) over q's leading dimensions; the twist None without v."""
         batch = q.shape[:-1]
-        samples = int(np.prod(batch, dtype=np.int64))
-        # The kernel reads one joint's samples contiguously: (8, S).
-        q_columns = np.ascontiguousarray(q.reshape(samples, CHAIN_JOINTS).T)
-        v_columns = q_columns if v is None else np.ascontiguousarray(v.reshape(samples, CHAIN_JOINTS).T)
-        p, R = np.empty((samples, 3)), np.empty((samples, 3, 3))
-        w, v_WR = (np.empty((samples, 3)), np.empty((samples, 3))) if v is not None else (p, p)  # p: unused placeholders
-        _racket_chain(
-            q_columns, v_columns, v is not None,
+        samples = math.prod(batch)
+        p, R = np.empty(batch + (3,)), np.empty(batch + (3, 3))
+        w, v_WR = (np.empty(batch + (3,)), np.empty(batch + (3,))) if v is not None else (p, p)  # p: unused placeholders
+        _racket_chain_rows(
+            q.reshape(samples, CHAIN_JOINTS), (q if v is None else v).reshape(samples, CHAIN_JOINTS), v is not None,
             self._terms, self._revolute, self._axes, self._origins, self._position_index, self._velocity_index,
-            p, R, w, v_WR,
+            p.reshape(samples, 3), R.reshape(samples, 3, 3), w.reshape(samples, 3), v_WR.reshape(samples, 3),
         )
-        p, R = p.reshape(batch + (3,)), R.reshape(batch + (3, 3))
         if v is None:
             return p, R, None, None
-        return p, R, w.reshape(batch + (3,)), v_WR.reshape(batch + (3,))
+        return p, R, w, v_WR
 
 
 def _as_4x4(terms: np.ndarray) -> np.ndarray:
@@ -207,6 +205,14 @@ def _joint_array(value, name: str) -> np.ndarray:
     if array.ndim == 0 or array.shape[-1] != CHAIN_JOINTS:
         raise ValueError(f"RacketKinematics: {name} must have shape (..., {CHAIN_JOINTS}) ({', '.join(JOINT_NAMES)}), got shape {array.shape}")
     return array
+
+
+@numba.njit(cache=True)
+def _racket_chain_rows(q, v, with_velocity, terms, revolute, axes, origins, position_index, velocity_index, p_out, R_out, w_out, v_out):
+    """``_racket_chain`` of samples q, v (S, 8), one per row: their columns copied contiguously
+    first (as the chain's loops read them), in one compiled call."""
+    _racket_chain(np.ascontiguousarray(q.T), np.ascontiguousarray(v.T), with_velocity, terms, revolute, axes, origins, position_index,
+                  velocity_index, p_out, R_out, w_out, v_out)
 
 
 @numba.njit(cache=True)
@@ -286,20 +292,28 @@ def _racket_chain(q, v, with_velocity, terms, revolute, axes, origins, position_
 
 
 @numba.njit(cache=True)
-def _to_quaternion(R, out):
-    """out (S, 4) = the unit quaternions (w, x, y, z) of rotation matrices R (S, 3, 3), in place,
-    as Drake's RotationMatrix::ToQuaternion computes them: from the largest of the trace and the
-    diagonal entries, then the canonical sign w >= 0."""
-    for s in range(R.shape[0]):
-        M = R[s]
-        trace = M[0, 0] + M[1, 1] + M[2, 2]
-        if trace >= M[0, 0] and trace >= M[1, 1] and trace >= M[2, 2]:
-            qw, qx, qy, qz = 1.0 + trace, M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]
-        elif M[0, 0] >= M[1, 1] and M[0, 0] >= M[2, 2]:
-            qw, qx, qy, qz = M[2, 1] - M[1, 2], 1.0 - (trace - 2.0 * M[0, 0]), M[0, 1] + M[1, 0], M[0, 2] + M[2, 0]
-        elif M[1, 1] >= M[2, 2]:
-            qw, qx, qy, qz = M[0, 2] - M[2, 0], M[0, 1] + M[1, 0], 1.0 - (trace - 2.0 * M[1, 1]), M[1, 2] + M[2, 1]
-        else:
-            qw, qx, qy, qz = M[1, 0] - M[0, 1], M[0, 2] + M[2, 0], M[1, 2] + M[2, 1], 1.0 - (trace - 2.0 * M[2, 2])
-        scale = (-1.0 if qw < 0.0 else 1.0) / np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        out[s, 0], out[s, 1], out[s, 2], out[s, 3] = qw * scale, qx * scale, qy * scale, qz * scale
+def _quaternion_one(M):
+    """The unit quaternion (w, x, y, z) of a rotation matrix M (3, 3) as Drake's
+    RotationMatrix::ToQuaternion computes it: from the largest of the trace and the diagonal
+    entries, then the canonical sign w >= 0."""
+    trace = M[0, 0] + M[1, 1] + M[2, 2]
+    if trace >= M[0, 0] and trace >= M[1, 1] and trace >= M[2, 2]:
+        qw, qx, qy, qz = 1.0 + trace, M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]
+    elif M[0, 0] >= M[1, 1] and M[0, 0] >= M[2, 2]:
+        qw, qx, qy, qz = M[2, 1] - M[1, 2], 1.0 - (trace - 2.0 * M[0, 0]), M[0, 1] + M[1, 0], M[0, 2] + M[2, 0]
+    elif M[1, 1] >= M[2, 2]:
+        qw, qx, qy, qz = M[0, 2] - M[2, 0], M[0, 1] + M[1, 0], 1.0 - (trace - 2.0 * M[1, 1]), M[1, 2] + M[2, 1]
+    else:
+        qw, qx, qy, qz = M[1, 0] - M[0, 1], M[0, 2] + M[2, 0], M[1, 2] + M[2, 1], 1.0 - (trace - 2.0 * M[2, 2])
+    scale = (-1.0 if qw < 0.0 else 1.0) / np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    return qw * scale, qx * scale, qy * scale, qz * scale
+
+
+@numba.njit(cache=True)
+def _end_effector_rows(p, R, w, v, out):
+    """out (S, 13) = [p (3), the quaternion of R (4; ``_quaternion_one``), v (3), w (3)] of each of
+    the S racket states p, w, v (S, 3), R (S, 3, 3)."""
+    for s in range(p.shape[0]):
+        out[s, 3], out[s, 4], out[s, 5], out[s, 6] = _quaternion_one(R[s])
+        for i in range(3):
+            out[s, i], out[s, 7 + i], out[s, 10 + i] = p[s, i], v[s, i], w[s, i]

@@ -53,9 +53,7 @@ def hit_prediction_parts(predictor: HitPredictor, now, estimates, statuses, kept
     (``HitPredictor.features_batch``)."""
     now, kept_hits = np.asarray(now, dtype=float), np.asarray(kept_hits, dtype=float)
     statuses = np.asarray(statuses, dtype=float).reshape(len(now), -1)
-    keep = np.full(now.shape, np.nan)
-    finite = np.isfinite(kept_hits)
-    keep[finite] = kept_hits[finite] - now[finite]
+    keep = np.where(np.isfinite(kept_hits), kept_hits - now, np.nan)
     return predictor.features_batch(np.asarray(estimates, dtype=float).reshape(len(now), -1), statuses[:, 0] > 0.5, keep)
 
 

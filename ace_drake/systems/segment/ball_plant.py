@@ -147,8 +147,11 @@ class SegmentBallPlant(LeafSystem):
             moving = racket if racket is None or offset == 0 else _DelayedRacket(racket, offset, self.timing.period)
             flight = propagate_segment(current.balls, start, duration, self.params, moving, active, dt=self.timing.period,
                                        perturb_seeds=seeds, event_counts=counts, residual=self.residual)
-            samples[active, offset:] = flight.samples[active]
-            samples[active, :offset] = current.balls[active, None, :]
+            if offset == 0 and active.all():
+                samples = flight.samples  # every row flew the whole tick (most ticks): no copy
+            else:
+                samples[active, offset:] = flight.samples[active]
+                samples[active, :offset] = current.balls[active, None, :]
             for row in np.flatnonzero(active):
                 if flight.events[row]:
                     events[row] = events[row] + tuple(flight.events[row])

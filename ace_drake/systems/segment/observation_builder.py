@@ -47,6 +47,8 @@ class SegmentObservationBuilder(LeafSystem):
         self.predictor = predictor
         self.hit_memory = hit_memory
         B = self.batch
+        self._no_kept_hits = np.full(B, np.nan)  # without hit_memory: no row keeps a hit
+        self._no_kept_hits.flags.writeable = False
         self.position_measurements_port = self.DeclareAbstractInputPort("position_measurements", AbstractValue.Make(()))
         self.spin_measurements_port = self.DeclareAbstractInputPort("spin_measurements", AbstractValue.Make(()))
         self.robot_state_port = self.DeclareAbstractInputPort("robot_state", AbstractValue.Make(np.zeros((B, 24))))
@@ -94,7 +96,7 @@ class SegmentObservationBuilder(LeafSystem):
         observation = np.empty((self.batch, self.layout.size))
         hits = [None] * self.batch
         if self.predictor is not None:  # every row's hit_prediction part in one call
-            kept_hits = kept if self.hit_memory else np.full(self.batch, np.nan)
+            kept_hits = kept if self.hit_memory else self._no_kept_hits
             hits = hit_prediction_parts(self.predictor, np.asarray(now, dtype=float), estimate, status, kept_hits)
         for row in range(self.batch):
             observation[row] = assemble_observation(
