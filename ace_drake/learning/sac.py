@@ -27,7 +27,8 @@ a ball; with ``bc_weight`` 0 (the default) or no demonstration batch, the update
 The row weights w_i are 1, or 1 + ``bc_hit_weight`` where the observation's predicted hit is at
 most ``bc_hit_window`` s away: the segments that decide the stroke are ~15% of the rows and the
 hardest to fit (the cloned actor placed the blade well but swung at a third of the returner's
-speed; docs/training.md, *Training the paper's policy*).
+speed). Measured once, it did not help: weight 5 returned fewer shots after 40,000 cloning
+updates than uniform rows (docs/experiments/2026-12-06-paper-action-cloning.md).
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
 the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
