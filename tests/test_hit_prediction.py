@@ -6,7 +6,7 @@ import pytest
 from ace_drake.analysis.scripted_swing import INCOMING_BALL
 from ace_drake.config import MODELS_DIR
 from ace_drake.contracts import HIT_PREDICTION_SIZE
-from ace_drake.control.hit_prediction import IMMINENT_MARGIN, KEEP_TOLERANCE, Flight, HitPredictor, Prediction, joint_lag
+from ace_drake.control.hit_prediction import KEEP_TOLERANCE, Flight, HitPredictor, Prediction, joint_lag
 from ace_drake.control.params import ControlParams, ReturnerParams
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.flight import rk4_step
@@ -233,23 +233,10 @@ def reference_candidates(predictor, flight, prediction, include_current=False, k
     """``HitPredictor.candidates`` with its ranking in NumPy: the reference the compiled ranking
     (``_hit_order``) equals."""
     params = predictor.params
-    table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
-    first_is_bounce = bool(table_contacts) and table_contacts[0][1] == ContactKind.TABLE and table_contacts[0][2][0] < 0.0
-    if flight.bounce_time is not None:
-        remembered = flight.bounce_time - flight.clock
-        if first_is_bounce and abs(table_contacts[0][0] - remembered) < IMMINENT_MARGIN:
-            bounce, after = table_contacts[0][0], table_contacts[1:]
-        elif remembered <= IMMINENT_MARGIN:
-            bounce, after = remembered, table_contacts
-        else:
-            return []
-    elif first_is_bounce:
-        bounce, after = table_contacts[0][0], table_contacts[1:]
-        if bounce < predictor.segment + IMMINENT_MARGIN:
-            flight.bounce_time = flight.clock + bounce
-    else:
+    window = predictor.bounce_window(flight, prediction)  # the bounce and the contact after it: not part of the ranking
+    if window is None:
         return []
-    end = after[0][0] if after else np.inf
+    bounce, end = window
     times, states = prediction.times, prediction.states
     first = 0 if include_current else predictor._samples_per_segment
     index = np.arange(first, len(times), predictor._samples_per_segment)

@@ -182,15 +182,11 @@ class HitPredictor:
         return features
 
     # ------------------------------------------------------------------------------ the hit
-    def candidates(self, flight: Flight, prediction: Prediction, include_current: bool = False, keep: float | None = None) -> list[int]:
-        """Indices of the prediction's samples where the robot may hit (``control.returner``'s
-        step 2), most preferred first. ``flight``: what is remembered of the ball (a fresh
-        ``Flight`` with ``bounce_time`` from ``bounce_behind`` when nothing is); an imminent
-        bounce is recorded in it. ``include_current``: also the hit in the segment being commanded
-        (k = 0; the memoryless returner follows through there when it is preferred). The hit
-        ``keep`` s after the observation (a remembered or kept hit) comes first while it is a
-        candidate."""
-        params = self.params
+    def bounce_window(self, flight: Flight, prediction: Prediction) -> tuple[float, float] | None:
+        """The times (s after the observation) of the bounce on the robot's half and of the next
+        contact after it (inf if none): where ``candidates`` may hit; None when there is no such
+        bounce ahead (an invalid shot, or a remembered bounce already far behind). An imminent
+        bounce is recorded in ``flight``."""
         table_contacts = [(t, kind, state) for t, kind, state in prediction.contacts if kind in (ContactKind.TABLE, ContactKind.FLOOR)]
         first_is_bounce = bool(table_contacts) and table_contacts[0][1] == ContactKind.TABLE and table_contacts[0][2][0] < 0.0
         if flight.bounce_time is not None:
@@ -202,7 +198,7 @@ class HitPredictor:
             elif remembered <= IMMINENT_MARGIN:
                 bounce, after = remembered, table_contacts
             else:
-                return []
+                return None
         elif first_is_bounce:
             bounce, after = table_contacts[0][0], table_contacts[1:]
             # Remembered only when it happens before the next call: a prediction that short is
@@ -210,8 +206,22 @@ class HitPredictor:
             if bounce < self.segment + IMMINENT_MARGIN:
                 flight.bounce_time = flight.clock + bounce
         else:
-            return []  # no bounce on the robot's half ahead: an invalid shot, not to be touched
-        end = after[0][0] if after else np.inf
+            return None  # no bounce on the robot's half ahead: an invalid shot, not to be touched
+        return bounce, (after[0][0] if after else np.inf)
+
+    def candidates(self, flight: Flight, prediction: Prediction, include_current: bool = False, keep: float | None = None) -> list[int]:
+        """Indices of the prediction's samples where the robot may hit (``control.returner``'s
+        step 2), most preferred first. ``flight``: what is remembered of the ball (a fresh
+        ``Flight`` with ``bounce_time`` from ``bounce_behind`` when nothing is); an imminent
+        bounce is recorded in it. ``include_current``: also the hit in the segment being commanded
+        (k = 0; the memoryless returner follows through there when it is preferred). The hit
+        ``keep`` s after the observation (a remembered or kept hit) comes first while it is a
+        candidate."""
+        params = self.params
+        window = self.bounce_window(flight, prediction)
+        if window is None:
+            return []
+        bounce, end = window
         # Hits at a segment boundary after the next (k >= 1), or from the one in the segment being
         # commanded (k = 0) with include_current.
         first = 0 if include_current else self._samples_per_segment
