@@ -11,6 +11,7 @@ from ace_drake.control.feasible_set import InfeasibleStartError, feasible_sets, 
 from ace_drake.control.params import ControlParams
 from ace_drake.control.trajectory import CommandLimits
 from ace_drake.robot.params import RobotLimits, RobotScenario
+from test_feasible_set import reference_boundary_distance
 
 CONTROL = ControlParams()
 LIMITS = CommandLimits.from_config(RobotLimits(), CONTROL)
@@ -170,7 +171,7 @@ def reference_map_action(action, sets):
     delta = np.swapaxes(action.reshape(*action.shape[:-1], 2, 8), -1, -2)
     size = np.max(np.abs(delta), axis=-1)
     shaped = delta * sets.scale
-    beta = sets.boundary_distance(shaped)
+    beta = reference_boundary_distance(sets, shaped)  # NumPy too: not the kernel under test
     step = np.where(size > 0.0, size * np.where(np.isfinite(beta), beta, 0.0), 0.0)
     y = sets.centre + step[..., None] * shaped
     return y[..., 0], y[..., 1]
@@ -180,7 +181,7 @@ def reference_inverse_map_action(q_terminal, v_terminal, sets):
     """``inverse_map_action`` in NumPy (its former form): the reference of the compiled loop."""
     y = np.stack([np.asarray(q_terminal, dtype=float), np.asarray(v_terminal, dtype=float)], axis=-1)
     offset = y - sets.centre
-    to_boundary = sets.boundary_distance(offset)
+    to_boundary = reference_boundary_distance(sets, offset)
     unscaled = offset / sets.scale
     largest = np.max(np.abs(unscaled), axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):

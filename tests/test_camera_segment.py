@@ -302,6 +302,12 @@ def test_frames_are_the_flat_measurements():
     np.testing.assert_array_equal(frames.valid, measured.valid.reshape(-1))
     np.testing.assert_array_equal(frames.position, measured.value.reshape(-1, 3))
     np.testing.assert_array_equal(frames.covariance, measured.covariance.reshape(-1, 3, 3))
+    # measure reads frames: the pixels also equal the NumPy and OpenCV steps' (the reference path)
+    reference = CameraSegment(CAMERAS)
+    reference._compiled = False
+    reference._stack.stacked = False
+    expected = reference.detect(p_WB, seeds, sequences)
+    assert np.array_equal(pixels.view(np.uint64), expected.reshape(-1, C, 2).view(np.uint64))
     with pytest.raises(ValueError, match="p_WB must be finite"):
         dut.frames(np.full((1, 3), np.nan), seeds[:1], np.ones(1, dtype=np.uint64))
 

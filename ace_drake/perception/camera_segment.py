@@ -709,7 +709,6 @@ def _measure_frames(points, seeds, sequences, blocked, sigma, dropout, threshold
 
 
 # Each trigger's generator and draws, compiled (``random_streams``: numpy's default_rng bit for bit).
-_MASK32 = 0xFFFFFFFF
 
 
 @numba.njit(cache=True)
@@ -753,7 +752,7 @@ def draw_detection_noise(seeds: np.ndarray, sequences: np.ndarray, camera_count:
         raise ValueError(f"draw_detection_noise: seeds {seeds.shape} and sequences {sequences.shape} must match")
     if len(seeds) and (seeds.dtype.kind not in "iu" or sequences.dtype.kind not in "iu" or seeds.min() < 0 or sequences.min() < 0):
         raise ValueError("draw_detection_noise: seeds (< 2**64) and sequences (< 2**32) must be non-negative integers")
-    if len(seeds) and sequences.max() > _MASK32:
+    if len(seeds) and sequences.max() > random_streams.MASK32:
         raise ValueError(f"draw_detection_noise: sequences must be < 2**32, got {sequences.max()}")
     noise = np.empty((len(seeds), camera_count, 2))
     uniforms = np.empty((len(seeds), camera_count))
@@ -1004,7 +1003,7 @@ class CameraSegment:
             sequences = np.broadcast_to(sequences, (B, m))
         if sequences.shape != (B, m) or sequences.dtype.kind not in "iu":
             raise ValueError(f"CameraSegment: sequences must be integers of shape ({m},) or ({B}, {m}), got {sequences.dtype} {sequences.shape}")
-        if np.any(sequences < 1) or np.any(sequences > _MASK32):
+        if np.any(sequences < 1) or np.any(sequences > random_streams.MASK32):
             raise ValueError("CameraSegment: trigger sequence numbers start at 1 and are < 2**32")
         if occluders is not None and len(occluders) != B:
             raise ValueError(f"CameraSegment: occluders must give one sequence per environment ({B}), got {len(occluders)}")

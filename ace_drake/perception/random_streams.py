@@ -24,7 +24,7 @@ from ace_drake.perception.sensor_models import PositionVariates
 MAX_ENTROPY_WORDS = 4  # SeedSequence's pool: longer entropy is mixed in differently (not written here)
 GENERATOR_SCRATCH = 24  # uint64 work space of ``seed_generator``
 
-_MASK32 = 0xFFFFFFFF
+MASK32 = 0xFFFFFFFF  # a 32-bit word (SeedSequence works in them; camera_segment checks its seed words against it)
 _HASH_INIT_A, _HASH_MULT_A = 0x43B0D7E5, 0x931E8875
 _HASH_INIT_B, _HASH_MULT_B = 0x8B51F9DD, 0x58F38DED
 _MIX_MULT_L, _MIX_MULT_R = 0xCA01F9DD, 0x4973F715
@@ -42,7 +42,7 @@ def _hash_constants(init: int, mult: int, count: int) -> list[tuple[int, int]]:
     """The data-independent (xor, multiplier) pairs of SeedSequence's successive hashes."""
     pairs, value = [], init
     for _ in range(count):
-        following = (value * mult) & _MASK32
+        following = (value * mult) & MASK32
         pairs.append((value, following))
         value = following
     return pairs
@@ -55,7 +55,7 @@ _STATE_HASHES = np.array(_hash_constants(_HASH_INIT_B, _HASH_MULT_B, 2 * MAX_ENT
 @numba.njit(cache=True)
 def _hash(value, xor, mult):
     """SeedSequence's hashmix of a 32-bit word held in a uint64."""
-    value = ((value ^ xor) * mult) & np.uint64(_MASK32)
+    value = ((value ^ xor) * mult) & np.uint64(MASK32)
     return value ^ (value >> np.uint64(16))
 
 
@@ -65,7 +65,7 @@ def _seed_words(entropy, pool, words, out):
     uint64, the 32-bit entropy words padded with zeros (shorter entropy hashes zeros into the
     pool); out (4,) uint64, the 64-bit halves [high, low] of PCG64's initstate, then of its
     initseq; pool (4,) and words (8,) uint64 are scratch."""
-    mask, shift = np.uint64(_MASK32), np.uint64(32)
+    mask, shift = np.uint64(MASK32), np.uint64(32)
     left, right = np.uint64(_MIX_MULT_L), np.uint64(_MIX_MULT_R)
     constant = 0
     for i in range(MAX_ENTROPY_WORDS):
@@ -87,7 +87,7 @@ def _seed_words(entropy, pool, words, out):
 @numba.njit(cache=True, inline="always")
 def _multiply_high(a, b):
     """The high 64 bits of the 128-bit product of uint64 a and b."""
-    mask, shift = np.uint64(_MASK32), np.uint64(32)
+    mask, shift = np.uint64(MASK32), np.uint64(32)
     a_low, a_high, b_low, b_high = a & mask, a >> shift, b & mask, b >> shift
     low_low, low_high, high_low = a_low * b_low, a_low * b_high, a_high * b_low
     middle = (low_low >> shift) + (low_high & mask) + (high_low & mask)
@@ -123,7 +123,7 @@ def seed_generator(values, count, generator, scratch):
         while True:
             if length == MAX_ENTROPY_WORDS:
                 raise ValueError("seed_generator: the entropy needs more than 4 32-bit words")
-            entropy[length] = value & np.uint64(_MASK32)
+            entropy[length] = value & np.uint64(MASK32)
             length += 1
             value >>= np.uint64(32)
             if value == 0:
