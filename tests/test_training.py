@@ -200,9 +200,12 @@ IN_TRAINING = ("rally_paper",)
 def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
     assert {path.name for path in MODELS_DIR.glob("train_*.yaml")} == {
         "train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES + IN_TRAINING)}
+    assert {path.stem for path in (MODELS_DIR / "policies").glob("*.pt")} == set(KEPT_POLICIES)
+    data = Path("../shared/data/ace_match_events_elite.csv")  # the configs' evaluation data must exist to load
+    if not data.is_file():
+        pytest.skip(f"the match data is not at {data} (run from the project root, beside ../shared)")
     for name in IN_TRAINING:
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
-    assert {path.stem for path in (MODELS_DIR / "policies").glob("*.pt")} == set(KEPT_POLICIES)
 
 
 def test_the_paper_action_policy_trains_in_its_three_stages_from_one_config():
