@@ -390,6 +390,21 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path):
         Trainer(_config(seed=4), tmp_path / "run", progress=lambda line: None)
 
 
+def test_a_run_resumes_shortened_or_extended(tmp_path):
+    """The run's length is the one field a resumed run may change: a finished run extended learns
+    on to the new length; one shortened below its steps stays finished, unchanged."""
+    config = _config()
+    first = Trainer(config, tmp_path / "run", progress=lambda line: None).run()
+    lines = []
+    longer = Trainer(dataclasses.replace(config, env_steps=2 * first.env_steps), tmp_path / "run", progress=lines.append)
+    assert longer.state.phase == "learn" and any("length changed" in line for line in lines)
+    extended = longer.run()
+    assert extended.phase == "done" and extended.env_steps >= 2 * first.env_steps > first.env_steps
+    updates = longer.learner.updates
+    shorter = Trainer(dataclasses.replace(config, env_steps=first.env_steps // 2), tmp_path / "run", progress=lambda line: None)
+    assert shorter.state.phase == "done" and shorter.run().env_steps == extended.env_steps and shorter.learner.updates == updates
+
+
 def test_a_checkpoint_from_before_a_config_field_existed_resumes_at_its_default(tmp_path):
     config = _config(ou_episodes=1)
     trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)

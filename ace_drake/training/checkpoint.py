@@ -32,6 +32,8 @@ PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the one before, kept by every write (module docstring)
 CHECKPOINT_KEYS = ("config", "learner", "replay", "demonstrations", "progress", "recent")
+# Config fields a resumed run may change: its length (to stop a stage early or extend a run).
+RESIZABLE = ("env_steps",)
 
 
 class CheckpointError(ConfigError):
@@ -151,9 +153,16 @@ class Checkpointing:
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
         saved = to_dict(from_dict(type(self.config), play_options_moved(payload["config"])))
-        if saved != to_dict(self.config):
-            differing = sorted(k for k, v in to_dict(self.config).items() if saved.get(k) != v)
+        current = to_dict(self.config)
+        differing = sorted(k for k, v in current.items() if saved.get(k) != v and k not in RESIZABLE)
+        if differing:
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
+        if saved["env_steps"] != current["env_steps"]:
+            # The run's length may change (stopped early, or extended); the learn phase's schedules
+            # (cloning weight, learning rate) are fractions of it, so they stretch from here on.
+            self.log(f"train: the run's length changed from {saved['env_steps']} to {current['env_steps']} steps")
+            if payload["progress"]["phase"] == "done" and payload["progress"]["env_steps"] < current["env_steps"]:
+                payload["progress"]["phase"] = "learn"  # a finished run extended: learn on to the new length
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])
         self.demonstrations.load_state_dict(payload["demonstrations"])
