@@ -1,5 +1,6 @@
 """Mirror across the XZ plane: involution, the joint mirror by forward kinematics, actions through
-the feasible sets (with and without a joint offset), and the shipped robot's asymmetry."""
+the feasible sets (with and without a joint offset), the shipped robot's symmetry, and the
+asymmetry of an arm whose pitch pivot is off the yaw axis."""
 
 import dataclasses
 import shutil
@@ -19,7 +20,7 @@ from ace_drake.robot.model import RobotModel, load_scenario
 LAYOUT = ObservationLayout(3, 2)
 # gantry_x, gantry_y, shoulder_yaw, shoulder_pitch, elbow, wrist_1, wrist_2, wrist_3
 EXPECTED_SIGNS = [1, -1, -1, 1, 1, -1, 1, -1]
-# The arm's shoulder_pitch pivot 0.15 m along the shoulder's +y (ace_robot.sdf): gantry_y's offset -0.3 m.
+# The arm (its yaw axis and pitch pivot) 0.15 m to the +y of the column (ace_robot.sdf): gantry_y's offset -0.3 m.
 ARM_OFFSET = 0.15
 EXPECTED_OFFSETS = [0, -2 * ARM_OFFSET, 0, 0, 0, 0, 0, 0]
 
@@ -30,41 +31,32 @@ def shipped():
 
 
 @pytest.fixture(scope="module")
-def symmetric(tmp_path_factory):
-    """The shipped robot with its arm moved onto the column's plane (the SDF's 0.15 m side offset
-    of the arm removed): the smallest change that makes it mirror-symmetric."""
+def offset_arm(tmp_path_factory):
+    """The shipped robot with its shoulder_yaw axis moved back onto the column (the robot before
+    2026-12-06): the arm's pitch pivot then sits 0.15 m off the yaw axis and turns with the yaw."""
     directory = tmp_path_factory.mktemp("models")
     shutil.copy(MODELS_DIR / "table.sdf", directory / "table.sdf")
     text = (MODELS_DIR / "ace_robot.sdf").read_text()
-    assert text.count(" 0.15 1.11 ") == 5
-    (directory / "ace_robot.sdf").write_text(text.replace(" 0.15 1.11 ", " 0 1.11 "))
-    model = RobotModel(load_scenario(), directory)
-    model.models_dir = directory
-    return model
-
-
-def symmetric_sdf(model) -> str:
-    """The path of the symmetric variant's robot SDF (``symmetric`` fixture)."""
-    return str(model.models_dir / "ace_robot.sdf")
+    assert text.count("<pose>0.08 0.15 0.96 0 0 0</pose>") == 1
+    (directory / "ace_robot.sdf").write_text(text.replace("<pose>0.08 0.15 0.96 0 0 0</pose>", "<pose>0.08 0 0.96 0 0 0</pose>"))
+    return RobotModel(load_scenario(), directory)
 
 
 def test_joint_mirror_from_the_axes(shipped):
     """Signs from the axes; gantry_y offset so that the racket at q = 0 (0.15 m off the plane)
-    mirrors onto itself. gantry_y's limits [-1.3, 1.3] are symmetric about 0, not about c / 2 =
-    -0.15: 0.3 m off; every other mirrored joint's limits are symmetric about 0 (c = 0)."""
+    mirrors onto itself. Every mirrored joint's limits map onto themselves: gantry_y's [-1.3, 1.0]
+    are symmetric about c / 2 = -0.15, the others about 0 (c = 0)."""
     joints = JointMirror.from_model(shipped)
     np.testing.assert_array_equal(joints.signs, EXPECTED_SIGNS)
     np.testing.assert_allclose(joints.offsets, EXPECTED_OFFSETS, atol=1e-12)
-    np.testing.assert_allclose(joints.limit_mismatch(shipped.lower, shipped.upper), [0, 0.3, 0, 0, 0, 0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(joints.limit_mismatch(shipped.lower, shipped.upper), 0.0, atol=1e-12)
     # The ready pose (gantry_y -0.15, the racket on the plane) is its own mirror.
     np.testing.assert_allclose(joints.positions(shipped.ready_pose), shipped.ready_pose, atol=1e-12)
     assert joints.racket_error(shipped, shipped.ready_pose)[0] < 1e-12
-    # Mirrors of states with gantry_y > 1.0 m lie beyond its lower limit.
-    q = shipped.ready_pose.copy()
-    q[1] = 1.05
-    assert not joints.within_limits(q, shipped.lower, shipped.upper)
-    q[1] = 0.95
-    assert joints.within_limits(q, shipped.lower, shipped.upper)
+    # Every state within the limits has its mirror within them, up to the ends.
+    q = np.random.default_rng(0).uniform(shipped.lower, shipped.upper, (200, 8))
+    q[:2, 1] = shipped.lower[1], shipped.upper[1]
+    assert np.all(joints.within_limits(q, shipped.lower, shipped.upper, tolerance=1e-12))
 
 
 def test_a_joint_mirror_is_an_involution_by_construction():
@@ -74,44 +66,45 @@ def test_a_joint_mirror_is_an_involution_by_construction():
         JointMirror(np.r_[0.5, np.ones(7)], np.zeros(8))
 
 
-def test_forward_kinematics_mirror_the_racket_pose_on_a_symmetric_robot(symmetric):
-    joints = JointMirror.from_model(symmetric)
-    np.testing.assert_array_equal(joints.signs, EXPECTED_SIGNS)
-    position_error, angle_error = joints.fk_error(symmetric, samples=100)
-    assert position_error < 1e-12 and angle_error < 1e-7
-    Mirror.from_robot(symmetric, LAYOUT)  # passes its own checks
-
-
-def test_the_shipped_robot_is_not_mirror_symmetric(shipped):
-    """The arm's pivot sits 0.15 m along the shoulder's +y, off the yaw axis: with gantry_y's
-    offset -0.3 m the mirrored joint state puts the racket e(psi) = 0.3 (sin psi, cos psi - 1, 0)
-    from the mirrored racket pose, |e| = 0.6 |sin(psi / 2)| (mirror docstring): exact at yaw 0
-    only; orientations mirror for every q."""
+def test_forward_kinematics_mirror_the_racket_pose_on_the_shipped_robot(shipped):
     joints = JointMirror.from_model(shipped)
+    np.testing.assert_array_equal(joints.signs, EXPECTED_SIGNS)
+    position_error, angle_error = joints.fk_error(shipped, samples=100)
+    assert position_error < 1e-12 and angle_error < 1e-7
+    assert Mirror.from_robot(shipped, LAYOUT).exact  # passes its own checks
+
+
+def test_an_arm_off_the_yaw_axis_is_not_mirror_symmetric(offset_arm):
+    """With the pitch pivot 0.15 m off the yaw axis, gantry_y's offset -0.3 m puts the mirrored
+    joint state's racket e(psi) = 0.3 (sin psi, cos psi - 1, 0) from the mirrored racket pose,
+    |e| = 0.6 |sin(psi / 2)| (mirror docstring): exact at yaw 0 only; orientations mirror for every
+    q. ``Mirror.from_robot`` refuses it."""
+    joints = JointMirror.from_model(offset_arm)
+    np.testing.assert_allclose(joints.offsets, EXPECTED_OFFSETS, atol=1e-12)
     rng = np.random.default_rng(3)
     for _ in range(20):
-        q = rng.uniform(shipped.lower, shipped.upper)
-        position_error, angle_error = joints.racket_error(shipped, q)
+        q = rng.uniform(offset_arm.lower, offset_arm.upper)
+        position_error, angle_error = joints.racket_error(offset_arm, q)
         assert position_error == pytest.approx(4 * ARM_OFFSET * abs(np.sin(q[2] / 2)), abs=1e-9)
         assert angle_error < 1e-7
         q[2] = 0.0
-        assert joints.racket_error(shipped, q)[0] < 1e-12
-    with pytest.raises(ValueError, match="not symmetric.*gantry_y"):
-        Mirror.from_robot(shipped, LAYOUT)
-    assert not Mirror.from_robot(shipped, LAYOUT, exact=False).exact
+        assert joints.racket_error(offset_arm, q)[0] < 1e-12
+    with pytest.raises(ValueError, match="not symmetric"):
+        Mirror.from_robot(offset_arm, LAYOUT)
+    assert not Mirror.from_robot(offset_arm, LAYOUT, exact=False).exact
 
 
-def test_the_exact_mirror_of_the_shipped_arm_moves_the_gantry_with_the_yaw(shipped):
-    """No per-joint map mirrors the shipped arm; the yaw-coupled one (q_x - 0.3 sin psi,
+def test_the_exact_mirror_of_an_arm_off_the_yaw_axis_moves_the_gantry_with_the_yaw(offset_arm):
+    """No per-joint map mirrors that arm; the yaw-coupled one (q_x - 0.3 sin psi,
     -q_y - 0.3 cos psi, -psi, the rest by their signs) does, exactly (mirror docstring)."""
-    joints = JointMirror.from_model(shipped)
+    joints = JointMirror.from_model(offset_arm)
     rng = np.random.default_rng(4)
     for _ in range(20):
-        q = rng.uniform(shipped.lower, shipped.upper)
+        q = rng.uniform(offset_arm.lower, offset_arm.upper)
         coupled = joints.signs * q
         coupled[0] = q[0] - 2 * ARM_OFFSET * np.sin(q[2])
         coupled[1] = -q[1] - 2 * ARM_OFFSET * np.cos(q[2])
-        X, X_mirrored = shipped.racket_pose(q), shipped.racket_pose(coupled)
+        X, X_mirrored = offset_arm.racket_pose(q), offset_arm.racket_pose(coupled)
         np.testing.assert_allclose(X_mirrored.translation(), np.diag([1, -1, 1]) @ X.translation(), atol=1e-12)
         np.testing.assert_allclose(X_mirrored.rotation().matrix(), np.diag([1, -1, 1]) @ X.rotation().matrix() @ np.diag([1, -1, 1]), atol=1e-12)
 
@@ -164,10 +157,10 @@ def test_the_mirrored_end_effector_quaternion_keeps_the_canonical_sign(shipped):
 
     mirror, kinematics = make_mirror(shipped), RacketKinematics.for_scenario(load_scenario())
     rng = np.random.default_rng(5)
-    for q in [shipped.ready_pose, *(rng.uniform(shipped.lower, shipped.upper) * [1, 1, 0, 1, 1, 1, 1, 1] for _ in range(5))]:
+    for q in [shipped.ready_pose, *(rng.uniform(shipped.lower, shipped.upper) for _ in range(5))]:
         obs = np.zeros(LAYOUT.size)
         obs[LAYOUT.slice("end_effector")] = kinematics.end_effector_state(q, np.zeros(8))
-        expected = kinematics.end_effector_state(mirror.joints.positions(q), np.zeros(8))  # yaw 0: exact
+        expected = kinematics.end_effector_state(mirror.joints.positions(q), np.zeros(8))
         np.testing.assert_allclose(LAYOUT.part(mirror.observation(obs), "end_effector"), expected, atol=1e-12)
 
 
@@ -184,17 +177,17 @@ def test_observation_parts_mirror_by_their_vector_kind(shipped):
     np.testing.assert_array_equal(skill, [-1, 1, 1])
 
 
-def test_mirrored_quaternion_is_the_mirrored_racket_rotation(symmetric):
+def test_mirrored_quaternion_is_the_mirrored_racket_rotation(shipped):
     from pydrake.common.eigen_geometry import Quaternion
     from pydrake.math import RotationMatrix
 
-    mirror = make_mirror(symmetric)
+    mirror = make_mirror(shipped)
     rng = np.random.default_rng(1)
     for _ in range(5):
-        q = rng.uniform(symmetric.lower, symmetric.upper)
-        quaternion = symmetric.racket_pose(q).rotation().ToQuaternion().wxyz()
+        q = rng.uniform(shipped.lower, shipped.upper)
+        quaternion = shipped.racket_pose(q).rotation().ToQuaternion().wxyz()
         mirrored_quaternion = quaternion * [1, -1, 1, -1]
-        expected = symmetric.racket_pose(mirror.joints.positions(q)).rotation().matrix()
+        expected = shipped.racket_pose(mirror.joints.positions(q)).rotation().matrix()
         got = RotationMatrix(Quaternion(mirrored_quaternion)).matrix()
         np.testing.assert_allclose(got, expected, atol=1e-9)
 
@@ -248,37 +241,34 @@ def action_mapping_case(joints, mirror, limits, seed: int, starts: int = 5):
     return worst
 
 
-def test_the_action_mirror_is_exact_for_an_offset_joint_with_limits_symmetric_about_half_its_offset(shipped):
-    """gantry_y maps q -> -q - 0.3: with its command limits centred on -0.15 (here [-1.28, 0.98],
-    the shipped ones' largest such part) negating the action is exact through eq. (12) (mirror
-    docstring, *Actions*); ``action_exact`` agrees."""
+def test_the_action_mirror_is_exact_with_the_shipped_limits(shipped):
+    """gantry_y maps q -> -q - 0.3 and its command limits [-1.28, 0.98] are centred on -0.15:
+    negating the action is exact through eq. (12) (mirror docstring, *Actions*), from starts
+    anywhere in the limits; ``action_exact`` agrees."""
     joints, mirror = JointMirror.from_model(shipped), make_mirror(shipped)
-    shipped_limits = CommandLimits.from_config(load_scenario().limits, ControlParams())
-    lower, upper = shipped_limits.lower.copy(), shipped_limits.upper.copy()
-    upper[1] = joints.offsets[1] - lower[1]  # l + u = c
-    limits = dataclasses.replace(shipped_limits, lower=lower, upper=upper)
+    limits = CommandLimits.from_config(load_scenario().limits, ControlParams())
     np.testing.assert_allclose(joints.limit_mismatch(limits.lower, limits.upper), 0.0, atol=1e-12)
     assert np.all(action_mapping_case(joints, mirror, limits, seed=6) < 1e-9)
     rng = np.random.default_rng(7)
     q0 = rng.uniform(limits.lower, limits.upper, (50, 8))
+    q0[0, 1], q0[1, 1] = limits.lower[1] + 0.01, limits.upper[1] - 0.01  # near both ends
     assert np.all(mirror.action_exact(q0, np.zeros((50, 8)), np.zeros((50, 8)), limits, ControlParams(), 0.001) | ~in_invariant_set(q0, np.zeros((50, 8)), limits, ControlParams(), 0.001).all(-1))
 
 
-def test_with_the_shipped_limits_the_action_mirror_is_exact_away_from_gantry_y_ends(shipped):
-    """Starts with gantry_y in the middle (rally states lie within [-0.48, 0.48] m): exact;
-    near gantry_y's upper limit, where the limit shapes the feasible set and not its mirror's: not."""
+def test_with_limits_not_centred_on_half_the_offset_the_action_mirror_is_inexact_near_their_ends(shipped):
+    """gantry_y's command limits [-1.28, 1.28] (centred on 0, not on -0.15): starts in the middle
+    (rally states lie within [-0.48, 0.48] m) still mirror exactly; near the upper end, where
+    the limit shapes the feasible set and not its mirror's, not."""
     joints, mirror = JointMirror.from_model(shipped), make_mirror(shipped)
-    limits = CommandLimits.from_config(load_scenario().limits, ControlParams())
-    middle = dataclasses.replace(limits, lower=np.r_[limits.lower[0], -0.6, limits.lower[2:]], upper=np.r_[limits.upper[0], 0.6, limits.upper[2:]])
-
-    class Middle:  # draws starts from the middle, maps with the shipped limits
-        lower, upper, velocity, acceleration = middle.lower, middle.upper, limits.velocity, limits.acceleration
-
-    worst = np.zeros(2)
+    shipped_limits = CommandLimits.from_config(load_scenario().limits, ControlParams())
+    limits = dataclasses.replace(shipped_limits, upper=np.r_[shipped_limits.upper[0], 1.28, shipped_limits.upper[2:]])
+    assert joints.limit_mismatch(limits.lower, limits.upper)[1] == pytest.approx(0.3)
     control, period = ControlParams(), 0.001
     rng = np.random.default_rng(8)
+    worst = np.zeros(2)
     for _ in range(5):
-        q0 = rng.uniform(Middle.lower, Middle.upper)
+        q0 = rng.uniform(limits.lower, limits.upper)
+        q0[1] = rng.uniform(-0.6, 0.6)
         v0, a0 = rng.uniform(-0.3, 0.3, 8) * limits.velocity, np.zeros(8)
         assert mirror.action_exact(q0, v0, a0, limits, control, period)
         sets = feasible_sets(q0, v0, a0, limits, control, period)
@@ -307,33 +297,27 @@ def test_the_hit_state_action_mirrors_by_its_signs_whatever_the_offset(shipped):
     np.testing.assert_allclose(v_hit_m, mirror.joints.rates(v_hit), atol=1e-12)
 
 
-def test_the_environment_is_mirror_symmetric_with_a_symmetric_robot_and_quiet_sensors(symmetric, tmp_path):
+def test_the_environment_is_mirror_symmetric_with_quiet_sensors(shipped):
     """RallyEnv reset with a shot, a robot state and a skill, and again with their mirrors and the
     same seed: the first observations (27 ms in: ball histories, spins, robot and end-effector
     state, skill, EKF estimate) and the privileged observations mirror onto each other.
 
-    The shipped robot is not symmetric (test above), so this runs the symmetric variant (ready
-    pose moved onto the plane too). Sensor noise is switched (nearly) off: the same seed draws the same
-    noise for both episodes, which is not the mirrored noise; latencies and dropouts, drawn
-    alike, are symmetric. (Nearly off: the EKF weighs measurements by the sensors' noise, which
-    must not be zero: 10 um and 1e-3 rad/s leave differences far below the tolerances.)"""
+    Sensor noise is switched (nearly) off: the same seed draws the same noise for both episodes,
+    which is not the mirrored noise; latencies and dropouts, drawn alike, are symmetric. (Nearly
+    off: the EKF weighs measurements by the sensors' noise, which must not be zero: 10 um and
+    1e-3 rad/s leave differences far below the tolerances.)"""
     from ace_drake.control.params import RallyParams
     from ace_drake.perception.params import PerceptionParams, PositionSensorParams, SpinSensorParams
     from ace_drake.physics.flight import make_state
     from ace_drake.training.env import RallyEnv, RallyEnvParams
 
-    text = (MODELS_DIR / "scenario.yaml").read_text()
-    assert "robot_model: ace_robot.sdf" in text and "ready_pose: [-0.45, -0.15," in text
-    text = text.replace("robot_model: ace_robot.sdf", f"robot_model: {symmetric_sdf(symmetric)}")
-    scenario = tmp_path / "scenario.yaml"
-    scenario.write_text(text.replace("ready_pose: [-0.45, -0.15,", "ready_pose: [-0.45, 0.0,"))
     perception = PerceptionParams(
         positions="statistical",
         position=PositionSensorParams(noise_std=1e-5),
         spin=SpinSensorParams(magnitude_noise_std=1e-3, axis_noise_std=1e-5, magnitude_bias_std=1e-3, axis_bias_std=1e-5),
     )
-    env = RallyEnv(RallyEnvParams(rally=RallyParams(scenario=str(scenario), perception=perception, perturb=False)))
-    mirror = Mirror.from_robot(symmetric, env.layout)
+    env = RallyEnv(RallyEnvParams(rally=RallyParams(perception=perception, perturb=False)))
+    mirror = Mirror.from_robot(shipped, env.layout)
     shot = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (40.0, -80.0, 25.0))
     q = np.array([-0.45, 0.2, 0.15, 0.15, 0.35, 0.3, -0.5, 0.2])
     skill = np.array([0.3, 1.0, 0.5])
@@ -358,12 +342,12 @@ def test_the_environment_is_mirror_symmetric_with_a_symmetric_robot_and_quiet_se
     np.testing.assert_allclose(mirror.privileged(info["privileged"]), info_m["privileged"], rtol=1e-6, atol=1e-6)
 
 
-def test_a_rally_on_the_shipped_robot_mirrors_until_the_racket_meets_the_ball(shipped):
+def test_a_rally_on_the_shipped_robot_mirrors_through_the_hit(shipped):
     """One episode and its mirror on the segment-stepped diagram (B = 2): the returner, and the
     mirrored returner (M_a . returner . M_o) from the mirrored shot and skill, the same seed, the
-    ready pose (its own mirror), quiet sensors. The balls mirror each other to sensor noise until
-    a racket touches one; the robots do not quite (the racket is 0.6 |sin(yaw / 2)| m off its mirror,
-    mirror docstring), so from the hit on the episodes differ."""
+    ready pose (its own mirror), quiet sensors. The balls mirror each other to sensor noise before
+    the hit, and the robot's return mirrors too: the same outcome, the balls apart by no more than
+    what the returner's solvers leave."""
     from ace_drake.control.params import RallyParams
     from ace_drake.diagrams import build_segment_rally_diagram, make_segment_simulator, start_segment_episodes
     from ace_drake.evaluation.controllers import diagram_params_for, make_controller
@@ -378,7 +362,7 @@ def test_a_rally_on_the_shipped_robot_mirrors_until_the_racket_meets_the_ball(sh
     params = RallyParams(perception=perception, stepping="segment", perturb=False)
     returners = [make_controller("returner", params) for _ in range(2)]
     params = diagram_params_for(returners[0], params)
-    mirror = Mirror.from_robot(shipped, ObservationLayout(params.position_history, params.spin_history), exact=False)
+    mirror = Mirror.from_robot(shipped, ObservationLayout(params.position_history, params.spin_history))
 
     class Mirrored:
         def __init__(self, inner):
@@ -403,12 +387,18 @@ def test_a_rally_on_the_shipped_robot_mirrors_until_the_racket_meets_the_ball(sh
     simulator.Initialize()
     ball = diagram.GetSubsystemByName("ball")
     period = diagram.GetSubsystemByName("episode_clock").timing.duration
-    ticks = 0
-    for tick in range(1, 30):
+    hit, worst = None, np.zeros(9)
+    for tick in range(1, 45):
         simulator.AdvanceTo(tick * period)
         state = ball.plant_state(ball.GetMyContextFromRoot(context))
-        if any(event.kind.name == "RACKET" for events in state.events for event in events):
-            break
-        np.testing.assert_allclose(state.balls[1], state.balls[0] * BALL_STATE, atol=1e-6, err_msg=f"tick {tick}")
-        ticks += 1
-    assert ticks >= 10  # the incoming flight and bounce, before any hit
+        kinds = [[event.kind.name for event in events] for events in state.events]
+        assert ("RACKET" in kinds[0]) == ("RACKET" in kinds[1]), f"tick {tick}: {kinds}"
+        hit = hit or (tick if "RACKET" in kinds[0] else None)
+        difference = np.abs(state.balls[1] - state.balls[0] * BALL_STATE)
+        if hit is None:
+            assert np.all(difference < 1e-6), f"tick {tick}"
+        worst = np.maximum(worst, difference)
+    assert hit is not None and hit >= 10  # the incoming flight and bounce, then the return
+    # After it, what the sensors' unmirrored noise leaves (the returners' actions differ by ~1e-3):
+    # here 2 mm, 4 mm/s and 0.11 rad/s; a racket off its mirror by centimetres moves them by far more.
+    np.testing.assert_array_less(worst, np.repeat([0.005, 0.02, 0.5], 3))

@@ -176,7 +176,8 @@ def test_speed_radii_follow_from_the_model(dut):
     # about the wrist: its centre 0.22 m up the handle, radius 0.075 m, half thickness 0.007 m.
     blade = 0.22 + np.hypot(0.075, 0.007)
     checker = dut
-    expected = [1.0, 1.0, 0.15 + 0.55 + 0.50 + blade, 0.55 + 0.50 + blade, 0.50 + blade, blade, blade, np.hypot(0.075, 0.007)]
+    # The shoulder_pitch pivot lies on the shoulder_yaw axis: the two share a lever.
+    expected = [1.0, 1.0, 0.55 + 0.50 + blade, 0.55 + 0.50 + blade, 0.50 + blade, blade, blade, np.hypot(0.075, 0.007)]
     np.testing.assert_allclose(checker.speed_radii, expected, rtol=0, atol=5e-4)
     assert np.all(checker.speed_radii >= np.array(expected) - 1e-9)  # the rim sampling pads up
 

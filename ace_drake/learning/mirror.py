@@ -21,34 +21,32 @@ c of the (first) prismatic joint along y is the one that mirrors the racket fram
 itself: c = -2 y_R(0), the racket's y there (for a joint whose zero is y0 off the plane with the
 arm on its axis, -2 y0). ``JointMirror.fk_error`` measures what is left by forward kinematics.
 
-The shipped robot (models/ace_robot.sdf) is mirror-symmetric except for one offset: the arm's
-shoulder_pitch pivot sits b = 0.15 m along the shoulder's own +y, off the shoulder_yaw axis (the
-column), so it turns with the yaw psi: p_pivot = p_column + Rz(psi) (0, b, 0.15). Everything else
-is symmetric: the base on y = 0, the rails at y = +-1.55, the beam centred, the column and
-shoulder housing on the carriage's y, every arm link's and the racket's collision geometry and
-the racket frames symmetric about their link's XZ plane, the table and net, and every joint limit
-but gantry_y's (below). The mirrored joint state (q_y -> -q_y + c, psi -> -psi, the wrist and
-elbow by their signs) puts the pivot at the mirrored column + Rz(-psi) (0, b, .) and the mirror of
-the pivot at the mirrored column + Rz(-psi) (0, -b, .): with c = -2b = -0.3 m the racket is off
-its mirror by the constant-orientation translation
+The shipped robot (models/ace_robot.sdf) is mirror-symmetric. Its arm stands 0.15 m to the +y of
+the column, and the shoulder_yaw axis passes through the arm's shoulder_pitch pivot, so the arm
+(shoulder, links, racket, cup) is its own mirror image across the vertical plane through that
+axis: with c = -2 x 0.15 = -0.3 m (the racket at q = 0 is 0.15 m off the plane) the mirrored joint
+state puts every arm link at the mirrored pose, exactly (``fk_error``: round-off). The rest is
+symmetric about the world's XZ plane: the base on y = 0, the rails at y = +-1.55, the beam
+centred, the table and net. gantry_y's limits [-1.3, 1.0] (command limits [-1.28, 0.98]) are
+symmetric about c / 2 = -0.15, every other mirrored joint's about 0 (below). One part is not: the
+column stands 0.15 m on the arm's -y side, in the mirrored world it would stand on its +y side.
+Collisions of the arm with the column (an arm yawed towards -y and pitched down over it, far from
+any rally plan) do not mirror.
 
-    e(psi) = (2 b sin psi, -2 b (1 - cos psi), 0),    |e| = 4 b |sin(psi / 2)| = 0.6 |sin(psi / 2)| m
+An arm whose pitch pivot sits b off the yaw axis (this robot before 2026-12-06: the yaw axis on the
+column, the pivot 0.15 m along the shoulder's +y) is not mirror-symmetric under any per-joint
+map. The pivot turns with the yaw psi, and the mirrored joint state (q_y -> -q_y + c, psi -> -psi)
+leaves the racket off its mirror by the constant-orientation translation
 
-(zero at psi = 0 only; orientations mirror exactly for every q). No per-joint map does better:
-the exact mirror moves the gantry with the yaw, (q_x, q_y, psi) -> (q_x - 2b sin psi,
--q_y - 2b cos psi, -psi), which couples three joints (their velocities too), so it does not
-commute with the per-joint action mapping of eq. (12), and its gantry_x shift leaves the limits.
-Making the robot itself symmetric would need the arm on the column's plane (the SDF's 0.15 m
-removed: ``tests/test_mirror.py``'s ``symmetric`` fixture), which changes the shipped geometry.
-The column stays chiral even at psi = 0: in the real robot the arm passes the column on its +y
-side, in the mirrored one on its -y side, so collisions of the arm with the column (and the
-gantry's position under the arm) do not mirror.
+    e(psi) = (2 b sin psi, -2 b (1 - cos psi), 0),    |e| = 4 b |sin(psi / 2)|
+
+(zero at psi = 0 only). The exact mirror moves the gantry with the yaw, (q_x, q_y, psi) ->
+(q_x - 2b sin psi, -q_y - 2b cos psi, -psi): it couples three joints (their velocities too, by
+2b psi_dot, beyond the gantry's limits for a fast yaw), so it does not commute with eq. (12)'s
+per-joint mapping. ``from_robot`` refuses such a robot (``tests/test_mirror.py``).
 
 Joint limits. A mirrored joint's position limits must map onto themselves, [s l + c, s u + c] =
 [l, u], i.e. l + u = c for s = -1: limits symmetric about c / 2 (``JointMirror.limit_mismatch``).
-gantry_y's are [-1.3, 1.3] (command limits [-1.28, 1.28]), symmetric about 0, not about
-c / 2 = -0.15: their mirror is [-1.0, 1.6], 0.3 m off at each end; states with q_y > 1.0 m (hardware;
-0.98 m command) have no mirror within the limits.
 
 Actions (eq. (12)). The action of a joint is its terminal (q, v) relative to the joint's feasible
 set (``control.feasible_set``, ``control.action_mapping``), built from the start state (q0, v0, a0)
@@ -77,9 +75,8 @@ fall outside asymmetric limits, where the layer clips it).
 
 Observations. The actor's robot_state [q, v, a] and the critic's joint_state [q, v] map by the
 joint map (q affinely, with c); the end-effector state, ball histories, estimate and predicted hit
-by their vector kinds. On the shipped robot the end-effector state of the mirrored joint state is
-e(psi) off the mirrored end-effector state: the mirrored observation is a consistent world only
-to that error.
+by their vector kinds; on the shipped robot the end-effector state of the mirrored joint state is
+the mirrored end-effector state.
 
 Layouts: ``contracts.ObservationLayout`` (actor) and ``contracts.PRIVILEGED_PARTS`` (critic).
 """

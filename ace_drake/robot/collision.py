@@ -71,9 +71,9 @@ geometry g over all configurations (``_Kinematics.axis_radius``; the lever arms 
   between its position limits), plus g's largest distance from its body's inboard joint origin.
 
 ``speed_radii`` r_j = max_g rho_j(g) (1 for prismatic joints) bounds every point's speed by
-sum_j |qdot_j| r_j. For this robot (ace_robot.sdf): 1, 1, then shoulder_yaw 0.15 (arm offset)
-+ 0.55 + 0.50 + 0.2954 (blade rim from the wrist: 0.22 + hypot(0.075, 0.007)) = 1.495 m,
-shoulder_pitch 1.345, elbow 0.795, wrist_1 and wrist_2 0.295, wrist_3 0.0757 (the blade about
+sum_j |qdot_j| r_j. For this robot (ace_robot.sdf): 1, 1, then shoulder_yaw and shoulder_pitch
+(the pitch pivot lies on the yaw axis) 0.55 + 0.50 + 0.2954 (blade rim from the wrist:
+0.22 + hypot(0.075, 0.007)) = 1.345 m, elbow 0.795, wrist_1 and wrist_2 0.295, wrist_3 0.0757 (the blade about
 the handle axis).
 
 Pair rates. Only joints on the kinematic path between a pair's two bodies change its distance (a

@@ -78,7 +78,7 @@ class RobotLimits:
     *The robot*). Prismatic joints in m, revolute in rad."""
 
     gantry_x: JointLimits = JointLimits(-0.90, 0.80, 5.0, 40.0)
-    gantry_y: JointLimits = JointLimits(-1.30, 1.30, 5.0, 40.0)
+    gantry_y: JointLimits = JointLimits(-1.30, 1.00, 5.0, 40.0)  # symmetric about -0.15: the arm's mirror
     shoulder_yaw: JointLimits = JointLimits(-2.6, 2.6, 10.0, 150.0)
     shoulder_pitch: JointLimits = JointLimits(-1.2, 1.4, 10.0, 150.0)
     elbow: JointLimits = JointLimits(-2.4, 2.4, 14.0, 250.0)
