@@ -19,6 +19,7 @@ from ace_drake.contracts import DEFAULT_CONTROLLER
 
 REPO_ROOT = MODELS_DIR.parent
 DEFAULT_FITTED_PARAMS = MODELS_DIR / "ball_physics_fitted.yaml"
+SERVE_REPEATS = 50  # `serves search` and `serves evaluate`: noisy executions of each serve unless --repeats
 
 # The function that does each command's work, "module:function", imported by ``work`` when the
 # command runs and not at the top of this module: these modules load Drake, torch or Ray (seconds
@@ -51,6 +52,7 @@ WORK = {
     "train": "ace_drake.training.export:train_and_export",
     "serves search": "ace_drake.analysis.serve_search:search_serves",
     "serves evaluate": "ace_drake.evaluation.serves:evaluate_library",
+    "serves replan": "ace_drake.analysis.serve_search:replan_serves",
 }
 
 
@@ -434,18 +436,25 @@ def cmd_results(args) -> int:
 
 def cmd_serves(args) -> int:
     """The serve library: ``serves search`` (the GA, the robot's plans, noisy repeats on the
-    segment-stepped diagram; writes the library) and ``serves evaluate`` (measures a library)."""
-    if args.repeats < 1 or args.batch < 1:
+    segment-stepped diagram; writes the library), ``serves evaluate`` (measures a library) and
+    ``serves replan`` (re-makes a library on the current robot from its genes; writes it)."""
+    if args.action != "replan":  # replan: the library's own repeats and seed unless given
+        args.repeats = SERVE_REPEATS if args.repeats is None else args.repeats
+        args.seed = 0 if args.seed is None else args.seed
+    if (args.repeats is not None and args.repeats < 1) or args.batch < 1:
         raise ConfigError(f"serves {args.action}: need --repeats >= 1 and --batch >= 1, got {args.repeats} and {args.batch}")
+    if args.action in ("search", "replan") and Path(args.out).suffix != ".npz":
+        raise ConfigError(f"serves {args.action}: --out must name a .npz file, got {args.out}")
     if args.action == "search":
         kinds = [kind.strip() for kind in args.kinds.split(",") if kind.strip()]
         seeds = _integers(args.seeds, "--seeds")
         if args.generations < 1:
             raise ConfigError(f"serves search: --generations must be >= 1, got {args.generations}")
-        if Path(args.out).suffix != ".npz":
-            raise ConfigError(f"serves search: --out must name a .npz file, got {args.out}")
         library, summary = work("serves search")(kinds, seeds, repeats=args.repeats, seed=args.seed, generations=args.generations,
                                                  batch=args.batch, out=args.out, extend=args.extend, progress=log, executed=args.executed)
+    elif args.action == "replan":
+        library, summary = work("serves replan")(args.library, repeats=args.repeats, seed=args.seed, batch=args.batch, out=args.out, progress=log)
+    if args.action in ("search", "replan"):
         figures = {"library": args.out, **{key: value for key, value in summary.items() if key != "candidates"},
                    "serves": [{"name": serve.name, "kind": serve.kind, **serve.stats.as_dict()} for serve in library.serves]}
     else:
@@ -597,16 +606,17 @@ def build_parser() -> argparse.ArgumentParser:
     graphs.add_argument("--out", default=str(REPO_ROOT / "diagrams"))
     graphs.set_defaults(run=cmd_diagrams)
 
-    serves = commands.add_parser("serves", help="the serve library: `serves search` (GA, robot plans, noisy repeats) and `serves evaluate`")
-    serves.add_argument("action", choices=("search", "evaluate"))
-    serves.add_argument("--library", default=str(MODELS_DIR / "serve_library.npz"), help="evaluate: the library (default: %(default)s)")
+    serves = commands.add_parser("serves", help="the serve library: `serves search` (GA, robot plans, noisy repeats), `serves evaluate` and "
+                                                "`serves replan` (re-made on the current robot from its genes)")
+    serves.add_argument("action", choices=("search", "evaluate", "replan"))
+    serves.add_argument("--library", default=str(MODELS_DIR / "serve_library.npz"), help="evaluate, replan: the library (default: %(default)s)")
     serves.add_argument("--kinds", default="short_backspin,long_topspin,long_sidespin,fast_long,long_backspin", help="search: serve kinds, comma-separated (default: %(default)s)")
     serves.add_argument("--seeds", default="0-3", help="search: GA seeds, comma-separated integers or ranges (default: %(default)s)")
     serves.add_argument("--generations", type=int, default=100, help="search: GA generations at most (the authors': %(default)s)")
-    serves.add_argument("--repeats", type=int, default=50, help="noisy executions of each serve on the diagram (default: %(default)s)")
-    serves.add_argument("--seed", type=int, default=0, help="the executions' noise and ball perturbations")
+    serves.add_argument("--repeats", type=int, help=f"noisy executions of each serve on the diagram (default: {SERVE_REPEATS}; replan: the library's own)")
+    serves.add_argument("--seed", type=int, help="the executions' noise and ball perturbations (default: 0; replan: the library's own)")
     serves.add_argument("--batch", type=int, default=32, help="executions played at once on the segment-stepped diagram (default: %(default)s)")
-    serves.add_argument("--out", default=str(MODELS_DIR / "serve_library.npz"), help="search: the library to write (+ .json sidecar; default: %(default)s)")
+    serves.add_argument("--out", default=str(MODELS_DIR / "serve_library.npz"), help="search, replan: the library to write (+ .json sidecar; default: %(default)s)")
     serves.add_argument("--extend", help="search: keep this library's serves and add the new ones (it may be --out)")
     serves.add_argument("--executed", action="store_true", help="search: the GA scores the strikes the robot makes (its planning in the fitness, the paper's; ~25 x slower) instead of the ball-level ones")
     serves.add_argument("--json", action="store_true")

@@ -103,6 +103,26 @@ def test_add_episode_stores_returns_twice_in_their_tables():
     assert flipped.tables["return"].size == 12
 
 
+def test_demonstrations_are_stored_with_their_augmentations():
+    """Labelled rows only, each with its mirror (obs, privileged and the label mirrored)."""
+    from ace_drake.learning.mirror import Mirror
+    from ace_drake.learning.replay import DemonstrationBuffer
+
+    rows = episode(steps=4)
+    rows["demo_action"] = np.random.default_rng(2).uniform(-1, 1, (4, 16))
+    rows["demo_action"][1] = np.nan  # no label
+    mirror = Mirror.from_robot(layout=LAYOUT)
+    buffer = DemonstrationBuffer(100, augment=[mirror.transitions])
+    buffer.add(rows)
+    assert len(buffer) == 6
+    stored = buffer.buffer.get(np.arange(6))
+    labelled = [0, 2, 3]
+    np.testing.assert_allclose(stored["demo_action"][:3], rows["demo_action"][labelled], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(stored["demo_action"][3:], mirror.action(rows["demo_action"][labelled]), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(stored["obs"][3:], mirror.observation(rows["obs"][labelled]), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(stored["privileged"][3:], mirror.privileged(rows["privileged"][labelled]), rtol=0, atol=1e-6)
+
+
 def test_batch_proportions_follow_the_weights_over_non_empty_tables():
     weights = {"all": 0.5, "miss": 0.2, "hit": 0.2, "high_speed_return": 0.1}
     replay = EventReplay(ReplayConfig(table_weights=weights, relabel=False, seed=4), LAYOUT, PARAMS)
@@ -168,15 +188,13 @@ def test_a_real_episode_through_the_replay_and_the_learner():
     learner's actor, stored (with its mirror and hindsight copies), sampled and learned from."""
     import torch
 
-    from ace_drake.learning.mirror import JointMirror, Mirror
+    from ace_drake.learning.mirror import Mirror
     from ace_drake.learning.sac import SacConfig, SacLearner
-    from ace_drake.robot.model import RobotModel
     from ace_drake.training.env import RallyEnv
 
     env = RallyEnv()
     learner = SacLearner(SacConfig(actor_hidden=(32,), embedding_size=32, decoder_hidden=(32,), critic_hidden=(32,)))
-    # The shipped robot is not mirror-symmetric (test_mirror): build the sign map without the check.
-    mirror = Mirror(JointMirror.from_model(RobotModel()), env.layout)
+    mirror = Mirror.from_robot(layout=env.layout)
     replay = EventReplay(ReplayConfig(), env.layout, env.params.reward, augment=[mirror.transitions])
     shot = make_state((1.6, 0.25, 0.25), (-6.0, -0.3, 2.2), (0.0, -80.0, 0.0))
     obs, info = env.reset(seed=0, options={"shot": shot, "skill": (0.3, 1.0, 0.5), "start": "static"})

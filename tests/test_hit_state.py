@@ -280,9 +280,14 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
     assert controllers.make_controller("policy:meeting", RallyParams()).layer.meets_ball
     with pytest.raises(ConfigError, match="hit_prediction"):
         controllers.make_controller("policy:hit_state", RallyParams(hit_prediction=False))
+    # A policy trained with other command limits reads its actions in its own coordinates; the
+    # diagram's layer is left as it was.
     other = HitStateAction(policy.hit_state.half_range * 1.1, policy.hit_state.velocity)
-    with pytest.raises(ConfigError, match="command limits"):
-        controllers.HitStatePolicy(type(policy)(policy.actor, policy.index, policy.scale, "hit_state", other), controller.layer)
+    trained_elsewhere = controllers.HitStatePolicy(type(policy)(policy.actor, policy.index, policy.scale, "hit_state", other), controller.layer)
+    assert trained_elsewhere.layer.parameterisation.matches(other) and controller.layer.parameterisation.matches(policy.hit_state)
+    q0 = controller.layer.layout.part(obs, "robot_state")[:8]
+    q_hit, _ = trained_elsewhere.layer.parameterisation.hit_state(np.full(16, 0.01), q0)
+    np.testing.assert_allclose(q_hit - q0, 0.01 * 1.1 * policy.hit_state.half_range)
 
 
 def test_the_returners_planned_hit_state_plays_through_the_layer(layer):

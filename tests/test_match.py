@@ -19,14 +19,13 @@ from ace_drake.play.opponent_model import OpponentModel
 from ace_drake.play.scoring import HUMAN, ROBOT, Match, MatchRules
 from ace_drake.play.umpire import RallyEvent, judge_rally
 from ace_drake.robot.model import RobotModel
+from tests.test_serve_execution import SHORT_BACKSPIN  # a legal serve at the ball level that the robot makes
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "ace_match_events_elite.csv"
 needs_data = pytest.mark.skipif(not DATA.is_file(), reason=f"shared match data not found at {DATA}")
 
 PARAMS = RallyParams(perception=PerceptionParams(positions="statistical"), hit_prediction=False, stepping="segment")
 LAYOUT = ObservationLayout(PARAMS.position_history, PARAMS.spin_history)
-# The short backspin strike of tests/test_serve_execution.py (a legal serve at the ball level).
-SHORT_BACKSPIN = np.array([0.3484, 0.4033, 0.0354, 0.1761, 0.4367, 0.8722, 0.3, 0.2475, 0.7888])
 SHOT = np.array([1.3, 0.1, 0.25, -5.0, 0.0, 1.2, 0.0, 0.0, 0.0])  # an incoming ball from the human
 AWAY = np.array([-0.05, 0.2, 0.0, 0.3, 0.0, 0.0, 0.0, 0.0])  # a pose clear of the table
 T = 0.032

@@ -204,12 +204,12 @@ def test_sampler_holds_at_rest_past_the_end():
 
 
 def test_rest_to_rest_duration_is_the_analytic_time_optimum():
-    # gantry_y from rest at 0 to 1.0 m, the other joints already at rest at their targets. With
+    # gantry_y from rest at 0 to -1.0 m, the other joints already at rest at their targets. With
     # V = 4.25 m/s, A = 34 m/s^2, J = A / 0.002 s = 17000 m/s^3 it reaches V (the distance to reach
     # it and stop again, V (V / A + A / J) = 0.540 m, is < 1 m), so the time-optimal jerk-limited
     # profile is jerk up/down to A, cruise at V, and back: T = D / V + V / A + A / J = 0.3623 s.
     start, target = np.zeros(8), np.zeros(8)
-    target[GANTRY_Y] = 1.0
+    target[GANTRY_Y] = -1.0
     D, v_max, a_max, j_max = 1.0, V[GANTRY_Y], A[GANTRY_Y], J[GANTRY_Y]
     assert D > v_max * (v_max / a_max + a_max / j_max)
     T = D / v_max + v_max / a_max + a_max / j_max
@@ -219,7 +219,7 @@ def test_rest_to_rest_duration_is_the_analytic_time_optimum():
     assert trajectory.samples == math.ceil(T / PERIOD) == 363
     check_samples(trajectory, start, np.zeros(8), np.zeros(8))
     assert np.array_equal(trajectory.state(-1)[0], target) and not np.any(trajectory.v[-1]) and not np.any(trajectory.a[-1])
-    assert np.max(trajectory.v[:, GANTRY_Y]) == pytest.approx(v_max, abs=1e-12)  # the cruise is sampled
+    assert np.max(-trajectory.v[:, GANTRY_Y]) == pytest.approx(v_max, abs=1e-12)  # the cruise is sampled
     assert np.max(np.abs(trajectory.a[:, GANTRY_Y])) == pytest.approx(a_max, abs=1e-9)
     others = np.arange(8) != GANTRY_Y
     assert not np.any(trajectory.q[:, others]) and not np.any(trajectory.v[:, others]) and not np.any(trajectory.a[:, others])

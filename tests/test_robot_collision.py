@@ -32,7 +32,7 @@ PERIOD = 0.001
 MARGIN = ControlParams().collision_margin
 INTO_TABLE = np.array([0.8, -0.15, 0.0, 0.6, 0.0, 0.0, -0.6, 0.0])  # arm lowered over the table
 RACKET_INTO_TABLE = np.array([0.5, -0.15, 0.0, -0.05, 0.55, 0.0, 1.9, 0.0])  # forearm clear, blade 6.6 cm deep
-INTO_COLUMN = np.array([-0.43, 0.99, -2.3, 0.48, 1.73, 2.52, -0.06, -0.58])  # blade into the column
+INTO_COLUMN = np.array([-0.43, 0.8, -1.0, 0.3, 1.73, 2.52, -0.06, -0.58])  # elbow folded back: blade into the column
 
 
 @pytest.fixture(scope="module")

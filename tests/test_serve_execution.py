@@ -28,9 +28,9 @@ from ace_drake.robot.trajectory import JointTrajectory
 
 T = 0.001  # s, the command period
 UP = np.array([0.0, 0.0, 1.0])
-# The best short backspin serve of analysis.serve_search.search_serve("short_backspin",
-# generations=20, seed=0) from the default toss (a legal serve at the ball level).
-SHORT_BACKSPIN = np.array([0.3484, 0.4033, 0.0354, 0.1761, 0.4367, 0.8722, 0.3, 0.2475, 0.7888])
+# The genes of the serve library's short_backspin_10 (analysis.serve_search, GA seed 10, from the
+# default toss; a legal serve at the ball level that the robot makes).
+SHORT_BACKSPIN = np.array([0.2028, 0.3769, 0.9153, 0.0863, 0.682, 0.3558, 0.8578, 0.8722, 0.5594])
 
 
 @pytest.fixture(scope="module")
@@ -227,7 +227,7 @@ def test_strike_velocities_move_the_contact_point_at_the_racket_velocity(model):
 def test_the_executed_strike_meets_the_intended_racket_state(strike):
     assert np.linalg.norm(strike.position_error) < 0.005
     assert math.degrees(strike.normal_error) < 1.0
-    assert np.linalg.norm(strike.mean_velocity_error) < 0.3  # of a 5.1 m/s racket
+    assert np.linalg.norm(strike.mean_velocity_error) < 0.3  # m/s
     assert not strike.roll_free
     assert strike.ball_clearance > 0.0  # the racket does not touch the ball before the hit
 

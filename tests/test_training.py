@@ -390,6 +390,18 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path):
         Trainer(_config(seed=4), tmp_path / "run", progress=lambda line: None)
 
 
+def test_mirror_augmentation_doubles_the_stored_episodes_and_demonstrations(tmp_path):
+    """``mirror: true``: each demonstration episode enters the replay and the demonstration buffer
+    with its mirror (same seed, same episodes)."""
+    plain = Trainer(_config(), tmp_path / "plain", progress=lambda line: None)
+    plain._demonstration_phase()
+    mirrored = Trainer(_config(mirror=True), tmp_path / "mirrored", progress=lambda line: None)
+    mirrored._demonstration_phase()
+    assert mirrored.state.env_steps == plain.state.env_steps
+    assert len(mirrored.demonstrations) == 2 * len(plain.demonstrations) > 0
+    assert len(mirrored.replay) == 2 * len(plain.replay)
+
+
 def test_a_run_resumes_shortened_or_extended(tmp_path):
     """The run's length is the one field a resumed run may change: a finished run extended learns
     on to the new length; one shortened below its steps stays finished, unchanged."""

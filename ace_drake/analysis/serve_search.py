@@ -21,8 +21,10 @@ bit for bit.
 ``search_serves`` makes the serve library (``evaluation.serves``) from these searches: the robot
 plans each legal result after one toss and the segment-stepped diagram executes it with noise; the
 serves failing less than 5% of the time (the paper's bar), distinct in their measured landing,
-speed and spin, are kept (``ace-drake serves search``). It lives here, above the evaluation layer
-it calls.
+speed and spin, are kept (``ace-drake serves search``). ``replan_serves`` re-makes a saved library
+on the current robot from its own genes, which describe the strike at ball level and do not depend
+on the robot (``ace-drake serves replan``: after a change of the robot model, hours of GA searches
+are not run again). They live here, above the evaluation layer they call.
 """
 
 from __future__ import annotations
@@ -48,11 +50,11 @@ from ace_drake.control.serve import (
     simulate_serves,
     strike_from_genes,
 )
-from ace_drake.artefacts import sidecar_path
+from ace_drake import artefacts
 from ace_drake.config import MODELS_DIR, InputError
 from ace_drake.control.params import RallyParams
-from ace_drake.control.serve_execution import plan_strike, plan_toss
-from ace_drake.control.stack import make_control_stack
+from ace_drake.control.serve_execution import TossPlan, plan_strike, plan_toss
+from ace_drake.control.stack import ControlStack, make_control_stack
 from ace_drake.evaluation.serves import (
     FEATURE_SCALES,
     MAX_FAILURE,
@@ -253,6 +255,7 @@ def search_library(
 
 # ---------------------------------------------------------------------------------- the library
 FEATURE_DISTANCE_MIN = 1.0  # search_serves: kept serves differ by at least this (scaled features, evaluation.serves)
+_HISTORY_KEYS = ("command", "date", "search", "extends", "replan", "replanned_from")  # replan_serves: what of the old sidecar it keeps
 
 
 def search_serves(
@@ -300,35 +303,30 @@ def search_serves(
         raise InputError(f"search_serves: generations must be >= 1, got {generations}")
     if not seeds:
         raise InputError("search_serves: at least one GA seed is needed")
-    if out is not None and Path(out).suffix != ".npz":
-        raise InputError(f"search_serves: the library is written as a .npz file, got {out}")
+    _check_out("search_serves", out)
     params = serve_rally_params() if params is None else params
     noise = ExecutionNoise() if noise is None else noise
     toss = TossState() if toss is None else toss
     say = progress if progress is not None else (lambda message: None)
     started = time.perf_counter()
-    model = RobotModel(load_scenario(MODELS_DIR / params.scenario))
+    model, stack = _serve_robot(params)
     base = None if extend is None else load_serve_library(extend, model.scenario)  # a bad file fails before the search
     if base is not None and (base.repeats, base.seed, base.noise) != (repeats, seed, noise):
         raise InputError(f"search_serves: the library to extend was measured with {base.repeats} repeats, seed {base.seed} and {base.noise}; "
                          f"this search uses {repeats}, {seed} and {noise}")
-    stack = make_control_stack(model.scenario, params.control)
-    toss_plan = plan_toss(model, stack, toss, physics=params.physics)
+    (toss_plan,) = _toss_plans(model, stack, [toss], params.physics)
     robot = ExecutedStrikes(model, stack, toss_plan, params.physics, noise, EXECUTED_RELEASES, seed) if executed else None
     results = search_library(kinds, seeds, toss, params.physics, generations, population, progress=None if progress is None else _every(10, say),
                              robot=robot)
     say(f"serves: the GA found {len(results)} distinct legal serves ({len(kinds)} kinds x {len(seeds)} seeds, {time.perf_counter() - started:.0f} s)")
-    candidates, unplanned = [], Counter()
+    requests = []
     for result in results:
         name = f"{result.kind}_{result.seed}"
         if base is not None and name in base.names:
             say(f"serves: {name} is in the library already; skipped")
             continue
-        try:
-            candidates.append(plan_serve(model, stack, toss_plan, name, result.kind, result.genes, result.seed, result.fitness, params.physics))
-        except RuntimeError as error:
-            unplanned[str(error).split(":")[0]] += 1
-            say(f"serves: {name}: the robot cannot make it: {error}")
+        requests.append((toss_plan, name, result.kind, result.genes, result.seed, result.fitness))
+    candidates, unplanned = _plan_serves(model, stack, requests, params.physics, say)
     say(f"serves: the robot made {len(candidates)} of them; executing each {repeats} times")
     measured = execute_serves(ServeLibrary(tuple(candidates), scenario_record(model.scenario)), repeats, seed, params, noise, batch, say)
     kept: list[LibraryServe] = [] if base is None else list(base.serves)
@@ -342,25 +340,155 @@ def search_serves(
     library = measured.subset([serve.name for serve in measured.serves if serve.name in kept_names])
     if base is not None:
         library = ServeLibrary(base.serves + library.serves, library.scenario, repeats, seed, noise)
-    for serve in measured.serves:
-        s = serve.stats
-        say(f"serves: {serve.name:<20} legal {s.legal_fraction:6.1%}  lets {s.let_fraction:5.1%}  faults {s.fault_fraction:5.1%}  "
-            f"{'kept' if serve.name in kept_names else 'dropped'}")
+    _report(measured, kept_names, say)
     summary = {
         "kinds": kinds, "ga_seeds": seeds, "ga_fitness": "executed" if executed else "ball", "generations": generations, "population": population, "repeats": repeats, "seed": seed,
-        "max_failure": max_failure, "ga_legal": len(results), "planned": len(candidates), "unplanned_reasons": dict(unplanned),
+        "max_failure": max_failure, "ga_legal": len(results), "planned": len(candidates), "unplanned_reasons": dict(Counter(unplanned.values())),
         "extended": None if extend is None else str(extend), "passed": len(passing(measured, max_failure)), "kept": len(library), "wall_time_s": time.perf_counter() - started,
         "candidates": {serve.name: serve.stats.as_dict() for serve in measured.serves},
     }
     if out is not None:
         summary_fields = {key: value for key, value in summary.items() if key != "candidates"}
-        previous = {}
-        if extend is not None and sidecar_path(Path(extend).with_suffix(".npz")).is_file():
-            record = json.loads(sidecar_path(Path(extend).with_suffix(".npz")).read_text())
-            previous = {"extends": {key: record.get(key) for key in ("command", "date", "search", "extends")}}
+        history = {} if extend is None else _history(extend)
+        previous = {"extends": {key: history.get(key) for key in ("command", "date", "search", "extends")}} if history else {}
         save_serve_library(library, out, seed=seed, search=summary_fields, candidates=summary["candidates"], **previous)
         say(f"serves: wrote {out} ({len(library)} serves) and its sidecar")
     return library, summary
+
+
+def replan_serves(
+    library,
+    repeats: int | None = None,
+    seed: int | None = None,
+    params: RallyParams | None = None,
+    noise: ExecutionNoise | None = None,
+    max_failure: float = MAX_FAILURE,
+    batch: int = 32,
+    out=None,
+    progress: Callable[[str], None] | None = print,
+) -> tuple[ServeLibrary, dict]:
+    """The serve library saved at ``library`` (its .npz or sidecar path) re-made on the current
+    robot (``params.scenario``'s, default ``serve_rally_params()``) from its own genes, which
+    describe the strike at ball level and do not depend on the robot. The library is read without
+    the robot check (``load_serve_library(check_robot=False)``; its commands are not used); each
+    serve's genes are planned after its toss on this robot (``plan_serve``; those it cannot make
+    are dropped and counted by reason), executed ``repeats`` times with ``noise`` on the
+    segment-stepped diagram (``execute_serves``, ``seed``; each None: the library's own, as
+    recorded, its noise ``ExecutionNoise()`` when none is), and kept if they fail less than
+    ``max_failure`` of the time. The kept serves keep the library's order, names, kinds, genes,
+    GA seeds and fitness; no distinctness rule is applied again (the serves were distinct when
+    found). The same seed gives the same library. Writes it to ``out`` (``save_serve_library``;
+    it may be ``library``) when given, its sidecar recording the summary (``replan``), every
+    candidate's figures and ``replanned_from``: the old file's name and sha256 and its sidecar's
+    command, date, search and history. Returns the library and a summary (``source``: the file
+    read; the settings; ``serves_read``, ``planned`` and ``kept`` counts; the planning failures
+    by serve and by reason; every candidate's figures; ``replanned_from``; the wall time in s)."""
+    for name, value in (("repeats", repeats), ("batch", batch)):
+        if value is not None and value < 1:
+            raise InputError(f"replan_serves: {name} must be >= 1, got {value}")
+    _check_out("replan_serves", out)
+    params = serve_rally_params() if params is None else params
+    say = progress if progress is not None else (lambda message: None)
+    started = time.perf_counter()
+    model, stack = _serve_robot(params)
+    old = load_serve_library(library, model.scenario, check_robot=False)  # a missing or malformed file fails here
+    path = Path(library).with_suffix(".npz") if Path(library).suffix == ".json" else Path(library)  # as load_serve_library reads it
+    replanned_from = {**artefacts.data_file(path), **{key: value for key, value in _history(path).items() if key in _HISTORY_KEYS}}
+    if repeats is None and old.repeats < 1:
+        raise InputError(f"replan_serves: {path} was never measured; give the repeats")
+    repeats = old.repeats if repeats is None else repeats
+    seed = old.seed if seed is None else seed
+    noise = (ExecutionNoise() if old.noise is None else old.noise) if noise is None else noise
+    robot = scenario_record(model.scenario)
+    same = old.scenario.get("fingerprint") == robot["fingerprint"]
+    say(f"serves: replanning {len(old)} serves of {path} (made for {'this' if same else 'another'} robot) on the robot of {params.scenario}")
+    plans = _toss_plans(model, stack, [serve.toss for serve in old.serves], params.physics)
+    requests = [(plan, serve.name, serve.kind, serve.genes, serve.seed, serve.fitness) for plan, serve in zip(plans, old.serves)]
+    candidates, unplanned = _plan_serves(model, stack, requests, params.physics, say)
+    say(f"serves: the robot made {len(candidates)} of the {len(old)}; executing each {repeats} times")
+    measured = execute_serves(ServeLibrary(tuple(candidates), robot), repeats, seed, params, noise, batch, say)
+    kept = passing(measured, max_failure)
+    replanned = measured.subset(kept)
+    _report(measured, set(kept), say, before={serve.name: serve.stats for serve in old.serves})
+    summary = {
+        "source": str(path), "repeats": repeats, "seed": seed, "execution_noise": {"position_m": noise.position, "velocity_m_s": noise.velocity},
+        "max_failure": max_failure, "serves_read": len(old), "planned": len(candidates), "unplanned": unplanned,
+        "unplanned_reasons": dict(Counter(unplanned.values())), "kept": len(replanned), "wall_time_s": time.perf_counter() - started,
+        "candidates": {serve.name: serve.stats.as_dict() for serve in measured.serves}, "replanned_from": replanned_from,
+    }
+    if out is not None:
+        fields = {key: value for key, value in summary.items() if key not in ("candidates", "replanned_from")}
+        save_serve_library(replanned, out, seed=seed, replan=fields, candidates=summary["candidates"], replanned_from=replanned_from)
+        say(f"serves: wrote {out} ({len(replanned)} serves) and its sidecar")
+    return replanned, summary
+
+
+# ---------------------------------------------------------------------------------- shared steps
+def _serve_robot(params: RallyParams) -> tuple[RobotModel, ControlStack]:
+    """The robot the serves are planned on: the model of ``params.scenario`` (models/) and its
+    control stack (``params.control``)."""
+    model = RobotModel(load_scenario(MODELS_DIR / params.scenario))
+    return model, make_control_stack(model.scenario, params.control)
+
+
+def _toss_plans(model: RobotModel, stack: ControlStack, tosses: Iterable[TossState], physics: BallPhysicsParams) -> list[TossPlan]:
+    """The robot's planned toss (``plan_toss``) of each of ``tosses`` (release states; positions m,
+    velocities m/s, spins rad/s), in order, each distinct toss planned once. Raises RuntimeError
+    if the robot cannot make one."""
+    plans: dict[bytes, TossPlan] = {}
+    result = []
+    for toss in tosses:
+        key = toss.state.tobytes()
+        if key not in plans:
+            plans[key] = plan_toss(model, stack, toss, physics=physics)
+        result.append(plans[key])
+    return result
+
+
+def _plan_serves(model: RobotModel, stack: ControlStack, requests, physics: BallPhysicsParams,
+                 say: Callable[[str], None]) -> tuple[list[LibraryServe], dict[str, str]]:
+    """Each request (toss plan, name, kind, genes, GA seed, fitness) made by the robot
+    (``plan_serve``), in order, and the names of those it cannot make with why (the error's first
+    clause), each said."""
+    candidates, unplanned = [], {}
+    for toss_plan, name, kind, genes, ga_seed, fitness in requests:
+        try:
+            candidates.append(plan_serve(model, stack, toss_plan, name, kind, genes, ga_seed, fitness, physics))
+        except RuntimeError as error:
+            unplanned[name] = str(error).split(":")[0]
+            say(f"serves: {name}: the robot cannot make it: {error}")
+    return candidates, unplanned
+
+
+def _report(measured: ServeLibrary, kept_names, say: Callable[[str], None], before: dict | None = None) -> None:
+    """A line per measured serve: its legal, let and fault fractions (and ``before[name]``'s
+    legal fraction, ServeStats or None, when given) and whether it was kept."""
+    for serve in measured.serves:
+        s = serve.stats
+        was = ""
+        if before is not None:
+            old = before.get(serve.name)
+            was = f"  (was legal {old.legal_fraction:6.1%})" if old is not None else "  (was not measured)"
+        say(f"serves: {serve.name:<20} legal {s.legal_fraction:6.1%}  lets {s.let_fraction:5.1%}  faults {s.fault_fraction:5.1%}  "
+            f"{'kept' if serve.name in kept_names else 'dropped'}{was}")
+
+
+def _check_out(who: str, out) -> None:
+    """Raises InputError unless ``out`` is None or names a .npz file."""
+    if out is not None and Path(out).suffix != ".npz":
+        raise InputError(f"{who}: the library is written as a .npz file, got {out}")
+
+
+def _history(library) -> dict:
+    """The sidecar of the library file ``library`` (its .npz or sidecar path) as plain JSON data;
+    empty when it has none. Raises InputError when it is not JSON."""
+    sidecar = artefacts.sidecar_path(library)
+    if not sidecar.is_file():
+        return {}
+    try:
+        return json.loads(sidecar.read_text())
+    except (OSError, ValueError) as error:
+        raise InputError(f"the sidecar {sidecar} of serve library {library} is malformed: {error}") from None
 
 
 def _every(generations: int, say: Callable[[str], None]) -> Callable[[str], None]:

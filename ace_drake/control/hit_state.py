@@ -46,6 +46,7 @@ state names the same target all along, and this layer makes the motion (docs/tra
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable, Sequence
 
@@ -220,6 +221,14 @@ class HitStateLayer:
     @property
     def meets_ball(self) -> bool:
         return self.model is not None
+
+    def with_parameterisation(self, parameterisation: HitStateAction) -> HitStateLayer:
+        """A copy of this layer that reads actions in ``parameterisation``'s coordinates (a
+        policy's own, trained with other command limits); the stack's limits still bound every
+        q_hit and command."""
+        layer = copy.copy(self)
+        layer.parameterisation = parameterisation
+        return layer
 
     @classmethod
     def for_rally(cls, rally, meet_ball: bool = False) -> HitStateLayer:

@@ -68,12 +68,14 @@ class NoisyActions:
 class HitStatePolicy:
     """A hit-state policy (``DeterministicPolicy`` with action "hit_state") behind the fixed layer
     that makes its output an eq. (12) action (``control.hit_state.HitStateLayer``):
-    ``controller(observation) -> action (16,) | None``."""
+    ``controller(observation) -> action (16,) | None``. A policy trained with other command limits
+    than the diagram's plays in its own hit-state coordinates (``HitStateLayer.with_parameterisation``)
+    within the diagram's limits."""
 
     def __init__(self, policy, layer):
         if policy.hit_state is not None and not layer.parameterisation.matches(policy.hit_state):
-            raise ConfigError("this hit-state policy was trained with other command limits than the rally diagram's "
-                              "(its hit-state parameterisation differs)")
+            # Trained with other command limits: its actions are read in its own coordinates.
+            layer = layer.with_parameterisation(policy.hit_state)
         self.policy, self.layer, self._call = policy, layer, as_policy(policy)
 
     @property

@@ -33,7 +33,9 @@ Saved as ``serve_library.npz`` (the commands and a JSON header of everything els
 sidecar ``serve_library.json`` (``artefacts.write_sidecar``: command, seed, date, the measured
 figures, the npz's sha256, and the header for reading). ``load_serve_library`` checks that the
 file was made for the scenario's robot (joint names, and a fingerprint of the scenario's fields
-and model files: the commands are joint positions of that robot).
+and model files: the commands are joint positions of that robot); a library made for another
+robot is re-made from its genes by ``analysis.serve_search.replan_serves``, which reads it
+unchecked (``check_robot=False``).
 
 Selection (``choose_serve``): the paper selects "based on either their dissimilarity from recent
 past serves or rally-winning probability estimated from previous experiments" (its Supplementary
@@ -529,10 +531,14 @@ def save_serve_library(library: ServeLibrary, path=DEFAULT_LIBRARY, seed: int | 
     return artefacts.write_sidecar(path, seed=seed, figures=figures, header=header, **fields)
 
 
-def load_serve_library(path, scenario: RobotScenario) -> ServeLibrary:
+def load_serve_library(path, scenario: RobotScenario, check_robot: bool = True) -> ServeLibrary:
     """The library saved at ``path`` (its .npz; a .json path means its sidecar's artefact),
     checked against the robot ``scenario``. Raises InputError naming the file and the problem:
-    missing, not a serve library or malformed, or made for another robot."""
+    missing, not a serve library or malformed, or made for another robot. ``check_robot=False``
+    skips the last check (``scenario`` is then unused): the library as saved, its ``scenario``
+    the record of the robot it was made for, whose joint positions its commands are; only for
+    reading its genes and figures (``analysis.serve_search.replan_serves``), never to execute
+    on another robot."""
     path = Path(path)
     if path.suffix == ".json":
         path = path.with_suffix(".npz")
@@ -545,7 +551,7 @@ def load_serve_library(path, scenario: RobotScenario) -> ServeLibrary:
                 raise ValueError("its header is not a serve library's")
             if header.get("version") != FORMAT_VERSION:
                 raise ValueError(f"its format version is {header.get('version')}, this code reads {FORMAT_VERSION}")
-            mismatch = _scenario_mismatch(header["scenario"], scenario_record(scenario))
+            mismatch = _scenario_mismatch(header["scenario"], scenario_record(scenario)) if check_robot else None
             if mismatch is not None:
                 raise _OtherRobot(mismatch)
             serves = []
@@ -564,7 +570,7 @@ def load_serve_library(path, scenario: RobotScenario) -> ServeLibrary:
             noise = None if noise is None else ExecutionNoise(float(noise["position_m"]), float(noise["velocity_m_s"]))
             return ServeLibrary(tuple(serves), header["scenario"], int(header["repeats"]), int(header["seed"]), noise)
     except _OtherRobot as error:
-        raise InputError(f"serve library {path} was made for another robot: {error}") from None
+        raise InputError(f"serve library {path} was made for another robot: {error} (re-make it from its genes with `ace-drake serves replan`)") from None
     except InputError:
         raise
     except Exception as error:  # a truncated zip, a missing key, a bad value: the file is malformed

@@ -288,13 +288,20 @@ class Mirror:
         return action * self.action_sign.astype(action.dtype)
 
     def transitions(self, transitions: dict) -> dict:
-        """A mirrored copy of a transitions dict (``replay.TRANSITION_KEYS``); rewards kept."""
+        """A mirrored copy of a transitions dict (``replay.TRANSITION_KEYS``, or the demonstration
+        rows ``replay.DemonstrationBuffer.KEYS``): observations, privileged observations, actions
+        and the demonstrator's labels ``demo_action`` (eq. (12) actions or hit-state coordinates,
+        both mirrored by the action's signs) where present; rewards and the rest kept."""
         out = dict(transitions)
         for key in ("obs", "next_obs"):
-            out[key] = self.observation(transitions[key])
+            if key in transitions:
+                out[key] = self.observation(transitions[key])
         for key in ("privileged", "next_privileged"):
-            out[key] = self.privileged(transitions[key])
-        out["action"] = self.action(transitions["action"])
+            if key in transitions:
+                out[key] = self.privileged(transitions[key])
+        for key in ("action", "demo_action"):
+            if key in transitions:
+                out[key] = self.action(transitions[key])
         return out
 
     def action_exact(self, q0, v0, a0, limits, control, period: float) -> np.ndarray:

@@ -292,20 +292,27 @@ class EventReplay:
 
 class DemonstrationBuffer:
     """The demonstrated transitions (observation, the demonstrator's action) that the learner's
-    behaviour-cloning term reads (``sac`` docstring), sampled uniformly."""
+    behaviour-cloning term reads (``sac`` docstring), sampled uniformly.
+
+    ``augment``: callables mapping the rows (keys ``KEYS``) to others (e.g.
+    ``mirror.Mirror.transitions``), whose outputs are stored as well, as ``EventReplay``'s."""
 
     KEYS = ("obs", "privileged", "demo_action")
 
-    def __init__(self, capacity: int = 200_000, seed: int = 0):
+    def __init__(self, capacity: int = 200_000, seed: int = 0, augment=()):
         self.buffer = RingBuffer(capacity, self.KEYS)
         self.rng = np.random.default_rng(seed)
+        self.augment = tuple(augment)
 
     def add(self, transitions: dict[str, np.ndarray]) -> None:
         """Stores an episode's rows (keys ``KEYS``; the rest ignored) that have a label (a
-        hit-state label is NaN where the returner planned no hit: ``rollout``)."""
+        hit-state label is NaN where the returner planned no hit: ``rollout``), and their
+        augmentations."""
         labelled = np.all(np.isfinite(transitions["demo_action"]), axis=-1)
         if labelled.any():
-            self.buffer.add({key: np.asarray(transitions[key])[labelled] for key in self.KEYS})
+            rows = {key: np.asarray(transitions[key])[labelled] for key in self.KEYS}
+            for copy in (rows, *(augment(rows) for augment in self.augment)):
+                self.buffer.add({key: copy[key] for key in self.KEYS})
 
     def sample(self, batch_size: int) -> dict[str, np.ndarray]:
         if self.buffer.size == 0:

@@ -49,13 +49,14 @@ import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from ace_drake.config import ConfigError, from_dict, load_yaml
+from ace_drake.config import MODELS_DIR, ConfigError, from_dict, load_yaml
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
 from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner
 from ace_drake.perception.params import PerceptionParams
+from ace_drake.robot.model import RobotModel, load_scenario
 from ace_drake.play.shots import human_shots, make_distribution
 from ace_drake.training.checkpoint import Checkpointing, Progress
 from ace_drake.training.env import RallyEnvParams
@@ -122,7 +123,7 @@ class TrainConfig:
     # The earlier stage this run continues (training.stages): run first, then started from as from
     # initialize_from. None: no earlier stage.
     after: TrainConfig | None = None
-    mirror: bool = False  # mirror augmentation; the shipped robot is not mirror-symmetric (mirror.py)
+    mirror: bool = False  # mirror augmentation of the replay and the demonstrations (learning/mirror.py)
     torch_threads: int = 1
     log_every: float = 30.0  # s between progress lines
     sac: SacConfig = dataclasses.field(default_factory=SacConfig)
@@ -215,11 +216,13 @@ class Trainer(Checkpointing):
         self.log = progress
         torch.set_num_threads(config.torch_threads)
         self.learner = SacLearner(config.sac, config.env.rally, play=config.play)
+        # Mirror augmentation (paper): every stored episode and demonstration also mirrored.
         augment = ()
         if config.mirror:
-            augment = (Mirror.from_robot().transitions,)
+            robot = RobotModel(load_scenario(MODELS_DIR / config.env.rally.scenario))
+            augment = (Mirror.from_robot(robot, config.sac.layout).transitions,)
         self.replay = EventReplay(dataclasses.replace(config.replay, seed=config.seed), config.sac.layout, config.env.reward, augment)
-        self.demonstrations = DemonstrationBuffer(config.demonstration_capacity, seed=config.seed + 1)
+        self.demonstrations = DemonstrationBuffer(config.demonstration_capacity, seed=config.seed + 1, augment=augment)
         self.state = Progress(next_checkpoint=config.checkpoint_every, next_evaluation=config.evaluate_every)
         self._recent = deque(maxlen=100)  # outcomes of the latest policy episodes
         self._losses: dict[str, list[float]] = {}
