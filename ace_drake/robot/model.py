@@ -279,8 +279,8 @@ class RobotModel:
 
     def seed_for(self, p_WB: np.ndarray, handle_roll: float = 0.0) -> np.ndarray:
         """An IK seed for a racket at p_WB: the ready pose with the gantry placed so that the
-        shoulder stands 0.75 m behind the point and level with it in y, and wrist_1 (the roll
-        about the forearm) at ``handle_roll`` rad."""
+        shoulder stands 0.75 m behind the point and the column level with it in y (the arm 0.15 m
+        to its +y), and wrist_1 (the roll about the forearm) at ``handle_roll`` rad."""
         seed = self.ready_pose.copy()
         seed[5] = handle_roll
         X_WBase = pose_to_transform(self.scenario.base_pose)
