@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
-import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.stack import NO_ACTION, ControlStack, Stage
 
-SEGMENT_START_STATE_SIZE = 24
+SEGMENT_START_STATE_SIZE = 24  # [q, v, a] of the 8 joints where the next segment starts
+
+
+def split_start_state(start):
+    """The [q, v, a] parts (..., 8) of segment start states (..., 24) (rad or m, per s, per s^2),
+    as views (read every tick: cheaper than numpy.split)."""
+    joints = SEGMENT_START_STATE_SIZE // 3
+    return start[..., :joints], start[..., joints : 2 * joints], start[..., 2 * joints :]
 
 
 class ActionMapper(LeafSystem):
@@ -39,5 +45,5 @@ class ActionMapper(LeafSystem):
         if self.action_valid_port.Eval(context)[0] <= 0.5:
             output.set_value(Stage(False, reason=NO_ACTION))
             return
-        q, v, a = np.split(self.segment_start_state_port.Eval(context), 3)
+        q, v, a = split_start_state(self.segment_start_state_port.Eval(context))
         output.set_value(self.stack.map(q, v, a, self.action_port.Eval(context)))

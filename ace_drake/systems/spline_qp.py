@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from ace_drake.control.stack import ControlStack, Stage
-from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
+from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE, split_start_state
 
 
 class SplineQp(LeafSystem):
@@ -35,5 +34,5 @@ class SplineQp(LeafSystem):
         if not target.ok:
             output.set_value(Stage(False, reason=target.reason))
             return
-        q, v, a = np.split(self.segment_start_state_port.Eval(context), 3)
+        q, v, a = split_start_state(self.segment_start_state_port.Eval(context))
         output.set_value(self.stack.segment(q, v, a, target.value))

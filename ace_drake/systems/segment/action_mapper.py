@@ -8,7 +8,7 @@ from pydrake.systems.framework import LeafSystem
 
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.stack import NO_ACTION, ControlStack, Stage
-from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
+from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE, split_start_state
 
 
 class SegmentActionMapper(LeafSystem):
@@ -47,7 +47,7 @@ class SegmentActionMapper(LeafSystem):
         stages = [Stage(False, reason=NO_ACTION)] * self.batch
         if acting.size:
             start = self.segment_start_state_port.Eval(context)[acting]
-            q, v, a = np.split(start, 3, axis=1)
+            q, v, a = split_start_state(start)
             for row, stage in zip(acting, self.stack.map_batch(q, v, a, actions[acting, :ACTION_SIZE])):
                 stages[row] = stage
         output.set_value(tuple(stages))

@@ -7,7 +7,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from ace_drake.control.stack import ControlStack
-from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE
+from ace_drake.systems.action_mapper import SEGMENT_START_STATE_SIZE, split_start_state
 
 
 class SegmentSplineQp(LeafSystem):
@@ -36,7 +36,5 @@ class SegmentSplineQp(LeafSystem):
         self.segment_port = self.DeclareAbstractOutputPort("segment", lambda: AbstractValue.Make(()), self.CalcSegment)
 
     def CalcSegment(self, context, output):
-        start = self.segment_start_state_port.Eval(context)
-        joints = start.shape[1] // 3
-        q, v, a = start[:, :joints], start[:, joints : 2 * joints], start[:, 2 * joints :]  # np.split's views, without its overhead
+        q, v, a = split_start_state(self.segment_start_state_port.Eval(context))
         output.set_value(tuple(self.stack.segment_batch(q, v, a, self.target_port.Eval(context))))
