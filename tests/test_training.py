@@ -390,6 +390,36 @@ def test_an_interrupted_run_resumes_from_its_checkpoint(tmp_path):
         Trainer(_config(seed=4), tmp_path / "run", progress=lambda line: None)
 
 
+def test_mirror_augmentation_refuses_a_robot_that_is_not_mirror_symmetric(tmp_path):
+    """The robot before 2026-12-06 (its yaw axis on the column, off the arm's pitch pivot)."""
+    text = (MODELS_DIR / "ace_robot.sdf").read_text()
+    (tmp_path / "ace_robot.sdf").write_text(text.replace("<pose>0.08 0.15 0.96 0 0 0</pose>", "<pose>0.08 0 0.96 0 0 0</pose>"))
+    scenario = (MODELS_DIR / "scenario.yaml").read_text()
+    assert "robot_model: ace_robot.sdf" in scenario  # model paths are read from models/ unless absolute
+    (tmp_path / "scenario.yaml").write_text(scenario.replace("robot_model: ace_robot.sdf", f"robot_model: {tmp_path / 'ace_robot.sdf'}"))
+    env = RallyEnvParams(rally=RallyParams(scenario=str(tmp_path / "scenario.yaml")))
+    with pytest.raises(ConfigError, match="mirror: true needs a mirror-symmetric robot.*not symmetric"):
+        Trainer(_config(mirror=True, env=env), tmp_path / "run", progress=lambda line: None)
+
+
+def test_a_resized_runs_schedules_go_on_without_a_jump(tmp_path):
+    """A change of length in the learn phase: the schedules' progress is continuous at the change
+    and reaches 1 at the new end; each change is recorded. Earlier stages' lengths may change too."""
+    from ace_drake.training.checkpoint import Progress, _lengths_free, schedule_progress
+
+    trainer = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    trainer.state = state = Progress(phase="learn", env_steps=300, learn_start=(100, 0))
+    assert schedule_progress(state, 500) == 0.5
+    trainer._resize(500, 900)
+    assert schedule_progress(state, 900) == 0.5 and state.length_changes == [(300, 500, 900)]
+    state.env_steps = 600
+    assert schedule_progress(state, 900) == pytest.approx(0.75)
+    state.env_steps = 900
+    assert schedule_progress(state, 900) == 1.0
+    assert _lengths_free({"env_steps": 1, "seed": 2, "after": {"env_steps": 3, "seed": 4, "after": {"env_steps": 5}}}) == \
+        {"seed": 2, "after": {"seed": 4, "after": {}}}
+
+
 def test_mirror_augmentation_doubles_the_stored_episodes_and_demonstrations(tmp_path):
     """``mirror: true``: each demonstration episode enters the replay and the demonstration buffer
     with its mirror (same seed, same episodes)."""

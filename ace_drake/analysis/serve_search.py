@@ -255,7 +255,7 @@ def search_library(
 
 # ---------------------------------------------------------------------------------- the library
 FEATURE_DISTANCE_MIN = 1.0  # search_serves: kept serves differ by at least this (scaled features, evaluation.serves)
-_HISTORY_KEYS = ("command", "date", "search", "extends", "replan", "replanned_from")  # replan_serves: what of the old sidecar it keeps
+_HISTORY_KEYS = ("command", "date", "search", "extends", "replan", "replanned_from")  # what a new library keeps of the sidecar it came from
 
 
 def search_serves(
@@ -350,7 +350,7 @@ def search_serves(
     if out is not None:
         summary_fields = {key: value for key, value in summary.items() if key != "candidates"}
         history = {} if extend is None else _history(extend)
-        previous = {"extends": {key: history.get(key) for key in ("command", "date", "search", "extends")}} if history else {}
+        previous = {"extends": {key: history[key] for key in _HISTORY_KEYS if key in history}} if history else {}
         save_serve_library(library, out, seed=seed, search=summary_fields, candidates=summary["candidates"], **previous)
         say(f"serves: wrote {out} ({len(library)} serves) and its sidecar")
     return library, summary
@@ -402,7 +402,10 @@ def replan_serves(
     robot = scenario_record(model.scenario)
     same = old.scenario.get("fingerprint") == robot["fingerprint"]
     say(f"serves: replanning {len(old)} serves of {path} (made for {'this' if same else 'another'} robot) on the robot of {params.scenario}")
-    plans = _toss_plans(model, stack, [serve.toss for serve in old.serves], params.physics)
+    try:
+        plans = _toss_plans(model, stack, [serve.toss for serve in old.serves], params.physics)
+    except RuntimeError as error:
+        raise InputError(f"replan_serves: the robot of {params.scenario} cannot make the library's toss: {error}") from None
     requests = [(plan, serve.name, serve.kind, serve.genes, serve.seed, serve.fitness) for plan, serve in zip(plans, old.serves)]
     candidates, unplanned = _plan_serves(model, stack, requests, params.physics, say)
     say(f"serves: the robot made {len(candidates)} of the {len(old)}; executing each {repeats} times")
@@ -411,11 +414,14 @@ def replan_serves(
     replanned = measured.subset(kept)
     _report(measured, set(kept), say, before={serve.name: serve.stats for serve in old.serves})
     summary = {
-        "source": str(path), "repeats": repeats, "seed": seed, "execution_noise": {"position_m": noise.position, "velocity_m_s": noise.velocity},
+        "source": path.name, "repeats": repeats, "seed": seed, "execution_noise": {"position_m": noise.position, "velocity_m_s": noise.velocity},
         "max_failure": max_failure, "serves_read": len(old), "planned": len(candidates), "unplanned": unplanned,
         "unplanned_reasons": dict(Counter(unplanned.values())), "kept": len(replanned), "wall_time_s": time.perf_counter() - started,
         "candidates": {serve.name: serve.stats.as_dict() for serve in measured.serves}, "replanned_from": replanned_from,
     }
+    if out is not None and not len(replanned):
+        raise InputError(f"replan_serves: none of the {len(old)} serves passed on this robot; {out} is left as it was "
+                         "(search new serves with `ace-drake serves search`)")
     if out is not None:
         fields = {key: value for key, value in summary.items() if key not in ("candidates", "replanned_from")}
         save_serve_library(replanned, out, seed=seed, replan=fields, candidates=summary["candidates"], replanned_from=replanned_from)

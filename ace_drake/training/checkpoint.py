@@ -86,10 +86,34 @@ class Progress:
     # (env_steps, updates, evaluation figures) per evaluation
     evaluations: list = dataclasses.field(default_factory=list)
     learn_start: tuple = (0, 0)  # (env_steps, updates) when the learn phase began
+    # (env_steps, schedule progress there) of the last change of the run's length: the learn
+    # phase's schedules go on linearly from that progress to 1 at the new length (schedule_progress)
+    schedule_anchor: tuple | None = None
+    length_changes: list = dataclasses.field(default_factory=list)  # (env_steps, old length, new length) per change
     initialized_at: int | None = None  # env_steps of the checkpoint the run started from (initialize_from)
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
+
+
+def _lengths_free(config: dict) -> dict:
+    """A config dict without the fields a resumed run may change (``RESIZABLE``), its own and its
+    earlier stages' (``after``: a stage that has finished may be given another length too)."""
+    out = {key: value for key, value in config.items() if key not in RESIZABLE}
+    if isinstance(out.get("after"), dict):
+        out["after"] = _lengths_free(out["after"])
+    return out
+
+
+def schedule_progress(state: Progress, length: int) -> float:
+    """How far (0..1) the learn phase's schedules (cloning weight, actor learning rate) stand at
+    ``state.env_steps`` in a run of ``length`` steps: linear from the learn phase's start to its
+    end, or, after a change of the length, from the progress the run had then to 1 at the new end."""
+    if state.schedule_anchor is None:
+        start, at = state.learn_start[0], 0.0
+    else:
+        start, at = state.schedule_anchor
+    return min(1.0, at + (1.0 - at) * (state.env_steps - start) / max(1, length - start))
 
 
 def play_options_moved(config: dict) -> dict:
@@ -154,22 +178,31 @@ class Checkpointing:
         # written compares at its default (a new field's default keeps the old behaviour).
         saved = to_dict(from_dict(type(self.config), play_options_moved(payload["config"])))
         current = to_dict(self.config)
-        differing = sorted(k for k, v in current.items() if saved.get(k) != v and k not in RESIZABLE)
+        differing = sorted(k for k, v in _lengths_free(current).items() if _lengths_free(saved).get(k) != v)
         if differing:
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
-        if saved["env_steps"] != current["env_steps"]:
-            # The run's length may change (stopped early, or extended); the learn phase's schedules
-            # (cloning weight, learning rate) are fractions of it, so they stretch from here on.
-            self.log(f"train: the run's length changed from {saved['env_steps']} to {current['env_steps']} steps")
-            if payload["progress"]["phase"] == "done" and payload["progress"]["env_steps"] < current["env_steps"]:
-                payload["progress"]["phase"] = "learn"  # a finished run extended: learn on to the new length
+        resized = saved["env_steps"] != current["env_steps"]
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])
         self.demonstrations.load_state_dict(payload["demonstrations"])
         self.state = Progress(**payload["progress"])
         self.state.resumptions += 1
+        if resized:
+            self._resize(saved["env_steps"], current["env_steps"])
         self._recent.extend(payload["recent"])
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
+
+    def _resize(self, old: int, new: int) -> None:
+        """The run's length changed from ``old`` to ``new`` steps (``RESIZABLE``): a run shortened
+        below its steps finishes; a finished one extended learns on; in the learn phase the
+        schedules go on from the progress they had (``schedule_progress``), without a jump."""
+        s = self.state
+        self.log(f"train: the run's length changed from {old} to {new} steps at {s.env_steps} steps")
+        s.length_changes.append((s.env_steps, old, new))
+        if s.phase in ("learn", "done"):
+            s.schedule_anchor = (s.env_steps, schedule_progress(s, old))
+        if s.phase == "done" and s.env_steps < new:
+            s.phase = "learn"  # a finished run extended: learn on to the new length
 
     def _initialize_from(self, path: Path) -> None:
         """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig

@@ -58,7 +58,7 @@ from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.robot.model import RobotModel, load_scenario
 from ace_drake.play.shots import human_shots, make_distribution
-from ace_drake.training.checkpoint import Checkpointing, Progress
+from ace_drake.training.checkpoint import Checkpointing, Progress, schedule_progress
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
 from ace_drake.training.stages import earlier_stage_checkpoint, with_earlier_stages
@@ -220,7 +220,10 @@ class Trainer(Checkpointing):
         augment = ()
         if config.mirror:
             robot = RobotModel(load_scenario(MODELS_DIR / config.env.rally.scenario))
-            augment = (Mirror.from_robot(robot, config.sac.layout).transitions,)
+            try:
+                augment = (Mirror.from_robot(robot, config.sac.layout).transitions,)
+            except ValueError as error:
+                raise ConfigError(f"mirror: true needs a mirror-symmetric robot ({config.env.rally.scenario}): {error}") from None
         self.replay = EventReplay(dataclasses.replace(config.replay, seed=config.seed), config.sac.layout, config.env.reward, augment)
         self.demonstrations = DemonstrationBuffer(config.demonstration_capacity, seed=config.seed + 1, augment=augment)
         self.state = Progress(next_checkpoint=config.checkpoint_every, next_evaluation=config.evaluate_every)
@@ -342,7 +345,7 @@ class Trainer(Checkpointing):
             self._take(pool, result)
             learned = self.state.env_steps - learn_start
             if len(self.replay) >= c.sac.batch_size and self.learner.updates - updates_start < c.updates_per_step * learned:
-                progress = min(1.0, learned / max(1, c.env_steps - learn_start))
+                progress = schedule_progress(self.state, c.env_steps)
                 if c.actor_lr_final is not None:
                     self.learner.set_actor_lr(c.sac.actor_lr + progress * (c.actor_lr_final - c.sac.actor_lr))
                 self._update(c.update_chunk, c.sac.bc_weight + progress * (c.bc_weight_final - c.sac.bc_weight))
