@@ -288,6 +288,8 @@ def test_a_hit_state_policy_round_trips_and_plays_through_the_layer(tmp_path, mo
     q0 = controller.layer.layout.part(obs, "robot_state")[:8]
     q_hit, _ = trained_elsewhere.layer.parameterisation.hit_state(np.full(16, 0.01), q0)
     np.testing.assert_allclose(q_hit - q0, 0.01 * 1.1 * policy.hit_state.half_range)
+    action = trained_elsewhere(obs)  # it plays: an eq. (12) action in the box, the diagram's limits bounding q_hit
+    assert action is None or (action.shape == (16,) and np.all(np.abs(action) <= 1.0))
 
 
 def test_the_returners_planned_hit_state_plays_through_the_layer(layer):

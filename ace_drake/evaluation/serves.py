@@ -14,8 +14,9 @@ batched, each repeat with
 - execution noise: the released ball's position and velocity drawn around the executed release,
   independent Gaussians per axis (``ExecutionNoise``; 2 mm and 0.02 m/s by default, chosen: the
   paper gives no figure; a ball seated in a cup of a few mm play, and 1% of the 2 m/s toss speed,
-  about what the executed toss already misses its design by, 0.15 mm and 0.021 m/s, so the
-  defaults are ten times the position error and once the velocity error of the planned toss).
+  about what the executed toss already misses its design by, 0.12 mm and 0.026 m/s, so the
+  defaults are some fifteen times the position error and about the velocity error of the planned
+  toss).
   The robot's own motion is not perturbed: the joints execute the commands exactly (eq. (9)),
   so racket errors enter only through where the ball is when the racket arrives;
 - the ball model's perturbations of each table bounce (``RallyParams.perturb``), seeded by the
