@@ -402,6 +402,27 @@ def test_mirror_augmentation_refuses_a_robot_that_is_not_mirror_symmetric(tmp_pa
         Trainer(_config(mirror=True, env=env), tmp_path / "run", progress=lambda line: None)
 
 
+def test_a_checkpoint_written_for_another_robot_is_refused(tmp_path):
+    """A checkpoint records its robot; one written for another (here its recorded limits differ)
+    does not resume, naming what differs, and one written before the record existed does."""
+    config = _config(ou_episodes=1)
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    trainer._demonstration_phase()
+    path = tmp_path / "run" / "checkpoint.pt"
+    payload = torch.load(path, weights_only=False)
+    assert payload["robot"]["fingerprint"] == trainer._robot()["fingerprint"]
+    robot = copy.deepcopy(payload["robot"])
+    payload["robot"]["fingerprint"] = "another"
+    payload["robot"]["fields"]["limits"]["gantry_y"]["upper"] = 1.3
+    torch.save(payload, path)
+    with pytest.raises(ConfigError, match="another robot.*scenario field limits"):
+        Trainer(config, tmp_path / "run", progress=lambda line: None)
+    del payload["robot"]
+    torch.save(payload, path)
+    assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.resumptions == 1
+    assert robot["joint_names"][1] == "gantry_y"
+
+
 def test_a_resized_runs_schedules_go_on_without_a_jump(tmp_path):
     """A change of length in the learn phase: the schedules' progress is continuous at the change
     and reaches 1 at the new end; each change is recorded. Earlier stages' lengths may change too."""

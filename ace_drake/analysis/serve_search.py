@@ -66,11 +66,11 @@ from ace_drake.evaluation.serves import (
     plan_serve,
     load_serve_library,
     save_serve_library,
-    scenario_record,
     serve_rally_params,
 )
 from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.robot.model import RobotModel, load_scenario
+from ace_drake.robot.params import scenario_record
 
 GENERATIONS = 100  # the authors' setting
 PARENTS_MATING = 6  # the authors' setting

@@ -50,7 +50,6 @@ is no history). The rally-winning probability needs match statistics that do not
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -73,7 +72,7 @@ from ace_drake.physics.params import BallPhysicsParams
 from ace_drake.physics.propagate import ContactKind
 from ace_drake.play.scoring import HUMAN, ROBOT
 from ace_drake.robot.model import RobotModel, load_scenario
-from ace_drake.robot.params import JOINT_NAMES, RobotScenario
+from ace_drake.robot.params import JOINT_NAMES, RobotScenario, scenario_mismatch, scenario_record
 from ace_drake.robot.trajectory import JointTrajectory
 
 DEFAULT_LIBRARY = MODELS_DIR / "serve_library.npz"
@@ -254,33 +253,6 @@ class ServeLibrary:
 
 
 # ---------------------------------------------------------------------------------- the robot
-def scenario_record(scenario: RobotScenario) -> dict:
-    """What of the robot a library depends on: its joint names, its model files' names and
-    sha256 (``models/``) and a sha256 ``fingerprint`` over those and every field of the scenario
-    (limits, dynamics, base pose, ready pose), with the fields themselves for naming a
-    difference."""
-    fields = json.loads(artefacts.dumps(dataclasses.asdict(scenario), indent=None))
-    files = {}
-    for name in (scenario.robot_model, scenario.court_model):
-        path = MODELS_DIR / name
-        files[name] = artefacts.sha256(path) if path.is_file() else None
-    record = {"joint_names": list(JOINT_NAMES), "model_files": files, "fields": fields}
-    record["fingerprint"] = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
-    return record
-
-
-def _scenario_mismatch(saved: dict, current: dict) -> str | None:
-    """Why a library made for ``saved`` does not fit the robot ``current`` (None if it does)."""
-    if saved.get("fingerprint") == current["fingerprint"]:
-        return None
-    if saved.get("joint_names") != current["joint_names"]:
-        return f"its joints are {saved.get('joint_names')}, the robot's {current['joint_names']}"
-    differ = [f"model file {name}" for name in current["model_files"] if saved.get("model_files", {}).get(name) != current["model_files"][name]]
-    saved_fields = saved.get("fields", {})
-    differ += [f"scenario field {name}" for name in current["fields"] if saved_fields.get(name) != current["fields"][name]]
-    return "it differs in " + (", ".join(differ) if differ else "its fingerprint")
-
-
 def plan_serve(model: RobotModel, stack: ControlStack, toss: TossPlan, name: str, kind: str, genes, seed: int = 0, fitness: float = math.nan,
                physics: BallPhysicsParams | None = None) -> LibraryServe:
     """The serve of ``genes`` made by the robot after the planned toss ``toss`` (``plan_strike``
@@ -552,7 +524,7 @@ def load_serve_library(path, scenario: RobotScenario, check_robot: bool = True) 
                 raise ValueError("its header is not a serve library's")
             if header.get("version") != FORMAT_VERSION:
                 raise ValueError(f"its format version is {header.get('version')}, this code reads {FORMAT_VERSION}")
-            mismatch = _scenario_mismatch(header["scenario"], scenario_record(scenario)) if check_robot else None
+            mismatch = scenario_mismatch(header["scenario"], scenario_record(scenario)) if check_robot else None
             if mismatch is not None:
                 raise _OtherRobot(mismatch)
             serves = []

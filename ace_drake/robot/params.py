@@ -5,10 +5,13 @@ scenario (model file, poses) that every robot builder loads; loaded by ``ace_dra
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 
 import numpy as np
 
-from ace_drake.config import ConfigError, require_positive
+from ace_drake.artefacts import dumps, sha256
+from ace_drake.config import MODELS_DIR, ConfigError, require_positive
 
 JOINT_NAMES = ("gantry_x", "gantry_y", "shoulder_yaw", "shoulder_pitch", "elbow", "wrist_1", "wrist_2", "wrist_3")
 
@@ -133,3 +136,30 @@ class RobotScenario:
         if outside:
             raise ConfigError(f"ready_pose outside the joint limits: {'; '.join(outside)}")
 
+
+def scenario_record(scenario: RobotScenario) -> dict:
+    """What of the robot a robot-specific artefact (a serve library's joint commands, a training
+    run's checkpoint) depends on: its joint names, its model files' names and sha256 (``models/``)
+    and a sha256 ``fingerprint`` over those and every field of the scenario (limits, dynamics,
+    base pose, ready pose), with the fields themselves for naming a difference."""
+    fields = json.loads(dumps(dataclasses.asdict(scenario), indent=None))
+    files = {}
+    for name in (scenario.robot_model, scenario.court_model):
+        path = MODELS_DIR / name
+        files[name] = sha256(path) if path.is_file() else None
+    record = {"joint_names": list(JOINT_NAMES), "model_files": files, "fields": fields}
+    record["fingerprint"] = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
+    return record
+
+
+def scenario_mismatch(saved: dict, current: dict) -> str | None:
+    """Why an artefact made for the robot ``saved`` (a ``scenario_record``) does not fit the robot
+    ``current`` (None if it does)."""
+    if saved.get("fingerprint") == current["fingerprint"]:
+        return None
+    if saved.get("joint_names") != current["joint_names"]:
+        return f"its joints are {saved.get('joint_names')}, the robot's {current['joint_names']}"
+    differ = [f"model file {name}" for name in current["model_files"] if saved.get("model_files", {}).get(name) != current["model_files"][name]]
+    saved_fields = saved.get("fields", {})
+    differ += [f"scenario field {name}" for name in current["fields"] if saved_fields.get(name) != current["fields"][name]]
+    return "it differs in " + (", ".join(differ) if differ else "its fingerprint")

@@ -6,7 +6,8 @@ run directory that holds one resumes from it, and one whose config names ``initi
 starts from another run's. ``Checkpointing`` holds these methods of ``loop.Trainer`` (its
 ``config``, ``learner``, ``replay``, ``demonstrations``, ``state``, ``_recent``, ``run_dir``,
 ``log``, ``_started`` and ``_elapsed``). ``Progress``, the run's counters and history, is what
-a checkpoint's ``progress`` holds.
+a checkpoint's ``progress`` holds. A checkpoint records the robot it was written for
+(``robot.params.scenario_record``); resuming or starting from it on another robot is refused.
 """
 
 from __future__ import annotations
@@ -23,9 +24,11 @@ from pathlib import Path
 import torch
 import yaml
 
-from ace_drake.config import ConfigError, from_dict, to_dict
+from ace_drake.config import MODELS_DIR, ConfigError, from_dict, to_dict
 from ace_drake.learning.replay import load_weights_only
 from ace_drake.learning.sac import split_play_options
+from ace_drake.robot.model import load_scenario
+from ace_drake.robot.params import scenario_mismatch, scenario_record
 
 # The phases of a run, in order (``loop.Trainer.run``); a checkpoint records the current one.
 PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
@@ -139,6 +142,7 @@ class Checkpointing:
             "demonstrations": self.demonstrations.state_dict(),
             "progress": dataclasses.asdict(self.state),
             "recent": list(self._recent),
+            "robot": self._robot(),
         }
         path = self.run_dir / CHECKPOINT
         temporary = path.with_name(path.name + ".tmp")
@@ -181,6 +185,7 @@ class Checkpointing:
         differing = sorted(k for k, v in _lengths_free(current).items() if _lengths_free(saved).get(k) != v)
         if differing:
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
+        self._check_robot(path, payload)
         resized = saved["env_steps"] != current["env_steps"]
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])
@@ -191,6 +196,20 @@ class Checkpointing:
             self._resize(saved["env_steps"], current["env_steps"])
         self._recent.extend(payload["recent"])
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
+
+    def _robot(self) -> dict:
+        """The run's robot (``robot.params.scenario_record`` of its rally scenario)."""
+        return scenario_record(load_scenario(MODELS_DIR / self.config.env.rally.scenario))
+
+    def _check_robot(self, path: Path, payload: dict) -> None:
+        """Raises ConfigError if the checkpoint at ``path`` was written for another robot than the
+        run's (its states, actions and plans are that robot's); checkpoints written before the
+        record existed pass."""
+        saved = payload.get("robot")
+        mismatch = None if saved is None else scenario_mismatch(saved, self._robot())
+        if mismatch:
+            raise ConfigError(f"train: {path} was written for another robot ({mismatch}); use a new run directory "
+                              "or the robot it was trained on")
 
     def _resize(self, old: int, new: int) -> None:
         """The run's length changed from ``old`` to ``new`` steps (``RESIZABLE``): a run shortened
@@ -212,6 +231,7 @@ class Checkpointing:
         other shots): this run evaluates its actor first (after its cloning updates, if any) and
         chooses among its own evaluations."""
         payload = read_checkpoint(path)
+        self._check_robot(path, payload)
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])
         self.demonstrations.load_state_dict(payload["demonstrations"])
