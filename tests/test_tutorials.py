@@ -143,6 +143,8 @@ def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):
     assert re.search(r"cloning loss on them \(task space \+ joints \+ consistency\): \d+\.\d", run.stdout)
     met = re.search(r"meeting the ball: the blade's contact point (\d+\.\d) cm from the predicted ball for the plan, (\d+\.\d) cm for the off hit state, (\d+\.\d) cm once", run.stdout)
     assert met and float(met[2]) > 1.0 and float(met[3]) <= 0.2 and float(met[1]) <= 0.5
+    mirrored = re.search(r"the mirrored joint state puts the racket (\d+\.\d+) mm from the mirrored racket", run.stdout)
+    assert mirrored and float(mirrored[1]) < 1e-3 and re.search(r"mirrored twice = itself to \d\.\de-0[6-9]", run.stdout)
     for name in ("tutorial.pt", "tutorial.json", "tutorial_curve.png"):
         assert (tmp_path / "policies" / name).is_file()
     assert (tmp_path / "run" / "checkpoint.pt").is_file()

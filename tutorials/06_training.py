@@ -16,6 +16,8 @@ Actor-Critic (Methods *Algorithm*); this tutorial runs the same machinery as
   5. the hit-state action (this project's; docs/training.md, *Hit-state actor*): an actor that
      outputs the joints' state at the predicted hit, the fixed layer that turns it into the
      eq. (12) action, a demonstration episode through that layer, and the cloning loss.
+  6. mirror augmentation (paper, *Algorithm*): the robot is its own mirror image across the
+     table's XZ plane, so every transition has an exact mirrored twin (``mirror: true`` stores both).
 
 A policy trained for a few hundred steps does not return balls; the numbers printed are what it
 does. Run it from the repository root:
@@ -145,6 +147,25 @@ def main() -> None:
         off = q_hit + np.r_[0.0, 0.0, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
         print(f"   meeting the ball: the blade's contact point {miss(q_hit):.1f} cm from the predicted ball for the plan, "
               f"{miss(off):.1f} cm for the off hit state, {miss(meeting.meet_ball(off, ball)):.1f} cm once the layer has moved it")
+
+    # ------------------------------------------------------------------ 6. mirror augmentation
+    print("6. mirror augmentation: every transition and its mirror image across the table's XZ plane")
+    from ace_drake.learning.mirror import Mirror
+    from ace_drake.robot.model import RobotModel
+
+    model = RobotModel()
+    mirror = Mirror.from_robot(model, layout)  # checks the robot by forward kinematics and its limits first
+    print(f"   joints map q -> s q + c: signs {mirror.joints.signs.astype(int).tolist()}, gantry_y offset {mirror.joints.offsets[1]:+.2f} m")
+    q = np.random.default_rng(0).uniform(model.lower, model.upper)  # any configuration, the yaw too
+    X, X_mirrored = model.racket_pose(q), model.racket_pose(mirror.joints.positions(q))
+    gap = np.linalg.norm(X_mirrored.translation() - X.translation() * [1, -1, 1])
+    print(f"   at a random configuration (yaw {q[2]:+.2f} rad) the mirrored joint state puts the racket {1000 * gap:.4f} mm "
+          "from the mirrored racket: the arm turns about its own pivot")
+    twin = mirror.transitions(t)
+    back = mirror.transitions(twin)
+    print(f"   a mirrored episode: ball y flipped ({t['obs'][0][layout.slice('positions')][1]:+.3f} -> {twin['obs'][0][layout.slice('positions')][1]:+.3f} m), "
+          f"rewards kept, mirrored twice = itself to {max(np.max(np.abs(back[key] - t[key])) for key in ('obs', 'privileged', 'action')):.1e}")
+    print("   a training config turns it on with `mirror: true` (models/train_rally_paper.yaml)")
     print("done")
 
 
