@@ -326,7 +326,19 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
 
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path / "policies")
     assert "policy:tiny" in controllers.controller_names()
-    assert isinstance(controllers.make_controller("policy:tiny", RallyParams()), torch.nn.Module)
+    assert sidecar["robot"]["fingerprint"] == again._robot()["fingerprint"]  # the robot it was trained for
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # trained for this robot: no warning
+        assert isinstance(controllers.make_controller("policy:tiny", RallyParams()), torch.nn.Module)
+    recorded = tmp_path / "policies" / "tiny.json"
+    other = json.loads(recorded.read_text())
+    other["robot"]["fingerprint"], other["robot"]["fields"]["ready_pose"][1] = "another", 0.0
+    recorded.write_text(json.dumps(other))
+    with pytest.warns(UserWarning, match="trained for another robot.*scenario field ready_pose"):
+        controllers.make_controller("policy:tiny", RallyParams())
+    recorded.write_text(json.dumps(sidecar))
     with pytest.raises(ConfigError, match="no shipped policy"):
         controllers.make_controller("policy:nope", RallyParams())
 

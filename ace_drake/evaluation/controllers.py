@@ -12,6 +12,8 @@ whose actor outputs hit states (``sac.SacConfig.action``) plays through ``HitSta
 from __future__ import annotations
 
 import dataclasses
+import json
+import warnings
 
 import numpy as np
 
@@ -25,6 +27,8 @@ from ace_drake.learning.networks import DeterministicPolicy
 from ace_drake.learning.sac import load_policy
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.params import load_ball_params
+from ace_drake.robot.model import load_scenario
+from ace_drake.robot.params import scenario_mismatch, scenario_record
 from ace_drake.systems.policy_controller import as_policy
 
 POLICIES_DIR = MODELS_DIR / "policies"
@@ -117,6 +121,7 @@ def make_controller(name: str, params: RallyParams):
             raise ConfigError(f"no shipped policy {path.name} in {POLICIES_DIR}; choose one of {', '.join(controller_names())}")
 
         policy = load_policy(path)
+        _warn_if_trained_for_another_robot(name, path, params)
         if policy.index.numel() and int(policy.index.max()) >= _observation_size(params):
             raise ConfigError(f"policy {name} reads a longer observation than the rally diagram of these params builds")
         if reads_hit_prediction(policy, params) and not params.hit_prediction:
@@ -130,6 +135,16 @@ def best_controller(directory=None) -> tuple[str, float | None]:
     controllers this checkout can build (``controller_names``), the best measured on the held-out
     players (the stored evaluations in ``directory``, default ``heldout.HELDOUT_DIR``)."""
     return choose_controller(heldout_evaluations(directory), controller_names())
+
+
+def _warn_if_trained_for_another_robot(name: str, path, params: RallyParams) -> None:
+    """A warning when the policy's sidecar records another robot than the diagram's (its states
+    and actions are that robot's); sidecars written before the record existed say nothing."""
+    sidecar = path.with_suffix(".json")
+    recorded = json.loads(sidecar.read_text()).get("robot") if sidecar.is_file() else None
+    mismatch = None if recorded is None else scenario_mismatch(recorded, scenario_record(load_scenario(MODELS_DIR / params.scenario)))
+    if mismatch:
+        warnings.warn(f"policy {name} was trained for another robot ({mismatch}); it plays on this one as it is", stacklevel=3)
 
 
 def _observation_size(params: RallyParams) -> int:

@@ -27,7 +27,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (its sidecar, by
     ``artefacts.write_sidecar``: command, date, seed, steps, updates, wall time in s, the periodic
     evaluations and ``evaluation``, e.g. the human-shot figures of ``final_evaluation``, the
-    config) and ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best"
+    config, the robot it was trained for) and ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best"
     (the best evaluated actor) or "final". Returns the sidecar."""
 
     s, c = trainer.state, trainer.config
@@ -49,6 +49,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         evaluations=[{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
         final_evaluation=evaluation,
         config=to_dict(c),
+        robot=trainer._robot(),  # the robot it was trained for (robot.params.scenario_record)
     )
     rollouts = "actor's mean" if c.exploration.policy_std_scale == 0.0 else (
         "stochastic actor" if c.exploration.policy_std_scale == 1.0 else f"actor at {c.exploration.policy_std_scale:g} of its spread")
