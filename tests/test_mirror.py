@@ -135,6 +135,8 @@ def test_mirroring_twice_is_the_identity(shipped):
         for key, value in transitions.items():
             np.testing.assert_allclose(twice[key], value, rtol=0, atol=atol)
         np.testing.assert_array_equal(mirror.transitions(transitions)["reward"], transitions["reward"])
+    with pytest.raises(KeyError, match="no \\['obs'\\]"):
+        mirror.transitions({"privileged": privileged, "action": action})
 
 
 def test_joint_positions_mirror_affinely_in_both_observations(shipped):

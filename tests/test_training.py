@@ -326,7 +326,7 @@ def test_training_runs_resumes_and_exports(tmp_path, monkeypatch):
 
     monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path / "policies")
     assert "policy:tiny" in controllers.controller_names()
-    assert sidecar["robot"]["fingerprint"] == again._robot()["fingerprint"]  # the robot it was trained for
+    assert sidecar["robot"]["fingerprint"] == again.robot_record()["fingerprint"]  # the robot it was trained for
     import warnings
 
     with warnings.catch_warnings():
@@ -422,7 +422,7 @@ def test_a_checkpoint_written_for_another_robot_is_refused(tmp_path):
     trainer._demonstration_phase()
     path = tmp_path / "run" / "checkpoint.pt"
     payload = torch.load(path, weights_only=False)
-    assert payload["robot"]["fingerprint"] == trainer._robot()["fingerprint"]
+    assert payload["robot"]["fingerprint"] == trainer.robot_record()["fingerprint"]
     robot = copy.deepcopy(payload["robot"])
     payload["robot"]["fingerprint"] = "another"
     payload["robot"]["fields"]["limits"]["gantry_y"]["upper"] = 1.3

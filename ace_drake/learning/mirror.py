@@ -291,7 +291,11 @@ class Mirror:
         """A mirrored copy of a transitions dict (``replay.TRANSITION_KEYS``, or the demonstration
         rows ``replay.DemonstrationBuffer.KEYS``): observations, privileged observations, actions
         and the demonstrator's labels ``demo_action`` (eq. (12) actions or hit-state coordinates,
-        both mirrored by the action's signs) where present; rewards and the rest kept."""
+        both mirrored by the action's signs) where present; rewards and the rest kept. Raises
+        KeyError for a dict without ``obs`` and ``privileged`` (nothing of it would be mirrored)."""
+        missing = [key for key in ("obs", "privileged") if key not in transitions]
+        if missing:
+            raise KeyError(f"Mirror.transitions: no {missing} to mirror (keys {sorted(transitions)})")
         out = dict(transitions)
         for key in ("obs", "next_obs"):
             if key in transitions:

@@ -142,7 +142,7 @@ class Checkpointing:
             "demonstrations": self.demonstrations.state_dict(),
             "progress": dataclasses.asdict(self.state),
             "recent": list(self._recent),
-            "robot": self._robot(),
+            "robot": self.robot_record(),
         }
         path = self.run_dir / CHECKPOINT
         temporary = path.with_name(path.name + ".tmp")
@@ -197,7 +197,7 @@ class Checkpointing:
         self._recent.extend(payload["recent"])
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
 
-    def _robot(self) -> dict:
+    def robot_record(self) -> dict:
         """The run's robot (``robot.params.scenario_record`` of its rally scenario)."""
         return scenario_record(load_scenario(MODELS_DIR / self.config.env.rally.scenario))
 
@@ -206,7 +206,7 @@ class Checkpointing:
         run's (its states, actions and plans are that robot's); checkpoints written before the
         record existed pass."""
         saved = payload.get("robot")
-        mismatch = None if saved is None else scenario_mismatch(saved, self._robot())
+        mismatch = None if saved is None else scenario_mismatch(saved, self.robot_record())
         if mismatch:
             raise ConfigError(f"train: {path} was written for another robot ({mismatch}); use a new run directory "
                               "or the robot it was trained on")

@@ -49,7 +49,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         evaluations=[{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
         final_evaluation=evaluation,
         config=to_dict(c),
-        robot=trainer._robot(),  # the robot it was trained for (robot.params.scenario_record)
+        robot=trainer.robot_record(),  # the robot it was trained for (robot.params.scenario_record)
     )
     rollouts = "actor's mean" if c.exploration.policy_std_scale == 0.0 else (
         "stochastic actor" if c.exploration.policy_std_scale == 1.0 else f"actor at {c.exploration.policy_std_scale:g} of its spread")
