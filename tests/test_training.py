@@ -453,6 +453,23 @@ def test_a_resized_runs_schedules_go_on_without_a_jump(tmp_path):
         {"seed": 2, "after": {"seed": 4, "after": {}}}
 
 
+def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path):
+    """The cloning weight goes linearly from sac.bc_weight to bc_weight_final over the learn phase,
+    or over its first bc_fade_steps steps and then stays at bc_weight_final, whatever the length."""
+    from ace_drake.training.checkpoint import Progress
+
+    whole = Trainer(_config(env_steps=1100, bc_weight_final=0.2), tmp_path / "whole", progress=lambda line: None)
+    fixed = Trainer(_config(env_steps=1100, bc_weight_final=0.2, bc_fade_steps=400), tmp_path / "fixed", progress=lambda line: None)
+    for trainer in (whole, fixed):
+        trainer.state = Progress(phase="learn", env_steps=100, learn_start=(100, 0))
+        assert trainer.bc_weight() == pytest.approx(1.0)
+    for steps, expected_whole, expected_fixed in ((300, 0.84, 0.6), (500, 0.68, 0.2), (1100, 0.2, 0.2)):
+        whole.state.env_steps = fixed.state.env_steps = steps
+        assert whole.bc_weight() == pytest.approx(expected_whole) and fixed.bc_weight() == pytest.approx(expected_fixed)
+    with pytest.raises(ConfigError, match="bc_fade_steps"):
+        _config(bc_fade_steps=-1)
+
+
 def test_mirror_augmentation_doubles_the_stored_episodes_and_demonstrations(tmp_path):
     """``mirror: true``: each demonstration episode enters the replay and the demonstration buffer
     with its mirror (same seed, same episodes)."""

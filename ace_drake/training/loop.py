@@ -17,8 +17,8 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    worker always has a task in flight (``episodes_per_task`` episodes with the latest actor); the
    learner updates as long as it is below ``updates_per_step`` updates per collected step and
    otherwise waits for episodes; fresh weights go to every task submitted after an update chunk.
-   The cloning weight goes linearly from ``sac.bc_weight`` to ``bc_weight_final`` over the phase,
-   and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is given
+   The cloning weight goes linearly from ``sac.bc_weight`` to ``bc_weight_final`` over the phase
+   (or over its first ``bc_fade_steps`` steps, and stays there), and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is given
    (a schedule lets the actor settle on a precise fit by the end of a run; the paper's is fixed).
 
 Every ``checkpoint_every`` steps the whole learner state (networks, optimisers, generator, replay
@@ -97,6 +97,9 @@ class TrainConfig:
     pretrain_evaluate_every: int = 0
     pretrain_bc_weight: float = 10.0
     bc_weight_final: float = 0.0
+    # Steps of the learn phase over which the cloning weight fades to bc_weight_final (0: the whole
+    # phase, so that a longer run clones for longer; a fixed fade lets SAC take over early).
+    bc_fade_steps: int = 0
     actor_lr_final: float | None = None  # the actor's learning rate at the learn phase's end (None: fixed)
     # The learn phase's collection: "policy" (SAC's) or "dagger" (the actor plays, the returner
     # labels its states for the cloning term; this project's, rollout docstring).
@@ -140,7 +143,7 @@ class TrainConfig:
                      "evaluate_every", "evaluation_episodes", "torch_threads", "demonstration_capacity"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch"):
+        for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch", "bc_fade_steps"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
@@ -348,7 +351,7 @@ class Trainer(Checkpointing):
                 progress = schedule_progress(self.state, c.env_steps)
                 if c.actor_lr_final is not None:
                     self.learner.set_actor_lr(c.sac.actor_lr + progress * (c.actor_lr_final - c.sac.actor_lr))
-                self._update(c.update_chunk, c.sac.bc_weight + progress * (c.bc_weight_final - c.sac.bc_weight))
+                self._update(c.update_chunk, self.bc_weight())
                 pool.publish(self.learner.actor.state_dict())
             elif result is None:  # nothing to learn from yet: wait for the workers
                 self._take(pool, pool.wait())
@@ -360,6 +363,17 @@ class Trainer(Checkpointing):
         self.log(f"train: done: {self.state.env_steps} steps, {self.learner.updates} updates, {self.state.wall_time + self._elapsed():.0f} s")
 
     # ------------------------------------------------------------------------------ pieces
+    def bc_weight(self) -> float:
+        """The cloning term's weight at the run's current step in the learn phase (module
+        docstring): linear from ``sac.bc_weight`` to ``bc_weight_final`` over the phase, or over its
+        first ``bc_fade_steps`` steps."""
+        c, s = self.config, self.state
+        if c.bc_fade_steps:
+            progress = min(1.0, max(0.0, (s.env_steps - s.learn_start[0]) / c.bc_fade_steps))
+        else:
+            progress = schedule_progress(s, c.env_steps)
+        return c.sac.bc_weight + progress * (c.bc_weight_final - c.sac.bc_weight)
+
     def _take(self, pool, result) -> None:
         """Ingests a finished task's episodes (``WorkerPool.wait``'s result, or None) and gives
         its worker the next task."""
