@@ -370,7 +370,7 @@ def replan_serves(
     """The serve library saved at ``library`` (its .npz or sidecar path) re-made on the current
     robot (``params.scenario``'s, default ``serve_rally_params()``) from its own genes, which
     describe the strike at ball level and do not depend on the robot. The library is read without
-    the robot check (``load_serve_library(check_robot=False)``; its commands are not used); each
+    the robot check (``load_serve_library(path, None)``; its commands are not used); each
     serve's genes are planned after its toss on this robot (``plan_serve``; those it cannot make
     are dropped and counted by reason), executed ``repeats`` times with ``noise`` on the
     segment-stepped diagram (``execute_serves``, ``seed``; each None: the library's own, as
@@ -391,7 +391,7 @@ def replan_serves(
     say = progress if progress is not None else (lambda message: None)
     started = time.perf_counter()
     model, stack = _serve_robot(params)
-    old = load_serve_library(library, model.scenario, check_robot=False)  # a missing or malformed file fails here
+    old = load_serve_library(library, None)  # a missing or malformed file fails here
     path = Path(library).with_suffix(".npz") if Path(library).suffix == ".json" else Path(library)  # as load_serve_library reads it
     replanned_from = {**artefacts.data_file(path), **{key: value for key, value in _history(path).items() if key in _HISTORY_KEYS}}
     if repeats is None and old.repeats < 1:

@@ -36,7 +36,7 @@ figures, the npz's sha256, and the header for reading). ``load_serve_library`` c
 file was made for the scenario's robot (joint names, and a fingerprint of the scenario's fields
 and model files: the commands are joint positions of that robot); a library made for another
 robot is re-made from its genes by ``analysis.serve_search.replan_serves``, which reads it
-unchecked (``check_robot=False``).
+unchecked (``scenario=None``).
 
 Selection (``choose_serve``): the paper selects "based on either their dissimilarity from recent
 past serves or rally-winning probability estimated from previous experiments" (its Supplementary
@@ -504,14 +504,13 @@ def save_serve_library(library: ServeLibrary, path=DEFAULT_LIBRARY, seed: int | 
     return artefacts.write_sidecar(path, seed=seed, figures=figures, header=header, **fields)
 
 
-def load_serve_library(path, scenario: RobotScenario, check_robot: bool = True) -> ServeLibrary:
+def load_serve_library(path, scenario: RobotScenario | None) -> ServeLibrary:
     """The library saved at ``path`` (its .npz; a .json path means its sidecar's artefact),
     checked against the robot ``scenario``. Raises InputError naming the file and the problem:
-    missing, not a serve library or malformed, or made for another robot. ``check_robot=False``
-    skips the last check (``scenario`` is then unused): the library as saved, its ``scenario``
-    the record of the robot it was made for, whose joint positions its commands are; only for
-    reading its genes and figures (``analysis.serve_search.replan_serves``), never to execute
-    on another robot."""
+    missing, not a serve library or malformed, or made for another robot. ``scenario=None``
+    skips the last check: the library as saved, its ``scenario`` the record of the robot it was
+    made for, whose joint positions its commands are; only for reading its genes and figures
+    (``analysis.serve_search.replan_serves``), never to execute on another robot."""
     path = Path(path)
     if path.suffix == ".json":
         path = path.with_suffix(".npz")
@@ -524,7 +523,7 @@ def load_serve_library(path, scenario: RobotScenario, check_robot: bool = True) 
                 raise ValueError("its header is not a serve library's")
             if header.get("version") != FORMAT_VERSION:
                 raise ValueError(f"its format version is {header.get('version')}, this code reads {FORMAT_VERSION}")
-            mismatch = scenario_mismatch(header["scenario"], scenario_record(scenario)) if check_robot else None
+            mismatch = None if scenario is None else scenario_mismatch(header["scenario"], scenario_record(scenario))
             if mismatch is not None:
                 raise _OtherRobot(mismatch)
             serves = []
