@@ -4,6 +4,7 @@ selection rule and the ``serves`` command."""
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -104,6 +105,12 @@ def test_bad_library_files_are_named(searched, tmp_path):
     moved = dataclasses.replace(load_scenario(), ready_pose=(-0.4, -0.15, 0.0, 0.15, 0.35, 0.0, -0.5, 0.0))
     with pytest.raises(InputError, match="another robot: it differs in scenario field ready_pose"):
         load_serve_library(out, moved)
+    # A library to extend whose sidecar is not JSON fails before the search, not after it.
+    unreadable = tmp_path / "unreadable.npz"
+    shutil.copy(out, unreadable)
+    unreadable.with_suffix(".json").write_text("{not json")
+    with pytest.raises(InputError, match="sidecar .*unreadable.json.* is malformed"):
+        search_serves(extend=unreadable, out=None, **TINY)
 
 
 def direct_outcomes(serve: LibraryServe, seed: int, repeats: int) -> list[str]:

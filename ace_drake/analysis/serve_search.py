@@ -311,6 +311,7 @@ def search_serves(
     started = time.perf_counter()
     model, stack = _serve_robot(params)
     base = None if extend is None else load_serve_library(extend, model.scenario)  # a bad file fails before the search
+    history = {} if extend is None else _history(extend)  # so does a bad sidecar
     if base is not None and (base.repeats, base.seed, base.noise) != (repeats, seed, noise):
         raise InputError(f"search_serves: the library to extend was measured with {base.repeats} repeats, seed {base.seed} and {base.noise}; "
                          f"this search uses {repeats}, {seed} and {noise}")
@@ -349,7 +350,6 @@ def search_serves(
     }
     if out is not None:
         summary_fields = {key: value for key, value in summary.items() if key != "candidates"}
-        history = {} if extend is None else _history(extend)
         previous = {"extends": {key: history[key] for key in _HISTORY_KEYS if key in history}} if history else {}
         save_serve_library(library, out, seed=seed, search=summary_fields, candidates=summary["candidates"], **previous)
         say(f"serves: wrote {out} ({len(library)} serves) and its sidecar")
