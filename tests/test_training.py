@@ -166,9 +166,6 @@ def _recorded_config(sidecar: dict) -> dict:
     """A sidecar's recorded config as the run it describes: the fields added since at the values
     that run had (ADDED_SINCE), then the rest read through TrainConfig (at their defaults, which
     keep the old behaviour), without NOT_THE_RUN."""
-
-
-
     recorded = play_options_moved(copy.deepcopy(sidecar["config"]))  # sac.meet_ball, sac.hit_memory: play's since
     for (section, name), value in ADDED_SINCE.items():
         recorded.setdefault(section, {}).setdefault(name, value)
@@ -179,7 +176,6 @@ def _recorded_config(sidecar: dict) -> dict:
 
 @pytest.mark.parametrize("name", KEPT_POLICIES)
 def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
-
     sidecar = json.loads((MODELS_DIR / "policies" / f"{name}.json").read_text())
     if not Path(sidecar["config"]["evaluation_data"]).is_file():
         pytest.skip(f"the match data is not at {sidecar['config']['evaluation_data']} (run from the project root)")
@@ -223,7 +219,6 @@ def test_the_paper_action_policy_trains_in_its_three_stages_from_one_config():
 
 
 def _write_yaml(path: Path, data: dict) -> Path:
-
     path.write_text(yaml.safe_dump(json.loads(json.dumps(data)), sort_keys=False))
     return path
 
