@@ -127,6 +127,11 @@ def test_features_batch_is_features_of_each_row(predictor):
     assert predictor.features_batch(np.zeros((0, 9)), np.zeros(0, bool), np.zeros(0)).shape == (0, HIT_PREDICTION_SIZE)
     with pytest.raises(ValueError, match=r"\(B, 9\)"):
         predictor.features_batch(np.zeros(9), np.ones(1, bool), np.zeros(1))
+    # A valid row that cannot be predicted is named with its numbers.
+    broken = estimates[np.flatnonzero(valid)[:3]].copy()
+    broken[1, 6] = np.inf
+    with pytest.raises(ValueError, match=r"NaN or inf \(environment 1: estimate \[.*inf.*\], kept hit nan s\)"):
+        predictor.features_batch(broken, np.ones(3, bool), np.full(3, np.nan))
 
 
 def reference_bounce_behind(predictor, estimate, horizon=1.0, dt=0.02):

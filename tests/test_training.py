@@ -38,7 +38,7 @@ from ace_drake.training.export import (
 from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
 from ace_drake.training.rollout import ExplorationParams, OrnsteinUhlenbeck, RolloutWorker, VectorRolloutWorker, load_episodes, save_episodes
 from ace_drake.training.stages import EARLIER_STAGE_DIR
-from ace_drake.training.workers import WorkerPool
+from ace_drake.training.workers import WorkerFailed, WorkerPool
 
 SMALL = SacConfig(batch_size=16, actor_hidden=(32, 32), embedding_size=32, decoder_hidden=(16,), critic_hidden=(32, 32))
 
@@ -465,6 +465,36 @@ def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path)
         _config(bc_fade_steps=-1)
 
 
+def test_a_failing_rollout_task_costs_its_episodes_not_the_run(tmp_path, monkeypatch):
+    """A task that raises: its worker is replaced with another seed, the failure is logged and
+    counted, the run goes on to its end; beyond max_worker_failures the run stops with it."""
+    collect, calls = RolloutWorker.collect, []
+
+    def failing_second_task(worker, episodes, mode="policy"):
+        calls.append((worker.index, mode))
+        if len(calls) == 2:
+            raise ValueError("HitPredictor.predict: the estimate (or the predicted ball) contains NaN or inf")
+        return collect(worker, episodes, mode)
+
+    monkeypatch.setattr(RolloutWorker, "collect", failing_second_task)
+    lines = []
+    trainer = Trainer(_config(env_steps=40), tmp_path / "run", progress=lines.append)
+    first_seed = trainer._worker_args()["seed"]
+    state = trainer.run()
+    assert state.phase == "done" and state.env_steps >= 40
+    assert len(state.worker_failures) == 1 and state.worker_failures[0][1] == 0 and "NaN or inf" in state.worker_failures[0][2]
+    assert trainer._worker_args()["seed"] != first_seed  # the replacement plays other episodes
+    assert any("rollout worker 0 failed" in line for line in lines)
+    assert "contains NaN or inf" in (tmp_path / "run" / "worker_failures.log").read_text()
+    assert read_checkpoint(tmp_path / "run" / "checkpoint.pt")["progress"]["worker_failures"] == state.worker_failures
+
+    calls.clear()
+    with pytest.raises(WorkerFailed, match="rollout worker 0 failed.*NaN or inf"):
+        Trainer(_config(env_steps=40, max_worker_failures=0), tmp_path / "strict", progress=lambda line: None).run()
+    with pytest.raises(ConfigError, match="max_worker_failures"):
+        _config(max_worker_failures=-1)
+
+
 def test_mirror_augmentation_doubles_the_stored_episodes_and_demonstrations(tmp_path):
     """``mirror: true``: each demonstration episode enters the replay and the demonstration buffer
     with its mirror (same seed, same episodes)."""
@@ -522,7 +552,6 @@ def test_save_policy_round_trip(tmp_path):
 
 def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
     """The Ray backend and the single-process mode run the same worker code on the same seeds."""
-
     args = {"sac": SMALL, "seed": 21}
     local = WorkerPool(1, args, "local")
     local.submit(0, 2, "ou")
@@ -532,6 +561,14 @@ def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
         pool.submit(0, 2, "ou")
         pool.submit(1, 1, "ou")
         results = dict(pool.wait() for _ in range(2))
+        # A task that raises names its worker; a replacement plays on.
+        pool.submit(1, 1, "no such mode")
+        with pytest.raises(WorkerFailed, match="rollout worker 1 failed.*mode") as failed:
+            pool.wait()
+        assert failed.value.index == 1 and pool.in_flight == 0
+        pool.replace(1, args)
+        pool.submit(1, 1, "ou")
+        assert pool.wait()[0] == 1
     finally:
         pool.shutdown()
     assert pool.in_flight == 0 and len(results[1]) == 1
@@ -543,8 +580,6 @@ def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
 
 
 def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
-
-
     config = tmp_path / "train.yaml"
     config.write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(_config(name="cli", env_steps=40))))))
     args = ["train", str(config), "--run-dir", str(tmp_path / "run"), "--export-dir", str(tmp_path / "policies"), "--export", "final"]

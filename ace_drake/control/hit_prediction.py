@@ -178,7 +178,11 @@ class HitPredictor:
             raise ValueError(f"HitPredictor.features_batch: valid and keep must be ({count},), got {valid.shape} and {keep.shape}")
         features = np.zeros((count, HIT_PREDICTION_SIZE))
         for row in np.flatnonzero(valid & ~(estimates[:, 3] >= 0.0)):  # preferred_hit's test: NaN v_x is coming
-            features[row] = self.features(estimates[row], True, float(keep[row]) if np.isfinite(keep[row]) else None)
+            try:
+                features[row] = self.features(estimates[row], True, float(keep[row]) if np.isfinite(keep[row]) else None)
+            except ValueError as error:  # name the environment and its numbers
+                raise ValueError(f"{error} (environment {row}: estimate {np.array2string(estimates[row], precision=6, max_line_width=10**6)}, "
+                                 f"kept hit {keep[row]} s)") from error
         return features
 
     # ------------------------------------------------------------------------------ the hit

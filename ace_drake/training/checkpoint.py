@@ -94,6 +94,8 @@ class Progress:
     schedule_anchor: tuple | None = None
     length_changes: list = dataclasses.field(default_factory=list)  # (env_steps, old length, new length) per change
     initialized_at: int | None = None  # env_steps of the checkpoint the run started from (initialize_from)
+    # (env_steps, worker index, error's last line) per rollout task that raised (loop.Trainer._wait)
+    worker_failures: list = dataclasses.field(default_factory=list)
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation

@@ -21,6 +21,11 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    (or over its first ``bc_fade_steps`` steps, and stays there), and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is given
    (a schedule lets the actor settle on a precise fit by the end of a run; the paper's is fixed).
 
+A rollout task that raises (an environment's simulation failing) costs its episodes, not the run:
+the worker is replaced by a fresh one with another seed, the failure is logged with the worker's
+traceback (``run_dir/worker_failures.log``) and counted; more than ``max_worker_failures`` stop the
+run (its last checkpoint stays).
+
 Every ``checkpoint_every`` steps the whole learner state (networks, optimisers, generator, replay
 tables, demonstrations, counters, history) is written atomically to ``checkpoint.pt`` (a
 temporary file, flushed to disk, renamed over the old one, which is kept as ``checkpoint.prev.pt``),
@@ -62,7 +67,7 @@ from ace_drake.training.checkpoint import Checkpointing, Progress, schedule_prog
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
 from ace_drake.training.stages import earlier_stage_checkpoint, with_earlier_stages
-from ace_drake.training.workers import WorkerPool
+from ace_drake.training.workers import WorkerFailed, WorkerPool
 
 
 EVALUATION_BATCH = 32  # episodes at a time of a batched run's evaluations (segment-stepped diagram)
@@ -128,6 +133,8 @@ class TrainConfig:
     after: TrainConfig | None = None
     mirror: bool = False  # mirror augmentation of the replay and the demonstrations (learning/mirror.py)
     torch_threads: int = 1
+    # Rollout tasks that may raise before the run stops (module docstring); each loses its episodes.
+    max_worker_failures: int = 10
     log_every: float = 30.0  # s between progress lines
     sac: SacConfig = dataclasses.field(default_factory=SacConfig)
     play: PlayOptions = dataclasses.field(default_factory=PlayOptions)  # what the actor needs from its diagram
@@ -143,7 +150,8 @@ class TrainConfig:
                      "evaluate_every", "evaluation_episodes", "torch_threads", "demonstration_capacity"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch", "bc_fade_steps"):
+        for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch", "bc_fade_steps",
+                     "max_worker_failures"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
@@ -277,13 +285,38 @@ class Trainer(Checkpointing):
     def _workers(self):
         if self._pool is None:
             c = self.config
-            args = {"env_params": c.env, "sac": c.sac, "play": c.play, "seed": c.seed + 7919 * self.state.resumptions, "exploration": c.exploration,
-                    "returner": c.returner}
-            if c.batch:
-                args["batch"] = c.batch
-            self._pool = WorkerPool(c.workers, args, c.backend, c.address or None)
+            self._pool = WorkerPool(c.workers, self._worker_args(), c.backend, c.address or None)
             self._pool.publish(self.learner.actor.state_dict())
         return self._pool
+
+    def _worker_args(self) -> dict:
+        """The rollout workers' arguments; the seed moves on with each resumption and each
+        replaced worker, so that neither replays episodes already played."""
+        c = self.config
+        seed = c.seed + 7919 * self.state.resumptions + 104729 * len(self.state.worker_failures)
+        args = {"env_params": c.env, "sac": c.sac, "play": c.play, "seed": seed, "exploration": c.exploration, "returner": c.returner}
+        if c.batch:
+            args["batch"] = c.batch
+        return args
+
+    def _wait(self, pool, timeout: float | None = None):
+        """``pool.wait``, surviving a failed task (module docstring): the failure is logged and
+        counted, the worker replaced, and (its index, no episodes) returned so that the caller
+        gives it its next task. Raises the WorkerFailed beyond ``max_worker_failures``."""
+        try:
+            return pool.wait(timeout=timeout)
+        except WorkerFailed as failure:
+            s, c = self.state, self.config
+            s.worker_failures.append((s.env_steps, failure.index, failure.error))
+            with open(self.run_dir / "worker_failures.log", "a") as log:
+                log.write(f"--- at {s.env_steps} steps, worker {failure.index}:\n{str(failure.cause).strip()}\n")
+            if len(s.worker_failures) > c.max_worker_failures:
+                raise
+            self.log(f"train: rollout worker {failure.index} failed at {s.env_steps} steps ({s.worker_failures[-1][2]}); its task's "
+                     f"episodes are lost and it is replaced (failure {len(s.worker_failures)} of at most {c.max_worker_failures}; "
+                     f"traceback in {self.run_dir / 'worker_failures.log'})")
+            pool.replace(failure.index, self._worker_args())
+            return failure.index, []
 
     def _demonstration_phase(self) -> None:
         c = self.config
@@ -307,7 +340,7 @@ class Trainer(Checkpointing):
         for index in range(pool.count):
             pool.submit(index, self.config.task_episodes, mode)
         while getattr(self.state, counter) < total:
-            index, episodes = pool.wait()
+            index, episodes = self._wait(pool)
             for episode in episodes:
                 if getattr(self.state, counter) < total:
                     self._ingest(episode)
@@ -316,7 +349,7 @@ class Trainer(Checkpointing):
                 pool.submit(index, self.config.task_episodes, mode)
             self._periodic(evaluate=False)
         while pool.in_flight:  # finished tasks beyond the total are dropped
-            pool.wait()
+            self._wait(pool)
 
     def _pretrain_phase(self) -> None:
         c = self.config
@@ -344,7 +377,7 @@ class Trainer(Checkpointing):
             pool.submit(index, c.task_episodes, c.learn_mode)
         learn_start, updates_start = self.state.learn_start
         while self.state.env_steps < c.env_steps:
-            result = pool.wait(timeout=0.0 if self.config.backend == "ray" else None)
+            result = self._wait(pool, timeout=0.0 if self.config.backend == "ray" else None)
             self._take(pool, result)
             learned = self.state.env_steps - learn_start
             if len(self.replay) >= c.sac.batch_size and self.learner.updates - updates_start < c.updates_per_step * learned:
@@ -354,7 +387,7 @@ class Trainer(Checkpointing):
                 self._update(c.update_chunk, self.bc_weight())
                 pool.publish(self.learner.actor.state_dict())
             elif result is None:  # nothing to learn from yet: wait for the workers
-                self._take(pool, pool.wait())
+                self._take(pool, self._wait(pool))
             self._periodic(evaluate=True)
         self.state.phase = "done"
         if not self.state.evaluations or self.state.evaluations[-1][0] != self.state.env_steps:

@@ -10,6 +10,11 @@ The learner keeps one task in flight per worker: ``submit(index, episodes, mode)
 ``wait()`` returns the first finished (worker index, episodes), and ``publish(actor_state)``
 sends fresh actor weights that every *subsequently submitted* task plays with (Ray ships them
 once through its object store; a worker loads them when its next task starts).
+
+A task that raises (an environment whose simulation fails, say) surfaces from ``wait()`` as a
+``WorkerFailed`` naming the worker; its environments are then in an unknown state, so the caller
+either stops or ``replace``s the worker with a fresh one (other seed) and submits to it again
+(``loop.Trainer``: logged, counted, bounded by ``TrainConfig.max_worker_failures``).
 """
 
 from __future__ import annotations
@@ -21,6 +26,18 @@ import ray
 from ace_drake.training.rollout import RolloutWorker, VectorRolloutWorker
 
 BACKENDS = ("ray", "local")
+
+
+class WorkerFailed(RuntimeError):
+    """A rollout worker's task raised: ``index`` is the worker, ``cause`` the error (for Ray a
+    ``RayTaskError`` whose message holds the worker's traceback), ``error`` its last line (the
+    error as raised in the worker); the task's episodes are lost."""
+
+    def __init__(self, index: int, cause: BaseException):
+        lines = [line for line in str(cause).splitlines() if line.strip()]
+        self.index, self.cause = index, cause
+        self.error = lines[-1].strip() if lines else type(cause).__name__
+        super().__init__(f"rollout worker {index} failed: {self.error}")
 
 
 class WorkerPool:
@@ -38,22 +55,32 @@ class WorkerPool:
             raise ValueError("WorkerPool: the local backend runs exactly one worker (use backend 'ray' for more)")
         self.backend = backend
         self.count = count
-        worker_class = VectorRolloutWorker if "batch" in worker_args else RolloutWorker
+        self._worker_class = VectorRolloutWorker if "batch" in worker_args else RolloutWorker
         self._actor_ref = None
         self._actor_state = None
         self._pending: dict = {}  # ray: object ref -> worker index; local: deque of (index, task)
         if backend == "ray":
-
             if not ray.is_initialized():
                 if address:
                     ray.init(address=address, log_to_driver=False)
                 else:  # a local cluster: this machine's cores, no dashboard
                     ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
-            remote = ray.remote(num_cpus=1)(worker_class)
-            self._workers = [remote.remote(**worker_args, index=i) for i in range(count)]
+            self._worker_class = ray.remote(num_cpus=1)(self._worker_class)
+            self._workers = [self._worker_class.remote(**worker_args, index=i) for i in range(count)]
         else:
-            self._workers = [worker_class(**worker_args, index=0)]
+            self._workers = [self._worker_class(**worker_args, index=0)]
             self._queue: deque = deque()
+
+    def replace(self, index: int, worker_args: dict) -> None:
+        """Worker ``index`` replaced by a fresh one made with ``worker_args`` (as the pool's, with
+        e.g. another seed); its tasks in flight are dropped."""
+        if self.backend == "ray":
+            ray.kill(self._workers[index])
+            self._pending = {ref: i for ref, i in self._pending.items() if i != index}
+            self._workers[index] = self._worker_class.remote(**worker_args, index=index)
+        else:
+            self._queue = deque(task for task in self._queue if task[0] != index)
+            self._workers[index] = self._worker_class(**worker_args, index=index)
 
     def publish(self, actor_state: dict) -> None:
         """Fresh actor weights for the tasks submitted from now on."""
@@ -78,7 +105,8 @@ class WorkerPool:
         return len(self._pending) if self.backend == "ray" else len(self._queue)
 
     def wait(self, timeout: float | None = None):
-        """(worker index, episodes) of the first finished task, or None after ``timeout`` s."""
+        """(worker index, episodes) of the first finished task, or None after ``timeout`` s.
+        Raises WorkerFailed if that task raised."""
         if self.backend == "ray":
             if not self._pending:
                 raise RuntimeError("WorkerPool.wait: no task in flight")
@@ -86,13 +114,19 @@ class WorkerPool:
             if not done:
                 return None
             index = self._pending.pop(done[0])
-            return index, ray.get(done[0])
+            try:
+                return index, ray.get(done[0])
+            except ray.exceptions.RayTaskError as error:
+                raise WorkerFailed(index, error) from error
         if not self._queue:
             raise RuntimeError("WorkerPool.wait: no task in flight")
         index, episodes, mode, actor_state = self._queue.popleft()
         if actor_state is not None:
             self._workers[index].set_actor(actor_state)
-        return index, self._workers[index].collect(episodes, mode)
+        try:
+            return index, self._workers[index].collect(episodes, mode)
+        except Exception as error:  # the local backend's plain traceback stays chained
+            raise WorkerFailed(index, error) from error
 
     def shutdown(self) -> None:
         """Stops the workers (and a local Ray cluster this pool started)."""
