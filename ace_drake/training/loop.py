@@ -18,10 +18,12 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    learner updates as long as it is below ``updates_per_step`` updates per collected step and
    otherwise waits for episodes; fresh weights go to every task submitted after an update chunk.
    The cloning weight goes linearly from ``sac.bc_weight`` to ``bc_weight_final`` over the phase
-   (or over its first ``bc_fade_steps`` steps, and stays there), and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is given
-   (a schedule lets the actor settle on a precise fit by the end of a run; the paper's is fixed).
+   (or over its first ``bc_fade_steps`` steps, and stays there), and the actor's learning rate
+   from ``sac.actor_lr`` to ``actor_lr_final`` if that is given (a schedule lets the actor settle
+   on a precise fit by the end of a run; the paper's is fixed).
 
-A rollout task that raises (an environment's simulation failing) costs its episodes, not the run:
+A rollout task that raises (an environment's simulation failing) or whose worker dies costs its
+episodes, not the run:
 the worker is replaced by a fresh one with another seed, the failure is logged with the worker's
 traceback (``run_dir/worker_failures.log``) and counted; more than ``max_worker_failures`` stop the
 run (its last checkpoint stays).

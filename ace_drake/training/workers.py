@@ -11,10 +11,11 @@ The learner keeps one task in flight per worker: ``submit(index, episodes, mode)
 sends fresh actor weights that every *subsequently submitted* task plays with (Ray ships them
 once through its object store; a worker loads them when its next task starts).
 
-A task that raises (an environment whose simulation fails, say) surfaces from ``wait()`` as a
-``WorkerFailed`` naming the worker; its environments are then in an unknown state, so the caller
-either stops or ``replace``s the worker with a fresh one (other seed) and submits to it again
-(``loop.Trainer``: logged, counted, bounded by ``TrainConfig.max_worker_failures``).
+A task that raises (an environment whose simulation fails, say), or whose worker process dies,
+surfaces from ``wait()`` as a ``WorkerFailed`` naming the worker; its environments are then in an
+unknown state, so the caller either stops or ``replace``s the worker with a fresh one (other
+seed) and submits to it again (``loop.Trainer``: logged, counted, bounded by
+``TrainConfig.max_worker_failures``).
 """
 
 from __future__ import annotations
@@ -116,7 +117,7 @@ class WorkerPool:
             index = self._pending.pop(done[0])
             try:
                 return index, ray.get(done[0])
-            except ray.exceptions.RayTaskError as error:
+            except (ray.exceptions.RayTaskError, ray.exceptions.RayActorError) as error:  # raised, or the process died
                 raise WorkerFailed(index, error) from error
         if not self._queue:
             raise RuntimeError("WorkerPool.wait: no task in flight")
