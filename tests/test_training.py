@@ -449,8 +449,9 @@ def test_a_resized_runs_schedules_go_on_without_a_jump(tmp_path):
 
 
 def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path):
-    """The cloning weight goes linearly from sac.bc_weight to bc_weight_final over the learn phase,
-    or over its first bc_fade_steps steps and then stays at bc_weight_final, whatever the length."""
+    """The cloning weight goes linearly from sac.bc_weight (or bc_weight_start) to bc_weight_final
+    over the learn phase, or over its first bc_fade_steps steps and then stays at bc_weight_final,
+    whatever the length."""
     from ace_drake.training.checkpoint import Progress
 
     whole = Trainer(_config(env_steps=1100, bc_weight_final=0.2), tmp_path / "whole", progress=lambda line: None)
@@ -461,8 +462,13 @@ def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path)
     for steps, expected_whole, expected_fixed in ((300, 0.84, 0.6), (500, 0.68, 0.2), (1100, 0.2, 0.2)):
         whole.state.env_steps = fixed.state.env_steps = steps
         assert whole.bc_weight() == pytest.approx(expected_whole) and fixed.bc_weight() == pytest.approx(expected_fixed)
+    held = Trainer(_config(env_steps=1100, bc_weight_start=2.0, bc_weight_final=2.0), tmp_path / "held", progress=lambda line: None)
+    held.state = Progress(phase="learn", env_steps=600, learn_start=(100, 0))
+    assert held.bc_weight() == 2.0  # a constant weight, not sac.bc_weight's
     with pytest.raises(ConfigError, match="bc_fade_steps"):
         _config(bc_fade_steps=-1)
+    with pytest.raises(ConfigError, match="bc_weight_start"):
+        _config(bc_weight_start=-1.0)
 
 
 def test_a_failing_rollout_task_costs_its_episodes_not_the_run(tmp_path, monkeypatch):

@@ -17,8 +17,9 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    worker always has a task in flight (``episodes_per_task`` episodes with the latest actor); the
    learner updates as long as it is below ``updates_per_step`` updates per collected step and
    otherwise waits for episodes; fresh weights go to every task submitted after an update chunk.
-   The cloning weight goes linearly from ``sac.bc_weight`` to ``bc_weight_final`` over the phase
-   (or over its first ``bc_fade_steps`` steps, and stays there), and the actor's learning rate
+   The cloning weight goes linearly from ``bc_weight_start`` (default ``sac.bc_weight``) to
+   ``bc_weight_final`` over the phase (or over its first ``bc_fade_steps`` steps, and stays
+   there), and the actor's learning rate
    from ``sac.actor_lr`` to ``actor_lr_final`` if that is given (a schedule lets the actor settle
    on a precise fit by the end of a run; the paper's is fixed).
 
@@ -104,6 +105,9 @@ class TrainConfig:
     pretrain_evaluate_every: int = 0
     pretrain_bc_weight: float = 10.0
     bc_weight_final: float = 0.0
+    # The cloning weight at the learn phase's start (None: sac.bc_weight), e.g. for a stage that
+    # takes up an earlier stage's run where its fade stood.
+    bc_weight_start: float | None = None
     # Steps of the learn phase over which the cloning weight fades to bc_weight_final (0: the whole
     # phase, so that a longer run clones for longer; a fixed fade lets SAC take over early).
     bc_fade_steps: int = 0
@@ -159,6 +163,8 @@ class TrainConfig:
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
             if not getattr(self, name) >= 0.0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.bc_weight_start is not None and not self.bc_weight_start >= 0.0:
+            raise ConfigError(f"TrainConfig.bc_weight_start must be >= 0 (or left out), got {self.bc_weight_start}")
         if self.actor_lr_final is not None and not self.actor_lr_final > 0.0:
             raise ConfigError(f"TrainConfig.actor_lr_final must be > 0 (or left out), got {self.actor_lr_final}")
         if self.learn_mode not in ("policy", "dagger"):
@@ -400,14 +406,15 @@ class Trainer(Checkpointing):
     # ------------------------------------------------------------------------------ pieces
     def bc_weight(self) -> float:
         """The cloning term's weight at the run's current step in the learn phase (module
-        docstring): linear from ``sac.bc_weight`` to ``bc_weight_final`` over the phase, or over its
-        first ``bc_fade_steps`` steps."""
+        docstring): linear from ``bc_weight_start`` (default ``sac.bc_weight``) to
+        ``bc_weight_final`` over the phase, or over its first ``bc_fade_steps`` steps."""
         c, s = self.config, self.state
+        start = c.sac.bc_weight if c.bc_weight_start is None else c.bc_weight_start
         if c.bc_fade_steps:
             progress = min(1.0, max(0.0, (s.env_steps - s.learn_start[0]) / c.bc_fade_steps))
         else:
             progress = schedule_progress(s, c.env_steps)
-        return c.sac.bc_weight + progress * (c.bc_weight_final - c.sac.bc_weight)
+        return start + progress * (c.bc_weight_final - start)
 
     def _take(self, pool, result) -> None:
         """Ingests a finished task's episodes (``WorkerPool.wait``'s result, or None) and gives
