@@ -130,7 +130,7 @@ def test_features_batch_is_features_of_each_row(predictor):
     # A valid row that cannot be predicted is named with its numbers.
     broken = estimates[np.flatnonzero(valid)[:3]].copy()
     broken[1, 6] = np.inf
-    with pytest.raises(ValueError, match=r"NaN or inf \(environment 1: estimate \[.*inf.*\], kept hit nan s\)"):
+    with pytest.raises(ValueError, match=r"NaN or inf \(environment 1: estimate \[.*inf.*\], kept hit none\)"):
         predictor.features_batch(broken, np.ones(3, bool), np.full(3, np.nan))
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import ray
 import torch
 import yaml
 
@@ -204,7 +205,26 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
 
 
-def test_the_paper_action_policy_trains_in_its_three_stages_from_one_config():
+def test_the_paper_action_run_is_three_stages_in_one_config():
+    """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger), stage 2 fades the cloning
+    term from 10 towards 0 and ends before the actor collapsed, stage 3 holds it at 2."""
+    data = Path("../shared/data/ace_match_events_elite.csv")
+    if not data.is_file():
+        pytest.skip(f"the match data is not at {data} (run from the project root)")
+    third = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    second = third.after
+    first = second.after
+    assert first.after is None and first.demonstrations > 0 and first.learn_mode == "dagger"
+    assert [stage.seed for stage in (first, second, third)] == [30, 31, 32]
+    assert first.env_steps < second.env_steps < third.env_steps
+    assert first.sac == second.sac == third.sac and first.sac.bc_weight == 10.0  # each loads the one before's learner
+    assert (first.bc_weight_start, first.bc_weight_final, first.bc_fade_steps) == (None, 10.0, 0)
+    assert (second.bc_weight_start, second.bc_weight_final, second.bc_fade_steps) == (None, 0.0, 2_000_000)
+    assert (third.bc_weight_start, third.bc_weight_final) == (2.0, 2.0)
+    assert second.learn_mode == third.learn_mode == "policy" and third.mirror and second.mirror and first.mirror
+
+
+def test_rally_sac_trains_in_its_three_stages_from_one_config():
     data = Path("../shared/data/ace_match_events_elite.csv")
     if not data.is_file():
         pytest.skip(f"the match data is not at {data} (run from the project root)")
@@ -455,14 +475,16 @@ def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path)
     from ace_drake.training.checkpoint import Progress
 
     whole = Trainer(_config(env_steps=1100, bc_weight_final=0.2), tmp_path / "whole", progress=lambda line: None)
-    fixed = Trainer(_config(env_steps=1100, bc_weight_final=0.2, bc_fade_steps=400), tmp_path / "fixed", progress=lambda line: None)
+    fixed = Trainer(_config(env_steps=1100, bc_weight_final=0.2, bc_fade_steps=400), tmp_path / "fixed",
+                    progress=lambda line: None)
     for trainer in (whole, fixed):
         trainer.state = Progress(phase="learn", env_steps=100, learn_start=(100, 0))
         assert trainer.bc_weight() == pytest.approx(1.0)
     for steps, expected_whole, expected_fixed in ((300, 0.84, 0.6), (500, 0.68, 0.2), (1100, 0.2, 0.2)):
         whole.state.env_steps = fixed.state.env_steps = steps
         assert whole.bc_weight() == pytest.approx(expected_whole) and fixed.bc_weight() == pytest.approx(expected_fixed)
-    held = Trainer(_config(env_steps=1100, bc_weight_start=2.0, bc_weight_final=2.0), tmp_path / "held", progress=lambda line: None)
+    held = Trainer(_config(env_steps=1100, bc_weight_start=2.0, bc_weight_final=2.0), tmp_path / "held",
+                   progress=lambda line: None)
     held.state = Progress(phase="learn", env_steps=600, learn_start=(100, 0))
     assert held.bc_weight() == 2.0  # a constant weight, not sac.bc_weight's
     with pytest.raises(ConfigError, match="bc_fade_steps"):
@@ -472,31 +494,43 @@ def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path)
 
 
 def test_a_failing_rollout_task_costs_its_episodes_not_the_run(tmp_path, monkeypatch):
-    """A task that raises: its worker is replaced with another seed, the failure is logged and
-    counted, the run goes on to its end; beyond max_worker_failures the run stops with it."""
+    """A task that raises (here an OU task and a learn-phase task): its worker is replaced with
+    another seed, the failure is logged with its traceback and counted, the run goes on to its
+    end; beyond max_worker_failures the run stops with it."""
     collect, calls = RolloutWorker.collect, []
 
-    def failing_second_task(worker, episodes, mode="policy"):
-        calls.append((worker.index, mode))
-        if len(calls) == 2:
+    def failing_tasks(worker, episodes, mode="policy"):
+        calls.append(mode)
+        if len(calls) in (2, 4):
             raise ValueError("HitPredictor.predict: the estimate (or the predicted ball) contains NaN or inf")
         return collect(worker, episodes, mode)
 
-    monkeypatch.setattr(RolloutWorker, "collect", failing_second_task)
+    replace, seeds = WorkerPool.replace, []
+
+    def recorded_replace(pool, index, worker_args):
+        seeds.append(worker_args["seed"])
+        return replace(pool, index, worker_args)
+
+    monkeypatch.setattr(RolloutWorker, "collect", failing_tasks)
+    monkeypatch.setattr(WorkerPool, "replace", recorded_replace)
     lines = []
-    trainer = Trainer(_config(env_steps=40), tmp_path / "run", progress=lines.append)
+    trainer = Trainer(_config(env_steps=50), tmp_path / "run", progress=lines.append)
     first_seed = trainer._worker_args()["seed"]
     state = trainer.run()
-    assert state.phase == "done" and state.env_steps >= 40
-    assert len(state.worker_failures) == 1 and state.worker_failures[0][1] == 0 and "NaN or inf" in state.worker_failures[0][2]
-    assert trainer._worker_args()["seed"] != first_seed  # the replacement plays other episodes
-    assert any("rollout worker 0 failed" in line for line in lines)
-    assert "contains NaN or inf" in (tmp_path / "run" / "worker_failures.log").read_text()
+    assert calls[1] == "ou" and calls[3] == "policy"  # one failure before learning, one while learning
+    assert state.phase == "done" and state.env_steps >= 50
+    assert [failure[1] for failure in state.worker_failures] == [0, 0]
+    assert state.worker_failures[0][2] == ("ValueError: HitPredictor.predict: the estimate (or the predicted ball) "
+                                           "contains NaN or inf")
+    assert len(set([first_seed, *seeds])) == 3  # each replacement plays other episodes
+    assert sum("rollout worker 0 failed" in line for line in lines) == 2
+    log = (tmp_path / "run" / "worker_failures.log").read_text()
+    assert log.count("Traceback (most recent call last)") == 2 and "in failing_tasks" in log
     assert read_checkpoint(tmp_path / "run" / "checkpoint.pt")["progress"]["worker_failures"] == state.worker_failures
 
     calls.clear()
-    with pytest.raises(WorkerFailed, match="rollout worker 0 failed.*NaN or inf"):
-        Trainer(_config(env_steps=40, max_worker_failures=0), tmp_path / "strict", progress=lambda line: None).run()
+    with pytest.raises(WorkerFailed, match="rollout worker 0 failed: ValueError: .*NaN or inf"):
+        Trainer(_config(env_steps=50, max_worker_failures=0), tmp_path / "strict", progress=lambda line: None).run()
     with pytest.raises(ConfigError, match="max_worker_failures"):
         _config(max_worker_failures=-1)
 
@@ -575,6 +609,12 @@ def test_ray_workers_play_the_same_episodes_as_the_in_process_worker():
         pool.replace(1, args)
         pool.submit(1, 1, "ou")
         assert pool.wait()[0] == 1
+        # So does a worker whose process dies with a task in flight.
+        pool.submit(1, 1, "ou")
+        ray.kill(pool._workers[1])
+        with pytest.raises(WorkerFailed, match="rollout worker 1 failed") as died:
+            pool.wait()
+        assert isinstance(died.value.cause, ray.exceptions.RayActorError)
     finally:
         pool.shutdown()
     assert pool.in_flight == 0 and len(results[1]) == 1

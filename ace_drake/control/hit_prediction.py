@@ -168,7 +168,8 @@ class HitPredictor:
         is ``features(estimates[b], valid[b], keep[b])`` (keep[b] NaN for None). Args: estimates
         (B, 9) [p m, v m/s, w rad/s] (rows that are not valid may hold anything, NaN included);
         valid (B,) bool; keep (B,) s after the observation. The rows go one by one: each row's
-        prediction is one compiled call."""
+        prediction is one compiled call. Raises ValueError naming the row, its estimate and kept
+        hit when a valid row's ball cannot be predicted (``predict``)."""
         estimates = np.asarray(estimates, dtype=float)
         if estimates.ndim != 2 or estimates.shape[1] != 9:
             raise ValueError(f"HitPredictor.features_batch: estimates must be (B, 9), got {estimates.shape}")
@@ -181,8 +182,9 @@ class HitPredictor:
             try:
                 features[row] = self.features(estimates[row], True, float(keep[row]) if np.isfinite(keep[row]) else None)
             except ValueError as error:  # name the environment and its numbers
-                raise ValueError(f"{error} (environment {row}: estimate {np.array2string(estimates[row], precision=6, max_line_width=10**6)}, "
-                                 f"kept hit {keep[row]} s)") from error
+                estimate = np.array2string(estimates[row], precision=6, max_line_width=10**6)
+                kept = f"{keep[row]} s" if np.isfinite(keep[row]) else "none"
+                raise ValueError(f"{error} (environment {row}: estimate {estimate}, kept hit {kept})") from error
         return features
 
     # ------------------------------------------------------------------------------ the hit

@@ -242,6 +242,7 @@ class Checkpointing:
         s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
         s.initialized_at = s.env_steps
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
+        s.worker_failures = []  # counted per run (max_worker_failures); the earlier run's stay in its log
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")

@@ -19,26 +19,26 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    otherwise waits for episodes; fresh weights go to every task submitted after an update chunk.
    The cloning weight goes linearly from ``bc_weight_start`` (default ``sac.bc_weight``) to
    ``bc_weight_final`` over the phase (or over its first ``bc_fade_steps`` steps, and stays
-   there), and the actor's learning rate
-   from ``sac.actor_lr`` to ``actor_lr_final`` if that is given (a schedule lets the actor settle
-   on a precise fit by the end of a run; the paper's is fixed).
+   there), and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is
+   given (a schedule lets the actor settle on a precise fit by the end of a run; the paper's is
+   fixed).
 
 A rollout task that raises (an environment's simulation failing) or whose worker dies costs its
-episodes, not the run:
-the worker is replaced by a fresh one with another seed, the failure is logged with the worker's
-traceback (``run_dir/worker_failures.log``) and counted; more than ``max_worker_failures`` stop the
-run (its last checkpoint stays).
+episodes, not the run: the worker is replaced by a fresh one with another seed, the failure is
+logged with the worker's traceback (``run_dir/worker_failures.log``) and counted (per stage);
+more than ``max_worker_failures`` stop the run (its last checkpoint stays). The periodic
+evaluations run in the learner's process and are not covered: a failure there stops the run.
 
 Every ``checkpoint_every`` steps the whole learner state (networks, optimisers, generator, replay
 tables, demonstrations, counters, history) is written atomically to ``checkpoint.pt`` (a
 temporary file, flushed to disk, renamed over the old one, which is kept as ``checkpoint.prev.pt``),
 so a killed run loses only the work since then; ``train`` on the same directory resumes from it
-(from the previous one, with a warning, if the latest cannot be read or is missing) (the workers are reseeded from the run's seed
-and the number of resumptions, so a resumed run is reproducible but not identical to an
-uninterrupted one). Every ``evaluate_every`` steps the deterministic actor is evaluated in the
-rally diagram (``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best
-evaluated actor is kept (and, with ``heldout_players``, also on all of those players' shots, for the
-curve only). Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
+(from the previous one, with a warning, if the latest cannot be read or is missing) (the workers
+are reseeded from the run's seed, the number of resumptions and the number of failed tasks, so a
+resumed run is reproducible but not identical to an uninterrupted one). Every
+``evaluate_every`` steps the deterministic actor is evaluated in the rally diagram
+(``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best evaluated actor is
+kept (and, with ``heldout_players``, also on all of those players' shots, for the curve only). Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
 the ``progress`` callable. ``export.export`` writes a policy artefact (``models/policies/<name>.pt``),
 its sidecar JSON and the learning curve PNG.
 
@@ -302,7 +302,8 @@ class Trainer(Checkpointing):
         replaced worker, so that neither replays episodes already played."""
         c = self.config
         seed = c.seed + 7919 * self.state.resumptions + 104729 * len(self.state.worker_failures)
-        args = {"env_params": c.env, "sac": c.sac, "play": c.play, "seed": seed, "exploration": c.exploration, "returner": c.returner}
+        args = {"env_params": c.env, "sac": c.sac, "play": c.play, "seed": seed, "exploration": c.exploration,
+                "returner": c.returner}
         if c.batch:
             args["batch"] = c.batch
         return args
@@ -316,13 +317,13 @@ class Trainer(Checkpointing):
         except WorkerFailed as failure:
             s, c = self.state, self.config
             s.worker_failures.append((s.env_steps, failure.index, failure.error))
-            with open(self.run_dir / "worker_failures.log", "a") as log:
-                log.write(f"--- at {s.env_steps} steps, worker {failure.index}:\n{str(failure.cause).strip()}\n")
+            with open(self.run_dir / "worker_failures.log", "a", encoding="utf-8") as log:
+                log.write(f"--- at {s.env_steps} steps, worker {failure.index}:\n{failure.traceback}\n")
             if len(s.worker_failures) > c.max_worker_failures:
                 raise
-            self.log(f"train: rollout worker {failure.index} failed at {s.env_steps} steps ({s.worker_failures[-1][2]}); its task's "
-                     f"episodes are lost and it is replaced (failure {len(s.worker_failures)} of at most {c.max_worker_failures}; "
-                     f"traceback in {self.run_dir / 'worker_failures.log'})")
+            self.log(f"train: rollout worker {failure.index} failed at {s.env_steps} steps ({failure.error}); "
+                     f"its task's episodes are lost and it is replaced (failure {len(s.worker_failures)} "
+                     f"of at most {c.max_worker_failures}; traceback in {self.run_dir / 'worker_failures.log'})")
             pool.replace(failure.index, self._worker_args())
             return failure.index, []
 

@@ -20,6 +20,7 @@ seed) and submits to it again (``loop.Trainer``: logged, counted, bounded by
 
 from __future__ import annotations
 
+import traceback
 from collections import deque
 
 import ray
@@ -30,14 +31,20 @@ BACKENDS = ("ray", "local")
 
 
 class WorkerFailed(RuntimeError):
-    """A rollout worker's task raised: ``index`` is the worker, ``cause`` the error (for Ray a
-    ``RayTaskError`` whose message holds the worker's traceback), ``error`` its last line (the
-    error as raised in the worker); the task's episodes are lost."""
+    """A rollout worker's task raised, or its process died: ``index`` is the worker, ``cause`` the
+    error (with Ray a ``RayTaskError``, whose message holds the worker's traceback, or a
+    ``RayActorError``), ``error`` one line saying what was raised ("ValueError: ..."),
+    ``traceback`` the whole story as text; the task's episodes are lost."""
 
     def __init__(self, index: int, cause: BaseException):
-        lines = [line for line in str(cause).splitlines() if line.strip()]
         self.index, self.cause = index, cause
-        self.error = lines[-1].strip() if lines else type(cause).__name__
+        if isinstance(cause, ray.exceptions.RayError):  # the worker's traceback is in the message
+            lines = [line for line in str(cause).splitlines() if line.strip()]
+            self.error = lines[-1].strip() if lines else type(cause).__name__
+            self.traceback = str(cause).strip()
+        else:  # raised in this process (the local backend)
+            self.error = traceback.format_exception_only(cause)[-1].strip()
+            self.traceback = "".join(traceback.format_exception(cause)).strip()
         super().__init__(f"rollout worker {index} failed: {self.error}")
 
 
@@ -59,7 +66,7 @@ class WorkerPool:
         self._worker_class = VectorRolloutWorker if "batch" in worker_args else RolloutWorker
         self._actor_ref = None
         self._actor_state = None
-        self._pending: dict = {}  # ray: object ref -> worker index; local: deque of (index, task)
+        self._pending: dict = {}  # ray: object ref -> worker index (the local backend: _queue)
         if backend == "ray":
             if not ray.is_initialized():
                 if address:
