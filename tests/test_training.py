@@ -189,6 +189,13 @@ def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
     assert (MODELS_DIR / "policies" / f"{name}.pt").is_file()
 
 
+def _needs_match_data() -> None:
+    """Skips a test of a shipped config when the match data it names is not beside the project."""
+    data = Path("../shared/data/ace_match_events_elite.csv")
+    if not data.is_file():
+        pytest.skip(f"the match data is not at {data} (run from the project root, beside ../shared)")
+
+
 # Runs in training: their config is kept so that a later session resumes them, and their policy
 # ships when the run ends (models/train_rally_paper.yaml: issue 30).
 IN_TRAINING = ("rally_paper",)
@@ -198,9 +205,7 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
     assert {path.name for path in MODELS_DIR.glob("train_*.yaml")} == {
         "train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES + IN_TRAINING)}
     assert {path.stem for path in (MODELS_DIR / "policies").glob("*.pt")} == set(KEPT_POLICIES)
-    data = Path("../shared/data/ace_match_events_elite.csv")  # the configs' evaluation data must exist to load
-    if not data.is_file():
-        pytest.skip(f"the match data is not at {data} (run from the project root, beside ../shared)")
+    _needs_match_data()  # the configs' evaluation data must exist to load
     for name in IN_TRAINING:
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
 
@@ -208,9 +213,7 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
 def test_the_paper_action_run_is_three_stages_in_one_config():
     """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger), stage 2 fades the cloning
     term from 10 towards 0 and ends before the actor collapsed, stage 3 holds it at 2."""
-    data = Path("../shared/data/ace_match_events_elite.csv")
-    if not data.is_file():
-        pytest.skip(f"the match data is not at {data} (run from the project root)")
+    _needs_match_data()
     third = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
     second = third.after
     first = second.after
@@ -225,9 +228,7 @@ def test_the_paper_action_run_is_three_stages_in_one_config():
 
 
 def test_rally_sac_trains_in_its_three_stages_from_one_config():
-    data = Path("../shared/data/ace_match_events_elite.csv")
-    if not data.is_file():
-        pytest.skip(f"the match data is not at {data} (run from the project root)")
+    _needs_match_data()
     fifth = load_train_config(MODELS_DIR / "train_rally_sac.yaml")
     fourth = fifth.after
     third = fourth.after
