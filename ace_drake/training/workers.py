@@ -11,11 +11,11 @@ The learner keeps one task in flight per worker: ``submit(index, episodes, mode)
 sends fresh actor weights that every *subsequently submitted* task plays with (Ray ships them
 once through its object store; a worker loads them when its next task starts).
 
-A task that raises (an environment whose simulation fails, say), or whose worker process dies,
-surfaces from ``wait()`` as a ``WorkerFailed`` naming the worker; its environments are then in an
-unknown state, so the caller either stops or ``replace``s the worker with a fresh one (other
-seed) and submits to it again (``loop.Trainer``: logged, counted, bounded by
-``TrainConfig.max_worker_failures``).
+A task that raises (an environment whose simulation fails, say), or whose worker process dies (or
+is killed by Ray's memory monitor), surfaces from ``wait()`` as a ``WorkerFailed`` naming the
+worker; its environments are then in an unknown state, so the caller either stops or
+``replace``s the worker with a fresh one (other seed) and submits to it again (``loop.Trainer``:
+logged, counted, bounded by ``TrainConfig.max_worker_failures``).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ BACKENDS = ("ray", "local")
 
 class WorkerFailed(RuntimeError):
     """A rollout worker's task raised, or its process died: ``index`` is the worker, ``cause`` the
-    error (with Ray a ``RayTaskError``, whose message holds the worker's traceback, or a
-    ``RayActorError``), ``error`` one line saying what was raised ("ValueError: ..."),
+    error (with Ray a ``RayTaskError``, whose message holds the worker's traceback, a
+    ``RayActorError`` or an ``OutOfMemoryError``), ``error`` one line saying what was raised ("ValueError: ..."),
     ``traceback`` the whole story as text; the task's episodes are lost."""
 
     def __init__(self, index: int, cause: BaseException):
@@ -124,7 +124,7 @@ class WorkerPool:
             index = self._pending.pop(done[0])
             try:
                 return index, ray.get(done[0])
-            except (ray.exceptions.RayTaskError, ray.exceptions.RayActorError) as error:  # raised, or the process died
+            except ray.exceptions.RayError as error:  # raised, the process died, or Ray killed it (out of memory)
                 raise WorkerFailed(index, error) from error
         if not self._queue:
             raise RuntimeError("WorkerPool.wait: no task in flight")
