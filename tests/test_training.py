@@ -469,7 +469,7 @@ def test_a_resized_runs_schedules_go_on_without_a_jump(tmp_path):
         {"seed": 2, "after": {"seed": 4, "after": {}}}
 
 
-def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path):
+def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path, monkeypatch):
     """The cloning weight goes linearly from sac.bc_weight (or bc_weight_start) to bc_weight_final
     over the learn phase, or over its first bc_fade_steps steps and then stays at bc_weight_final,
     whatever the length."""
@@ -488,6 +488,12 @@ def test_the_cloning_weight_fades_over_the_phase_or_over_bc_fade_steps(tmp_path)
                    progress=lambda line: None)
     held.state = Progress(phase="learn", env_steps=600, learn_start=(100, 0))
     assert held.bc_weight() == 2.0  # a constant weight, not sac.bc_weight's
+    # The learn loop's updates take that weight (the cloning updates before it their own).
+    weights = []
+    monkeypatch.setattr(Trainer, "_update", lambda trainer, count, bc_weight: weights.append((trainer.state.phase, bc_weight)))
+    Trainer(_config(env_steps=60, bc_weight_start=0.5, bc_weight_final=0.5), tmp_path / "run", progress=lambda line: None).run()
+    assert {weight for phase, weight in weights if phase == "learn"} == {0.5}
+    assert {weight for phase, weight in weights if phase == "pretrain"} == {10.0}
     with pytest.raises(ConfigError, match="bc_fade_steps"):
         _config(bc_fade_steps=-1)
     with pytest.raises(ConfigError, match="bc_weight_start"):

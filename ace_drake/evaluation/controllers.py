@@ -17,6 +17,7 @@ import warnings
 
 import numpy as np
 
+from ace_drake import artefacts
 from ace_drake.config import MODELS_DIR, ConfigError
 from ace_drake.contracts import DEFAULT_CONTROLLER, ObservationLayout  # noqa: F401 (DEFAULT_CONTROLLER: named here too)
 from ace_drake.control.hit_state import HitStateLayer, PlannedHitState
@@ -140,7 +141,7 @@ def best_controller(directory=None) -> tuple[str, float | None]:
 def _warn_if_trained_for_another_robot(name: str, path, params: RallyParams) -> None:
     """A warning when the policy's sidecar records another robot than the diagram's (its states
     and actions are that robot's); sidecars written before the record existed say nothing."""
-    sidecar = path.with_suffix(".json")
+    sidecar = artefacts.sidecar_path(path)
     recorded = json.loads(sidecar.read_text()).get("robot") if sidecar.is_file() else None
     mismatch = None if recorded is None else scenario_mismatch(recorded, scenario_record(load_scenario(MODELS_DIR / params.scenario)))
     if mismatch:

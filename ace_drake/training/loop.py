@@ -38,9 +38,10 @@ are reseeded from the run's seed, the number of resumptions and the number of fa
 resumed run is reproducible but not identical to an uninterrupted one). Every
 ``evaluate_every`` steps the deterministic actor is evaluated in the rally diagram
 (``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best evaluated actor is
-kept (and, with ``heldout_players``, also on all of those players' shots, for the curve only). Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to
-the ``progress`` callable. ``export.export`` writes a policy artefact (``models/policies/<name>.pt``),
-its sidecar JSON and the learning curve PNG.
+kept (and, with ``heldout_players``, also on all of those players' shots, for the curve only).
+Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to the ``progress`` callable.
+``export.export`` writes a policy artefact (``models/policies/<name>.pt``), its sidecar JSON and
+the learning curve PNG.
 
 This module is the loop (``TrainConfig``, ``Trainer``); ``training.checkpoint`` saves, loads and
 resumes a run (and holds ``Progress``, the counters a checkpoint records), ``training.export`` writes its artefacts.

@@ -33,8 +33,8 @@ BACKENDS = ("ray", "local")
 class WorkerFailed(RuntimeError):
     """A rollout worker's task raised, or its process died: ``index`` is the worker, ``cause`` the
     error (with Ray a ``RayTaskError``, whose message holds the worker's traceback, a
-    ``RayActorError`` or an ``OutOfMemoryError``), ``error`` one line saying what was raised ("ValueError: ..."),
-    ``traceback`` the whole story as text; the task's episodes are lost."""
+    ``RayActorError`` or an ``OutOfMemoryError``), ``error`` one line saying what was raised
+    ("ValueError: ..."), ``traceback`` the whole story as text; the task's episodes are lost."""
 
     def __init__(self, index: int, cause: BaseException):
         self.index, self.cause = index, cause
@@ -63,7 +63,7 @@ class WorkerPool:
             raise ValueError("WorkerPool: the local backend runs exactly one worker (use backend 'ray' for more)")
         self.backend = backend
         self.count = count
-        self._worker_class = VectorRolloutWorker if "batch" in worker_args else RolloutWorker
+        worker_class = VectorRolloutWorker if "batch" in worker_args else RolloutWorker
         self._actor_ref = None
         self._actor_state = None
         self._pending: dict = {}  # ray: object ref -> worker index (the local backend: _queue)
@@ -73,11 +73,12 @@ class WorkerPool:
                     ray.init(address=address, log_to_driver=False)
                 else:  # a local cluster: this machine's cores, no dashboard
                     ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
-            self._worker_class = ray.remote(num_cpus=1)(self._worker_class)
-            self._workers = [self._worker_class.remote(**worker_args, index=i) for i in range(count)]
+            remote = ray.remote(num_cpus=1)(worker_class)
+            self._new_worker = lambda args, index: remote.remote(**args, index=index)
         else:
-            self._workers = [self._worker_class(**worker_args, index=0)]
+            self._new_worker = lambda args, index: worker_class(**args, index=index)
             self._queue: deque = deque()
+        self._workers = [self._new_worker(worker_args, i) for i in range(count)]
 
     def replace(self, index: int, worker_args: dict) -> None:
         """Worker ``index`` replaced by a fresh one made with ``worker_args`` (as the pool's, with
@@ -85,10 +86,9 @@ class WorkerPool:
         if self.backend == "ray":
             ray.kill(self._workers[index])
             self._pending = {ref: i for ref, i in self._pending.items() if i != index}
-            self._workers[index] = self._worker_class.remote(**worker_args, index=index)
         else:
             self._queue = deque(task for task in self._queue if task[0] != index)
-            self._workers[index] = self._worker_class(**worker_args, index=index)
+        self._workers[index] = self._new_worker(worker_args, index)
 
     def publish(self, actor_state: dict) -> None:
         """Fresh actor weights for the tasks submitted from now on."""
