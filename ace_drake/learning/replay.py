@@ -58,7 +58,9 @@ NUMPY_SAFE_GLOBALS = [np._core.multiarray._reconstruct, np._core.multiarray.scal
 def load_weights_only(path):
     """``torch.load(path, weights_only=True)`` (on the CPU) for a file holding tensors, plain
     containers and replay-table states (NUMPY_SAFE_GLOBALS allowed): a training checkpoint, or a
-    file of demonstrations; anything else in the file raises ``pickle.UnpicklingError``."""
+    file of demonstrations; anything else in the file raises ``pickle.UnpicklingError``. (Not
+    memory-mapped: a loaded optimiser keeps the file's tensors as its state, and a file changed
+    under a mapping kills the process.)"""
 
     with torch.serialization.safe_globals(NUMPY_SAFE_GLOBALS):
         return torch.load(path, map_location="cpu", weights_only=True)
@@ -184,8 +186,9 @@ class RingBuffer:
         return (start + np.arange(self.size)) % self.capacity
 
     def state_dict(self) -> dict:
-        """The stored rows (only the filled ones) and the write position."""
-        data = None if self._data is None else {key: value[: self.size].copy() for key, value in self._data.items()}
+        """The stored rows (only the filled ones, as tensors sharing the table's memory: a
+        checkpoint writes them straight to its file, without a copy) and the write position."""
+        data = None if self._data is None else {key: torch.from_numpy(value[: self.size]) for key, value in self._data.items()}
         return {"capacity": self.capacity, "size": self.size, "next": self._next, "data": data}
 
     def load_state_dict(self, state: dict) -> None:
@@ -194,8 +197,8 @@ class RingBuffer:
         self.size, self._next, self._data = int(state["size"]), int(state["next"]), None
         if state["data"] is not None:
             self._data = {key: np.zeros((self.capacity, *value.shape[1:]), np.float32) for key, value in state["data"].items()}
-            for key, value in state["data"].items():
-                self._data[key][: self.size] = value
+            for key, value in state["data"].items():  # tensors, or NumPy arrays in older checkpoints
+                self._data[key][: self.size] = np.asarray(value)
 
 
 def relabel_episode(transitions: dict[str, np.ndarray], landing_state: np.ndarray, layout: ObservationLayout,

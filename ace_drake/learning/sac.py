@@ -27,8 +27,13 @@ a ball; with ``bc_weight`` 0 (the default) or no demonstration batch, the update
 The row weights w_i are 1, or 1 + ``bc_hit_weight`` where the observation's predicted hit is at
 most ``bc_hit_window`` s away: the segments that decide the stroke are ~15% of the rows and the
 hardest to fit (the cloned actor placed the blade well but swung at a third of the returner's
-speed). Measured once, it did not help: weight 5 returned fewer shots after 40,000 cloning
-updates than uniform rows (docs/experiments/2026-12-06-paper-action-cloning.md).
+speed). Measured once, weighting them up did not help: weight 5 returned fewer shots after 40,000
+cloning updates than uniform rows (docs/experiments/2026-12-06-paper-action-cloning.md).
+``bc_hit_weight`` -1 does the opposite: the term clones the approach only and leaves the stroke
+to the reward.
+
+The cloning term's fields (``CLONING_FIELDS``) only weigh a loss: a learner's state loads into a
+learner whose config differs in them alone, so that a later training stage may change them.
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
 the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
@@ -72,6 +77,8 @@ from ace_drake.learning.networks import (
 )
 
 ACTIONS = ("terminal", "hit_state")
+# SacConfig's fields that only weigh the cloning term (module docstring).
+CLONING_FIELDS = ("bc_weight", "bc_hit_weight", "bc_hit_window")
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())
 
@@ -105,7 +112,7 @@ class SacConfig:
     # The behaviour-cloning term's weight (module docstring; this project's, 0: the paper's SAC).
     bc_weight: float = 0.0
     # The cloning term's extra weight on rows whose predicted hit is at most bc_hit_window s away
-    # (module docstring; 0: every row alike). Terminal action only.
+    # (module docstring; 0: every row alike, -1: those rows not cloned). Terminal action only.
     bc_hit_weight: float = 0.0
     bc_hit_window: float = 0.1
     # What the actor outputs (module docstring): "terminal" (eq. (12), the paper's) or "hit_state".
@@ -118,6 +125,11 @@ class SacConfig:
     spin_history: int = 10
     seed: int = 0
 
+    def without_cloning(self) -> dict:
+        """The config's fields but the cloning term's (``CLONING_FIELDS``): what two stages of a
+        run, one loading the other's learner, must share."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in CLONING_FIELDS}
+
     def __post_init__(self) -> None:
         for name in ("actor_lr", "critic_lr", "tau", "batch_size", "embedding_size"):
             if not getattr(self, name) > 0:
@@ -128,9 +140,9 @@ class SacConfig:
             raise ValueError(f"SacConfig.tau must be in (0, 1], got {self.tau}")
         if not (self.alpha >= 0.0 and self.aux_weight >= 0.0 and self.bc_weight >= 0.0):
             raise ValueError(f"SacConfig.alpha, aux_weight and bc_weight must be >= 0, got {self.alpha}, {self.aux_weight}, {self.bc_weight}")
-        if not (self.bc_hit_weight >= 0.0 and self.bc_hit_window > 0.0):
-            raise ValueError(f"SacConfig: bc_hit_weight must be >= 0 and bc_hit_window > 0 s, got {self.bc_hit_weight}, {self.bc_hit_window}")
-        if self.bc_hit_weight > 0.0 and self.action != "terminal":
+        if not (self.bc_hit_weight >= -1.0 and self.bc_hit_window > 0.0):
+            raise ValueError(f"SacConfig: bc_hit_weight must be >= -1 and bc_hit_window > 0 s, got {self.bc_hit_weight}, {self.bc_hit_window}")
+        if self.bc_hit_weight != 0.0 and self.action != "terminal":
             raise ValueError("SacConfig.bc_hit_weight weights the terminal action's cloning term; the hit_state action has its own loss")
         if self.action not in ACTIONS:
             raise ValueError(f"SacConfig.action must be one of {ACTIONS}, got {self.action!r}")
@@ -307,7 +319,7 @@ class SacLearner:
         if self.config.bc_hit_weight == 0.0:
             return torch.mean(error)
         weights = self.cloning_weights(obs)
-        return torch.sum(weights * error) / torch.sum(weights)
+        return torch.sum(weights * error) / torch.clamp(torch.sum(weights), min=1e-6)  # 0 if no row is cloned
 
     def cloning_weights(self, obs: torch.Tensor) -> torch.Tensor:
         """The cloning term's row weights (B,) for full observations (B, layout.size): 1, or
@@ -383,8 +395,8 @@ class SacLearner:
         config = split_play_options(state["config"])[0]  # play options written among the learner's: not the learner's
         written = {**{k: v for k, v in dataclasses.asdict(SacConfig()).items() if k not in config}, **config}
         saved = {k: tuple(v) if isinstance(v, list) else v for k, v in written.items()}
-        if saved != mine:
-            differing = sorted(k for k in mine if saved.get(k) != mine[k])
+        differing = sorted(k for k in mine if saved.get(k) != mine[k] and k not in CLONING_FIELDS)
+        if differing:
             raise ValueError(f"SacLearner.load_state_dict: the checkpoint's config differs in {differing}")
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
