@@ -28,8 +28,8 @@ from ace_drake.learning.networks import DeterministicPolicy
 from ace_drake.learning.sac import load_policy
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.physics.params import load_ball_params
-from ace_drake.robot.model import load_scenario
-from ace_drake.robot.params import scenario_mismatch, scenario_record
+from ace_drake.robot.model import scenario_file_record
+from ace_drake.robot.params import scenario_mismatch
 from ace_drake.systems.policy_controller import as_policy
 
 POLICIES_DIR = MODELS_DIR / "policies"
@@ -143,7 +143,7 @@ def _warn_if_trained_for_another_robot(name: str, path, params: RallyParams) -> 
     and actions are that robot's); sidecars written before the record existed say nothing."""
     sidecar = artefacts.sidecar_path(path)
     recorded = json.loads(sidecar.read_text()).get("robot") if sidecar.is_file() else None
-    mismatch = None if recorded is None else scenario_mismatch(recorded, scenario_record(load_scenario(MODELS_DIR / params.scenario)))
+    mismatch = None if recorded is None else scenario_mismatch(recorded, scenario_file_record(params.scenario))
     if mismatch:
         warnings.warn(f"policy {name} was trained for another robot ({mismatch}); it plays on this one as it is", stacklevel=3)
 

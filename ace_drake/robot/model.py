@@ -26,7 +26,7 @@ from pydrake.solvers import Solve
 
 from ace_drake.config import MODELS_DIR, ConfigError, load_config
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.robot.params import JOINT_NAMES, Pose, RobotScenario
+from ace_drake.robot.params import JOINT_NAMES, Pose, RobotScenario, scenario_record
 
 DEFAULT_SCENARIO = MODELS_DIR / "scenario.yaml"
 ROBOT_MODEL_NAME = "ace_robot"
@@ -37,6 +37,12 @@ BALL_CUP_FRAME = "ball_cup"
 def load_scenario(path: str | Path | None = None) -> RobotScenario:
     """The robot scenario from the ``robot`` section of a scenario YAML (default models/scenario.yaml)."""
     return load_config(RobotScenario, path or DEFAULT_SCENARIO, section="robot")
+
+
+def scenario_file_record(name: str) -> dict:
+    """The robot record (``params.scenario_record``) of the scenario file ``name`` in models/:
+    what a checkpoint or a policy's sidecar records of the robot it was trained for."""
+    return scenario_record(load_scenario(MODELS_DIR / name))
 
 
 def pose_to_transform(pose: Pose) -> RigidTransform:

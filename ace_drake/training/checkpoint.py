@@ -24,11 +24,11 @@ from pathlib import Path
 import torch
 import yaml
 
-from ace_drake.config import MODELS_DIR, ConfigError, from_dict, to_dict
+from ace_drake.config import ConfigError, from_dict, to_dict
 from ace_drake.learning.replay import load_weights_only
 from ace_drake.learning.sac import split_play_options
-from ace_drake.robot.model import load_scenario
-from ace_drake.robot.params import scenario_mismatch, scenario_record
+from ace_drake.robot.model import scenario_file_record
+from ace_drake.robot.params import scenario_mismatch
 
 # The phases of a run, in order (``loop.Trainer.run``); a checkpoint records the current one.
 PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
@@ -201,7 +201,7 @@ class Checkpointing:
 
     def robot_record(self) -> dict:
         """The run's robot (``robot.params.scenario_record`` of its rally scenario)."""
-        return scenario_record(load_scenario(MODELS_DIR / self.config.env.rally.scenario))
+        return scenario_file_record(self.config.env.rally.scenario)
 
     def _check_robot(self, path: Path, payload: dict) -> None:
         """Raises ConfigError if the checkpoint at ``path`` was written for another robot than the
