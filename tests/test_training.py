@@ -456,7 +456,7 @@ def test_a_checkpoint_written_for_another_robot_is_refused(tmp_path):
 def test_a_resized_runs_schedules_go_on_without_a_jump(tmp_path):
     """A change of length in the learn phase: the schedules' progress is continuous at the change
     and reaches 1 at the new end; each change is recorded. Earlier stages' lengths may change too."""
-    from ace_drake.training.checkpoint import Progress, _lengths_free, schedule_progress
+    from ace_drake.training.checkpoint import Progress, _without_changeable, schedule_progress
 
     trainer = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
     trainer.state = state = Progress(phase="learn", env_steps=300, learn_start=(100, 0))
@@ -467,7 +467,8 @@ def test_a_resized_runs_schedules_go_on_without_a_jump(tmp_path):
     assert schedule_progress(state, 900) == pytest.approx(0.75)
     state.env_steps = 900
     assert schedule_progress(state, 900) == 1.0
-    assert _lengths_free({"env_steps": 1, "seed": 2, "after": {"env_steps": 3, "seed": 4, "after": {"env_steps": 5}}}) == \
+    assert _without_changeable({"env_steps": 1, "seed": 2, "max_worker_failures": 3,
+                                "after": {"env_steps": 3, "seed": 4, "after": {"env_steps": 5}}}) == \
         {"seed": 2, "after": {"seed": 4, "after": {}}}
 
 
@@ -557,8 +558,8 @@ def test_mirror_augmentation_doubles_the_stored_episodes_and_demonstrations(tmp_
 
 
 def test_a_run_resumes_shortened_or_extended(tmp_path):
-    """The run's length is the one field a resumed run may change: a finished run extended learns
-    on to the new length; one shortened below its steps stays finished, unchanged."""
+    """The run's length may change on resume: a finished run extended learns on to the new length;
+    one shortened below its steps stays finished, unchanged. So may its limit of rollout failures."""
     config = _config()
     first = Trainer(config, tmp_path / "run", progress=lambda line: None).run()
     lines = []
@@ -567,7 +568,8 @@ def test_a_run_resumes_shortened_or_extended(tmp_path):
     extended = longer.run()
     assert extended.phase == "done" and extended.env_steps >= 2 * first.env_steps > first.env_steps
     updates = longer.learner.updates
-    shorter = Trainer(dataclasses.replace(config, env_steps=first.env_steps // 2), tmp_path / "run", progress=lambda line: None)
+    shorter = Trainer(dataclasses.replace(config, env_steps=first.env_steps // 2, max_worker_failures=50), tmp_path / "run",
+                      progress=lambda line: None)
     assert shorter.state.phase == "done" and shorter.run().env_steps == extended.env_steps and shorter.learner.updates == updates
 
 

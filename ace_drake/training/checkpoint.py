@@ -35,8 +35,9 @@ PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the one before, kept by every write (module docstring)
 CHECKPOINT_KEYS = ("config", "learner", "replay", "demonstrations", "progress", "recent")
-# Config fields a resumed run may change: its length (to stop a stage early or extend a run).
-RESIZABLE = ("env_steps",)
+# Config fields a resumed run may change: its length (to stop a stage early or extend a run) and
+# how many rollout failures it survives (to let a run that reached the limit go on).
+CHANGEABLE_ON_RESUME = ("env_steps", "max_worker_failures")
 
 
 class CheckpointError(ConfigError):
@@ -101,12 +102,12 @@ class Progress:
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
 
 
-def _lengths_free(config: dict) -> dict:
-    """A config dict without the fields a resumed run may change (``RESIZABLE``), its own and its
-    earlier stages' (``after``: a stage that has finished may be given another length too)."""
-    out = {key: value for key, value in config.items() if key not in RESIZABLE}
+def _without_changeable(config: dict) -> dict:
+    """A config dict without the fields a resumed run may change (``CHANGEABLE_ON_RESUME``), its
+    own and its earlier stages' (``after``: a stage that has finished may be given another length too)."""
+    out = {key: value for key, value in config.items() if key not in CHANGEABLE_ON_RESUME}
     if isinstance(out.get("after"), dict):
-        out["after"] = _lengths_free(out["after"])
+        out["after"] = _without_changeable(out["after"])
     return out
 
 
@@ -184,7 +185,7 @@ class Checkpointing:
         # written compares at its default (a new field's default keeps the old behaviour).
         saved = to_dict(from_dict(type(self.config), play_options_moved(payload["config"])))
         current = to_dict(self.config)
-        differing = sorted(k for k, v in _lengths_free(current).items() if _lengths_free(saved).get(k) != v)
+        differing = sorted(k for k, v in _without_changeable(current).items() if _without_changeable(saved).get(k) != v)
         if differing:
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
         self._check_robot(path, payload)
@@ -214,7 +215,7 @@ class Checkpointing:
                               "or the robot it was trained on")
 
     def _resize(self, old: int, new: int) -> None:
-        """The run's length changed from ``old`` to ``new`` steps (``RESIZABLE``): a run shortened
+        """The run's length changed from ``old`` to ``new`` steps (``CHANGEABLE_ON_RESUME``): a run shortened
         below its steps finishes; a finished one extended learns on; in the learn phase the
         schedules go on from the progress they had (``schedule_progress``), without a jump."""
         s = self.state
