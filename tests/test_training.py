@@ -537,6 +537,8 @@ def test_a_failing_rollout_task_costs_its_episodes_not_the_run(tmp_path, monkeyp
     log = (tmp_path / "run" / "worker_failures.log").read_text()
     assert log.count("Traceback (most recent call last)") == 2 and "in failing_tasks" in log
     assert read_checkpoint(tmp_path / "run" / "checkpoint.pt")["progress"]["worker_failures"] == state.worker_failures
+    sidecar = export(trainer, tmp_path / "policies", "final")  # which records them, as the episodes depend on them
+    assert [(f["env_steps"], f["worker"], f["error"]) for f in sidecar["worker_failures"]] == [tuple(f) for f in state.worker_failures]
 
     calls.clear()
     with pytest.raises(WorkerFailed, match="rollout worker 0 failed: ValueError: .*NaN or inf"):
