@@ -219,6 +219,29 @@ def test_a_policy_artefact_stores_its_play_options_beside_the_learners_config(tm
     assert policy.meet_ball and not policy.hit_memory
 
 
+def test_the_absolute_cloning_loss_sums_the_absolute_errors():
+    """bc_loss "absolute": the batch mean of sum_k |tanh(mu_k) - a_k| (the labels' median is its
+    minimiser), with the rows' weights as the squared loss has them."""
+    learner = SacLearner(SacConfig(**SMALL, bc_weight=1.0, bc_loss="absolute", seed=3))
+    rng = np.random.default_rng(2)
+    obs = rng.normal(size=(5, learner.observation_size))
+    demos = {"obs": obs, "demo_action": rng.uniform(-1, 1, (5, 16))}
+    with torch.no_grad():
+        mean, _, _ = learner.actor(learner.actor_features(torch.as_tensor(obs, dtype=torch.float32)))
+        error = np.abs(np.tanh(mean.numpy()) - demos["demo_action"]).sum(-1)
+        assert learner.behaviour_cloning_loss(demos).item() == pytest.approx(error.mean(), rel=1e-5)
+    # a label moved 1 further from the actor's output in one component: the loss grows by 1/5, the
+    # squared loss would grow by (2 |error| + 1)/5
+    moved = {**demos, "demo_action": demos["demo_action"].copy()}
+    moved["demo_action"][0, 0] += np.sign(demos["demo_action"][0, 0] - np.tanh(mean[0, 0].item()))
+    with torch.no_grad():
+        assert learner.behaviour_cloning_loss(moved).item() == pytest.approx(error.mean() + 0.2, rel=1e-5)
+    with pytest.raises(ValueError, match="bc_loss"):
+        SacConfig(bc_loss="huber")
+    with pytest.raises(ValueError, match="hit_state"):
+        SacConfig(bc_loss="absolute", action="hit_state", actor_observation_parts=("robot_state", "hit_prediction"))
+
+
 def test_the_cloning_term_weights_the_rows_near_the_predicted_hit_up_or_leaves_them_out():
     learner = SacLearner(SacConfig(**SMALL, bc_weight=1.0, bc_hit_weight=4.0, bc_hit_window=0.1, seed=3))
     rng = np.random.default_rng(1)
