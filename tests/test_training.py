@@ -210,21 +210,25 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
 
 
-def test_the_paper_action_run_is_three_stages_in_one_config():
+def test_the_paper_action_run_is_four_stages_in_one_config():
     """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger), stage 2 fades the cloning
-    term from 10 towards 0 and ends before the actor collapsed, stage 3 holds it at 2."""
+    term from 10 towards 0 and ends before the actor collapsed, stage 3 holds it at 2, stage 4
+    holds it at 2 as the absolute error."""
     _needs_match_data()
-    third = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    fourth = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    third = fourth.after
     second = third.after
     first = second.after
     assert first.after is None and first.demonstrations > 0 and first.learn_mode == "dagger"
-    assert [stage.seed for stage in (first, second, third)] == [30, 31, 32]
-    assert first.env_steps < second.env_steps < third.env_steps
+    assert [stage.seed for stage in (first, second, third, fourth)] == [30, 31, 32, 33]
+    assert first.env_steps < second.env_steps < third.env_steps < fourth.env_steps
     assert first.sac == second.sac == third.sac and first.sac.bc_weight == 10.0  # each loads the one before's learner
+    assert fourth.sac == dataclasses.replace(third.sac, bc_loss="absolute") and third.sac.bc_loss == "squared"
     assert (first.bc_weight_start, first.bc_weight_final, first.bc_fade_steps) == (None, 10.0, 0)
     assert (second.bc_weight_start, second.bc_weight_final, second.bc_fade_steps) == (None, 0.0, 2_000_000)
-    assert (third.bc_weight_start, third.bc_weight_final) == (2.0, 2.0)
-    assert second.learn_mode == third.learn_mode == "policy" and third.mirror and second.mirror and first.mirror
+    assert (third.bc_weight_start, third.bc_weight_final) == (fourth.bc_weight_start, fourth.bc_weight_final) == (2.0, 2.0)
+    assert all(stage.learn_mode == "policy" for stage in (second, third, fourth))
+    assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 for stage in (first, second, third, fourth))
 
 
 def test_rally_sac_trains_in_its_three_stages_from_one_config():
@@ -557,6 +561,36 @@ def test_mirror_augmentation_doubles_the_stored_episodes_and_demonstrations(tmp_
     assert mirrored.state.env_steps == plain.state.env_steps
     assert len(mirrored.demonstrations) == 2 * len(plain.demonstrations) > 0
     assert len(mirrored.replay) == 2 * len(plain.replay)
+
+
+def test_a_failing_evaluation_is_skipped_not_the_run(tmp_path, monkeypatch):
+    """An evaluation that raises: logged with its traceback, counted, skipped; the run goes on and
+    evaluates again; beyond max_worker_failures the run stops with it."""
+    from ace_drake.training import loop
+
+    evaluate, calls = loop.evaluate, []
+
+    def failing_first(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError("HitPredictor.predict: the estimate (or the predicted ball) contains NaN or inf")
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "evaluate", failing_first)
+    lines = []
+    config = _config(env_steps=50, pretrain_updates=0, evaluate_every=20)
+    trainer = Trainer(config, tmp_path / "run", progress=lines.append)
+    state = trainer.run()
+    assert state.phase == "done" and len(calls) > 1 and len(state.evaluations) == len(calls) - 1
+    assert state.evaluation_failures == [(state.evaluation_failures[0][0], "ValueError: HitPredictor.predict: the estimate "
+                                          "(or the predicted ball) contains NaN or inf")]
+    assert any("evaluation at" in line and "failed" in line for line in lines)
+    log = (tmp_path / "run" / "evaluation_failures.log").read_text()
+    assert log.count("Traceback (most recent call last)") == 1 and "in failing_first" in log
+    assert export(trainer, tmp_path / "policies", "final")["evaluation_failures"][0]["error"].startswith("ValueError")
+    calls.clear()
+    with pytest.raises(ValueError, match="NaN or inf"):
+        Trainer(dataclasses.replace(config, max_worker_failures=0), tmp_path / "strict", progress=lambda line: None).run()
 
 
 def test_a_run_resumes_shortened_or_extended(tmp_path):

@@ -97,6 +97,8 @@ class Progress:
     initialized_at: int | None = None  # env_steps of the checkpoint the run started from (initialize_from)
     # (env_steps, worker index, error's last line) per rollout task that raised (loop.Trainer._wait)
     worker_failures: list = dataclasses.field(default_factory=list)
+    # (env_steps, error's last line) per periodic evaluation that raised (loop.Trainer._evaluate)
+    evaluation_failures: list = dataclasses.field(default_factory=list)
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
@@ -243,7 +245,7 @@ class Checkpointing:
         s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
         s.initialized_at = s.env_steps
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
-        s.worker_failures = []  # counted per run (max_worker_failures); the earlier run's stay in its log
+        s.worker_failures, s.evaluation_failures = [], []  # counted per run (max_worker_failures); the earlier run's stay in its logs
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")

@@ -27,7 +27,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (its sidecar, by
     ``artefacts.write_sidecar``: command, date, seed, steps, updates, wall time in s, the periodic
     evaluations and ``evaluation``, e.g. the human-shot figures of ``final_evaluation``, the
-    rollout tasks that failed, the config, the robot it was trained for) and ``<name>_curve.png`` (learning curve) into
+    rollout tasks and evaluations that failed, the config, the robot it was trained for) and ``<name>_curve.png`` (learning curve) into
     ``policies_dir``; ``which``: "best" (the best evaluated actor) or "final". Returns the sidecar."""
 
     s, c = trainer.state, trainer.config
@@ -49,6 +49,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         evaluations=[{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
         # the stage's rollout tasks that failed (their workers replaced, with other seeds: loop.Trainer._wait)
         worker_failures=[{"env_steps": f[0], "worker": f[1], "error": f[2]} for f in s.worker_failures],
+        evaluation_failures=[{"env_steps": f[0], "error": f[1]} for f in s.evaluation_failures],  # skipped evaluations
         final_evaluation=evaluation,
         config=to_dict(c),
         robot=trainer.robot_record(),  # the robot it was trained for (robot.params.scenario_record)

@@ -26,8 +26,10 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
 A rollout task that raises (an environment's simulation failing) or whose worker dies costs its
 episodes, not the run: the worker is replaced by a fresh one with another seed, the failure is
 logged with the worker's traceback (``run_dir/worker_failures.log``) and counted (per stage);
-more than ``max_worker_failures`` stop the run (its last checkpoint stays). The periodic
-evaluations run in the learner's process and are not covered: a failure there stops the run.
+more than ``max_worker_failures`` stop the run (its last checkpoint stays). A periodic
+evaluation that fails (in the learner's process) is logged the same way
+(``run_dir/evaluation_failures.log``), counted and skipped; more than ``max_worker_failures`` of
+those stop the run too.
 
 Every ``checkpoint_every`` steps the whole learner state (networks, optimisers, generator, replay
 tables, demonstrations, counters, history) is written atomically to ``checkpoint.pt`` (a
@@ -51,6 +53,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import traceback
 from collections import deque
 from pathlib import Path
 
@@ -480,8 +483,25 @@ class Trainer(Checkpointing):
                  f"{s.wall_time + self._elapsed():.0f} s; {text}")
 
     def _evaluate(self) -> None:
-        """Evaluates the deterministic actor in the rally diagram (module docstring)."""
+        """Evaluates the deterministic actor in the rally diagram (module docstring), surviving a
+        failed evaluation: it is logged with its traceback (``run_dir/evaluation_failures.log``)
+        and counted, and the run goes on to the next one. More than ``max_worker_failures`` such
+        failures in a stage raise the last one."""
 
+        try:
+            self._evaluation()
+        except Exception as error:  # an episode's simulation or estimate failing, as a rollout's may
+            s, c = self.state, self.config
+            s.evaluation_failures.append((s.env_steps, traceback.format_exception_only(error)[-1].strip()))
+            with open(self.run_dir / "evaluation_failures.log", "a", encoding="utf-8") as log:
+                log.write(f"--- at {s.env_steps} steps:\n{traceback.format_exc()}\n")
+            if len(s.evaluation_failures) > c.max_worker_failures:
+                raise
+            self.log(f"train: the evaluation at {s.env_steps} steps failed ({s.evaluation_failures[-1][1]}); skipped "
+                     f"(failure {len(s.evaluation_failures)} of at most {c.max_worker_failures}; traceback in "
+                     f"{self.run_dir / 'evaluation_failures.log'})")
+
+    def _evaluation(self) -> None:
         c, s = self.config, self.state
         if s.env_steps >= s.next_evaluation:  # the next periodic one is due evaluate_every from here
             s.next_evaluation += c.evaluate_every * (1 + (s.env_steps - s.next_evaluation) // c.evaluate_every)
