@@ -23,6 +23,7 @@ from ace_drake.evaluation import controllers
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
+from ace_drake.match_data import MatchDataError
 from ace_drake.play.shots import human_shots
 from ace_drake.training.checkpoint import CheckpointError, play_options_moved, read_checkpoint
 from ace_drake.training.env import RallyEnvParams, training_rally_params
@@ -252,8 +253,11 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     base = to_dict(_config(env_steps=30))
     del base["after"]
     _write_yaml(tmp_path / "base.yaml", base)
-    path = _write_yaml(tmp_path / "run.yaml", {"base": "base.yaml", "seed": 4, "env_steps": 60, "after": {"seed": 3, "env_steps": 30}})
+    # the later stage changes the cloning term's error, which a stage may (its learner still loads)
+    path = _write_yaml(tmp_path / "run.yaml", {"base": "base.yaml", "seed": 4, "env_steps": 60, "sac": {"bc_loss": "absolute"},
+                                               "after": {"seed": 3, "env_steps": 30, "sac": {"bc_loss": "squared"}}})
     config = load_train_config(path)
+    assert config.sac.bc_loss == "absolute"
     assert (config.seed, config.env_steps, config.after.seed, config.after.env_steps) == (4, 60, 3, 30)
     assert config.after == _config(env_steps=30) and config.after.after is None  # the changes over this stage's config
     lines = []
@@ -263,6 +267,9 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     assert first.state.phase == "done" and first.state.env_steps >= 30
     assert second.state.phase == "learn" and second.state.initialized_at == first.state.env_steps
     assert second.learner.updates == first.learner.updates and second.state.evaluations == first.state.evaluations
+    for key, value in first.learner.actor.state_dict().items():  # the earlier stage's actor, under the later config
+        torch.testing.assert_close(second.learner.actor.state_dict()[key], value, rtol=0, atol=0)
+    assert second.learner.config.bc_loss == "absolute"
     state = second.run()
     assert state.phase == "done" and state.env_steps >= 60 and second.learner.updates > first.learner.updates
     # Again in the same run directory without the later stage's checkpoint: the finished earlier
@@ -584,13 +591,23 @@ def test_a_failing_evaluation_is_skipped_not_the_run(tmp_path, monkeypatch):
     assert state.phase == "done" and len(calls) > 1 and len(state.evaluations) == len(calls) - 1
     assert state.evaluation_failures == [(state.evaluation_failures[0][0], "ValueError: HitPredictor.predict: the estimate "
                                           "(or the predicted ball) contains NaN or inf")]
-    assert any("evaluation at" in line and "failed" in line for line in lines)
+    assert any("the evaluation failed at" in line and "skipped (failure 1 of at most 10" in line for line in lines)
+    # not retried at once (the schedule goes on from it); the best actor is chosen among the others
+    assert state.evaluation_failures[0][0] not in [evaluation[0] for evaluation in state.evaluations]
+    assert state.evaluations[state.best_evaluation][2]["rate"] == state.best_rate
     log = (tmp_path / "run" / "evaluation_failures.log").read_text()
     assert log.count("Traceback (most recent call last)") == 1 and "in failing_first" in log
     assert export(trainer, tmp_path / "policies", "final")["evaluation_failures"][0]["error"].startswith("ValueError")
     calls.clear()
     with pytest.raises(ValueError, match="NaN or inf"):
         Trainer(dataclasses.replace(config, max_worker_failures=0), tmp_path / "strict", progress=lambda line: None).run()
+
+    def bad_input(*args, **kwargs):  # e.g. a held-out player missing from the match data: every evaluation would fail
+        raise MatchDataError("no shot_p2 shots of players ['Elite Q']")
+
+    monkeypatch.setattr(loop, "evaluate", bad_input)
+    with pytest.raises(MatchDataError, match="Elite Q"):
+        Trainer(config, tmp_path / "bad_input", progress=lambda line: None).run()
 
 
 def test_a_run_resumes_shortened_or_extended(tmp_path):
@@ -936,6 +953,16 @@ def test_a_checkpoint_loads_weights_only_with_its_tables_and_refuses_other_objec
     np.testing.assert_array_equal(payload["demonstrations"]["buffer"]["data"]["obs"], 1.0)
     assert payload["progress"]["evaluations"][0][2]["ci95"] == [0.25, 0.75]
     assert Trainer(_config(), tmp_path / "run", progress=lambda line: None).state.evaluations == dut.state.evaluations
+    # The tables are written without a copy: their state shares the tables' memory.
+    assert np.shares_memory(dut.demonstrations.buffer.state_dict()["data"]["obs"].numpy(), dut.demonstrations.buffer._data["obs"])
+    # A checkpoint written before that, with NumPy copies of the tables, still resumes.
+    older = copy.deepcopy(payload)
+    for table in [*older["replay"]["tables"].values(), older["demonstrations"]["buffer"]]:
+        table["data"] = None if table["data"] is None else {key: value.numpy().copy() for key, value in table["data"].items()}
+    torch.save(older, path)
+    resumed = Trainer(_config(), tmp_path / "run", progress=lambda line: None)
+    np.testing.assert_array_equal(resumed.demonstrations.sample(4)["obs"], 1.0)
+    assert len(resumed.demonstrations) == 3 and len(resumed.replay) == len(dut.replay)
     payload["recent"] = [_NotWeights()]  # a Python object that a weights-only load must not build
     torch.save(payload, path)
     with pytest.raises(CheckpointError, match=rf"{path}: not a readable checkpoint .*_NotWeights"):
@@ -943,8 +970,6 @@ def test_a_checkpoint_loads_weights_only_with_its_tables_and_refuses_other_objec
 
 
 def test_train_refuses_to_overwrite_a_policy_of_the_same_name_without_overwrite(tmp_path, capsys):
-
-
     config = tmp_path / "train.yaml"
     config.write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(_config(name="shipped", env_steps=40))))))
     policies = tmp_path / "policies"

@@ -187,7 +187,8 @@ class RingBuffer:
 
     def state_dict(self) -> dict:
         """The stored rows (only the filled ones, as tensors sharing the table's memory: a
-        checkpoint writes them straight to its file, without a copy) and the write position."""
+        checkpoint writes them straight to its file, without a copy; they change with the next
+        ``add``, so write or copy them first) and the write position."""
         data = None if self._data is None else {key: torch.from_numpy(value[: self.size]) for key, value in self._data.items()}
         return {"capacity": self.capacity, "size": self.size, "next": self._next, "data": data}
 

@@ -22,13 +22,6 @@ second batch of demonstrated transitions (observations with the model-based retu
 
     L_actor += bc_weight * sum_i w_i |tanh(mu(o_i)) - a_i|^2 / sum_i w_i     (mu: the Gaussian's mean)
 
-or, with ``bc_loss`` "absolute", the same with the absolute error |.|_1 summed over the components:
-its minimiser is the labels' conditional median rather than their mean. Near the hit the
-returner's labels are close to bang-bang (docs/experiments/2026-12-06-paper-action-cloning.md);
-their mean is a slow swing, their median a decisive one. Measured offline, on the same labelled
-rows and updates, a fresh actor cloned with it returned 76.3% of the held-out players' shots
-against 63.2% squared (docs/experiments/2026-12-06-cloning-loss.md).
-
 so that the sparse terminal reward is not the only thing telling 16 action dimensions how to hit
 a ball; with ``bc_weight`` 0 (the default) or no demonstration batch, the update is the paper's.
 The row weights w_i are 1, or 1 + ``bc_hit_weight`` where the observation's predicted hit is at
@@ -37,7 +30,14 @@ hardest to fit (the cloned actor placed the blade well but swung at a third of t
 speed). Measured once, weighting them up did not help: weight 5 returned fewer shots after 40,000
 cloning updates than uniform rows (docs/experiments/2026-12-06-paper-action-cloning.md).
 ``bc_hit_weight`` -1 does the opposite: the term clones the approach only and leaves the stroke
-to the reward.
+to the reward. Measured once, the actor then collapsed (docs/experiments/2026-12-06-cloning-loss.md).
+
+With ``bc_loss`` "absolute" the term is the same with the absolute error |.|_1 summed over the
+components: its minimiser is the labels' conditional median rather than their mean. Near the hit
+the returner's labels are close to bang-bang (docs/experiments/2026-12-06-paper-action-cloning.md);
+their mean is a slow swing, their median a decisive one. Measured offline, on the same labelled
+rows and updates, a fresh actor cloned with it returned 72.6-76.3% of the held-out players' shots
+against 56.3-63.2% squared (two seeds; docs/experiments/2026-12-06-cloning-loss.md).
 
 The cloning term's fields (``CLONING_FIELDS``) only weigh a loss: a learner's state loads into a
 learner whose config differs in them alone, so that a later training stage may change them.

@@ -230,7 +230,7 @@ class Checkpointing:
 
     def _initialize_from(self, path: Path) -> None:
         """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
-        must be the same), replay tables, demonstrations and counters, in ``initialize_phase``:
+        must be the same but for the cloning term's fields, ``sac.CLONING_FIELDS``), replay tables, demonstrations and counters, in ``initialize_phase``:
         the learn phase, or the demonstrations phase, whose collections and cloning updates then
         run on to this config's totals. Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and

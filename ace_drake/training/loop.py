@@ -61,7 +61,7 @@ import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from ace_drake.config import MODELS_DIR, ConfigError, from_dict, load_yaml
+from ace_drake.config import MODELS_DIR, ConfigError, InputError, from_dict, load_yaml
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
@@ -143,7 +143,8 @@ class TrainConfig:
     after: TrainConfig | None = None
     mirror: bool = False  # mirror augmentation of the replay and the demonstrations (learning/mirror.py)
     torch_threads: int = 1
-    # Rollout tasks that may raise before the run stops (module docstring); each loses its episodes.
+    # Rollout tasks that may raise before the run stops (module docstring), each losing its
+    # episodes; the same number of periodic evaluations may fail, each skipped.
     max_worker_failures: int = 10
     log_every: float = 30.0  # s between progress lines
     sac: SacConfig = dataclasses.field(default_factory=SacConfig)
@@ -320,17 +321,24 @@ class Trainer(Checkpointing):
         try:
             return pool.wait(timeout=timeout)
         except WorkerFailed as failure:
-            s, c = self.state, self.config
+            s = self.state
             s.worker_failures.append((s.env_steps, failure.index, failure.error))
-            with open(self.run_dir / "worker_failures.log", "a", encoding="utf-8") as log:
-                log.write(f"--- at {s.env_steps} steps, worker {failure.index}:\n{failure.traceback}\n")
-            if len(s.worker_failures) > c.max_worker_failures:
-                raise
-            self.log(f"train: rollout worker {failure.index} failed at {s.env_steps} steps ({failure.error}); "
-                     f"its task's episodes are lost and it is replaced (failure {len(s.worker_failures)} "
-                     f"of at most {c.max_worker_failures}; traceback in {self.run_dir / 'worker_failures.log'})")
+            self._record_failure(s.worker_failures, "worker_failures.log", f"worker {failure.index}", failure.traceback,
+                                 f"rollout worker {failure.index} failed", "its task's episodes are lost and it is replaced")
             pool.replace(failure.index, self._worker_args())
             return failure.index, []
+
+    def _record_failure(self, failures: list, log_name: str, where: str, trace: str, what: str, consequence: str) -> None:
+        """Writes a failure (just appended to ``failures``, a list of ``Progress``) with its
+        traceback to ``run_dir / log_name`` and logs it; re-raises the exception being handled when
+        the list is longer than ``max_worker_failures``."""
+        s, c = self.state, self.config
+        with open(self.run_dir / log_name, "a", encoding="utf-8") as log:
+            log.write(f"--- at {s.env_steps} steps, {where}:\n{trace}\n")
+        if len(failures) > c.max_worker_failures:
+            raise
+        self.log(f"train: {what} at {s.env_steps} steps ({failures[-1][-1]}); {consequence} (failure {len(failures)} "
+                 f"of at most {c.max_worker_failures}; traceback in {self.run_dir / log_name})")
 
     def _demonstration_phase(self) -> None:
         c = self.config
@@ -485,23 +493,22 @@ class Trainer(Checkpointing):
     def _evaluate(self) -> None:
         """Evaluates the deterministic actor in the rally diagram (module docstring), surviving a
         failed evaluation: it is logged with its traceback (``run_dir/evaluation_failures.log``)
-        and counted, and the run goes on to the next one. More than ``max_worker_failures`` such
-        failures in a stage raise the last one."""
+        and counted, and the run goes on to the next one (a held-out part that fails takes the
+        whole evaluation with it). More than ``max_worker_failures`` such failures in a stage
+        raise the last one. Bad input (``InputError``: the config, the match data) is raised at
+        once: it would fail every evaluation."""
 
         try:
-            self._evaluation()
+            self._evaluate_once()
+        except InputError:
+            raise
         except Exception as error:  # an episode's simulation or estimate failing, as a rollout's may
-            s, c = self.state, self.config
+            s = self.state
             s.evaluation_failures.append((s.env_steps, traceback.format_exception_only(error)[-1].strip()))
-            with open(self.run_dir / "evaluation_failures.log", "a", encoding="utf-8") as log:
-                log.write(f"--- at {s.env_steps} steps:\n{traceback.format_exc()}\n")
-            if len(s.evaluation_failures) > c.max_worker_failures:
-                raise
-            self.log(f"train: the evaluation at {s.env_steps} steps failed ({s.evaluation_failures[-1][1]}); skipped "
-                     f"(failure {len(s.evaluation_failures)} of at most {c.max_worker_failures}; traceback in "
-                     f"{self.run_dir / 'evaluation_failures.log'})")
+            self._record_failure(s.evaluation_failures, "evaluation_failures.log", "evaluation", traceback.format_exc(),
+                                 "the evaluation failed", "skipped")
 
-    def _evaluation(self) -> None:
+    def _evaluate_once(self) -> None:
         c, s = self.config, self.state
         if s.env_steps >= s.next_evaluation:  # the next periodic one is due evaluate_every from here
             s.next_evaluation += c.evaluate_every * (1 + (s.env_steps - s.next_evaluation) // c.evaluate_every)
