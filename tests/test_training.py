@@ -211,25 +211,28 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
 
 
-def test_the_paper_action_run_is_four_stages_in_one_config():
+def test_the_paper_action_run_is_five_stages_in_one_config():
     """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger), stage 2 fades the cloning
     term from 10 towards 0 and ends before the actor collapsed, stage 3 holds it at 2, stage 4
-    holds it at 2 as the absolute error."""
+    holds it at 2 as the absolute error, stage 5 lets the actor's learning rate fall."""
     _needs_match_data()
-    fourth = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    fifth = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    fourth = fifth.after
     third = fourth.after
     second = third.after
     first = second.after
+    stages = (first, second, third, fourth, fifth)
     assert first.after is None and first.demonstrations > 0 and first.learn_mode == "dagger"
-    assert [stage.seed for stage in (first, second, third, fourth)] == [30, 31, 32, 33]
-    assert first.env_steps < second.env_steps < third.env_steps < fourth.env_steps
+    assert [stage.seed for stage in stages] == [30, 31, 32, 33, 34]
+    assert first.env_steps < second.env_steps < third.env_steps < fourth.env_steps < fifth.env_steps
     assert first.sac == second.sac == third.sac and first.sac.bc_weight == 10.0  # each loads the one before's learner
-    assert fourth.sac == dataclasses.replace(third.sac, bc_loss="absolute") and third.sac.bc_loss == "squared"
+    assert fifth.sac == fourth.sac == dataclasses.replace(third.sac, bc_loss="absolute") and third.sac.bc_loss == "squared"
     assert (first.bc_weight_start, first.bc_weight_final, first.bc_fade_steps) == (None, 10.0, 0)
     assert (second.bc_weight_start, second.bc_weight_final, second.bc_fade_steps) == (None, 0.0, 2_000_000)
-    assert (third.bc_weight_start, third.bc_weight_final) == (fourth.bc_weight_start, fourth.bc_weight_final) == (2.0, 2.0)
-    assert all(stage.learn_mode == "policy" for stage in (second, third, fourth))
-    assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 for stage in (first, second, third, fourth))
+    assert all((stage.bc_weight_start, stage.bc_weight_final) == (2.0, 2.0) for stage in (third, fourth, fifth))
+    assert [stage.actor_lr_final for stage in stages] == [None, None, None, None, 3e-5] and fifth.sac.actor_lr == 3e-4
+    assert all(stage.learn_mode == "policy" for stage in stages[1:])
+    assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 for stage in stages)
 
 
 def test_rally_sac_trains_in_its_three_stages_from_one_config():
