@@ -288,7 +288,7 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     with pytest.raises(ConfigError, match="same sac"):
         _config(after=_config(sac=dataclasses.replace(SMALL, bc_weight=1.0, actor_lr=1e-3)))
     # but the cloning term's fields, which only weigh a loss, may change from stage to stage
-    _config(after=_config(sac=dataclasses.replace(SMALL, bc_weight=2.0, bc_hit_weight=-1.0)))
+    _config(after=_config(sac=dataclasses.replace(SMALL, bc_weight=2.0, bc_hit_weight=3.0)))
     _write_yaml(path, {"base": "base.yaml", "after": [1]})
     with pytest.raises(ConfigError, match="after: expected a mapping"):
         load_train_config(path)

@@ -29,8 +29,8 @@ most ``bc_hit_window`` s away: the segments that decide the stroke are ~15% of t
 hardest to fit (the cloned actor placed the blade well but swung at a third of the returner's
 speed). Measured once, weighting them up did not help: weight 5 returned fewer shots after 40,000
 cloning updates than uniform rows (docs/experiments/2026-12-06-paper-action-cloning.md).
-``bc_hit_weight`` -1 does the opposite: the term clones the approach only and leaves the stroke
-to the reward. Measured once, the actor then collapsed (docs/experiments/2026-12-06-cloning-loss.md).
+Leaving those rows out instead (weight 0, the stroke left to the reward; commit 4ac913a) collapsed
+the actor (docs/experiments/2026-12-06-cloning-loss.md).
 
 With ``bc_loss`` "absolute" the term is the same with the absolute error |.|_1 summed over the
 components: its minimiser is the labels' conditional median rather than their mean. Near the hit
@@ -123,7 +123,7 @@ class SacConfig:
     # (their median). Terminal action only.
     bc_loss: str = "squared"
     # The cloning term's extra weight on rows whose predicted hit is at most bc_hit_window s away
-    # (module docstring; 0: every row alike, -1: those rows not cloned). Terminal action only.
+    # (module docstring; 0: every row alike). Terminal action only.
     bc_hit_weight: float = 0.0
     bc_hit_window: float = 0.1
     # What the actor outputs (module docstring): "terminal" (eq. (12), the paper's) or "hit_state".
@@ -136,11 +136,6 @@ class SacConfig:
     spin_history: int = 10
     seed: int = 0
 
-    def without_cloning(self) -> dict:
-        """The config's fields but the cloning term's (``CLONING_FIELDS``): what two stages of a
-        run, one loading the other's learner, must share."""
-        return {k: v for k, v in dataclasses.asdict(self).items() if k not in CLONING_FIELDS}
-
     def __post_init__(self) -> None:
         for name in ("actor_lr", "critic_lr", "tau", "batch_size", "embedding_size"):
             if not getattr(self, name) > 0:
@@ -151,8 +146,8 @@ class SacConfig:
             raise ValueError(f"SacConfig.tau must be in (0, 1], got {self.tau}")
         if not (self.alpha >= 0.0 and self.aux_weight >= 0.0 and self.bc_weight >= 0.0):
             raise ValueError(f"SacConfig.alpha, aux_weight and bc_weight must be >= 0, got {self.alpha}, {self.aux_weight}, {self.bc_weight}")
-        if not (self.bc_hit_weight >= -1.0 and self.bc_hit_window > 0.0):
-            raise ValueError(f"SacConfig: bc_hit_weight must be >= -1 and bc_hit_window > 0 s, got {self.bc_hit_weight}, {self.bc_hit_window}")
+        if not (self.bc_hit_weight >= 0.0 and self.bc_hit_window > 0.0):
+            raise ValueError(f"SacConfig: bc_hit_weight must be >= 0 and bc_hit_window > 0 s, got {self.bc_hit_weight}, {self.bc_hit_window}")
         if self.bc_loss not in CLONING_LOSSES:
             raise ValueError(f"SacConfig.bc_loss must be one of {CLONING_LOSSES}, got {self.bc_loss!r}")
         if self.bc_loss != "squared" and self.action != "terminal":
@@ -171,6 +166,12 @@ class SacConfig:
     @property
     def layout(self) -> ObservationLayout:
         return ObservationLayout(self.position_history, self.spin_history)
+
+
+def learner_config_differences(saved: dict, mine: dict) -> list[str]:
+    """The fields of ``mine`` (a SacConfig as a dict) in which ``saved`` differs, but for the
+    cloning term's (``CLONING_FIELDS``): a learner's state loads only where this is empty."""
+    return sorted(k for k in mine if saved.get(k) != mine[k] and k not in CLONING_FIELDS)
 
 
 def soft_target(reward, done, next_q1, next_q2, next_log_prob, gamma: float, alpha: float):
@@ -335,7 +336,7 @@ class SacLearner:
         if self.config.bc_hit_weight == 0.0:
             return torch.mean(error)
         weights = self.cloning_weights(obs)
-        return torch.sum(weights * error) / torch.clamp(torch.sum(weights), min=1e-6)  # 0 if no row is cloned
+        return torch.sum(weights * error) / torch.sum(weights)
 
     def cloning_weights(self, obs: torch.Tensor) -> torch.Tensor:
         """The cloning term's row weights (B,) for full observations (B, layout.size): 1, or
@@ -411,7 +412,7 @@ class SacLearner:
         config = split_play_options(state["config"])[0]  # play options written among the learner's: not the learner's
         written = {**{k: v for k, v in dataclasses.asdict(SacConfig()).items() if k not in config}, **config}
         saved = {k: tuple(v) if isinstance(v, list) else v for k, v in written.items()}
-        differing = sorted(k for k in mine if saved.get(k) != mine[k] and k not in CLONING_FIELDS)
+        differing = learner_config_differences(saved, mine)
         if differing:
             raise ValueError(f"SacLearner.load_state_dict: the checkpoint's config differs in {differing}")
         self.actor.load_state_dict(state["actor"])

@@ -217,8 +217,8 @@ class Checkpointing:
                               "or the robot it was trained on")
 
     def _resize(self, old: int, new: int) -> None:
-        """The run's length changed from ``old`` to ``new`` steps (``CHANGEABLE_ON_RESUME``): a run shortened
-        below its steps finishes; a finished one extended learns on; in the learn phase the
+        """The run's length changed from ``old`` to ``new`` steps (``CHANGEABLE_ON_RESUME``): a run
+        shortened below its steps finishes; a finished one extended learns on; in the learn phase the
         schedules go on from the progress they had (``schedule_progress``), without a jump."""
         s = self.state
         self.log(f"train: the run's length changed from {old} to {new} steps at {s.env_steps} steps")
@@ -230,8 +230,8 @@ class Checkpointing:
 
     def _initialize_from(self, path: Path) -> None:
         """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
-        must be the same but for the cloning term's fields, ``sac.CLONING_FIELDS``), replay tables, demonstrations and counters, in ``initialize_phase``:
-        the learn phase, or the demonstrations phase, whose collections and cloning updates then
+        must be the same but for the cloning term's fields, ``sac.CLONING_FIELDS``), replay
+        tables, demonstrations and counters, in ``initialize_phase``: the learn phase, or the demonstrations phase, whose collections and cloning updates then
         run on to this config's totals. Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and
         chooses among its own evaluations."""
@@ -245,7 +245,8 @@ class Checkpointing:
         s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
         s.initialized_at = s.env_steps
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
-        s.worker_failures, s.evaluation_failures = [], []  # counted per run (max_worker_failures); the earlier run's stay in its logs
+        # counted per run (max_worker_failures); the earlier run's stay in its logs
+        s.worker_failures, s.evaluation_failures = [], []
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")

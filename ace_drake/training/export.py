@@ -27,8 +27,9 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (its sidecar, by
     ``artefacts.write_sidecar``: command, date, seed, steps, updates, wall time in s, the periodic
     evaluations and ``evaluation``, e.g. the human-shot figures of ``final_evaluation``, the
-    rollout tasks and evaluations that failed, the config, the robot it was trained for) and ``<name>_curve.png`` (learning curve) into
-    ``policies_dir``; ``which``: "best" (the best evaluated actor) or "final". Returns the sidecar."""
+    rollout tasks and evaluations that failed, the config, the robot it was trained for) and
+    ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best" (the best
+    evaluated actor) or "final". Returns the sidecar."""
 
     s, c = trainer.state, trainer.config
     actor, chosen = chosen_actor(trainer, which)

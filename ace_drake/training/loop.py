@@ -66,7 +66,7 @@ from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
-from ace_drake.learning.sac import CLONING_FIELDS, PlayOptions, SacConfig, SacLearner
+from ace_drake.learning.sac import CLONING_FIELDS, PlayOptions, SacConfig, SacLearner, learner_config_differences
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.robot.model import RobotModel, load_scenario
 from ace_drake.play.shots import human_shots, make_distribution
@@ -199,7 +199,8 @@ class TrainConfig:
                               "must agree: the actor reads the observation the env's diagram builds")
         if self.initialize_phase not in ("demonstrations", "learn"):
             raise ConfigError(f"TrainConfig.initialize_phase must be 'demonstrations' or 'learn', got {self.initialize_phase!r}")
-        if self.after is not None and (self.initialize_from or self.after.sac.without_cloning() != self.sac.without_cloning()):
+        if self.after is not None and (self.initialize_from or
+                                       learner_config_differences(dataclasses.asdict(self.after.sac), dataclasses.asdict(self.sac))):
             raise ConfigError("TrainConfig.after: give it or initialize_from, not both, and the same sac as this stage's but for "
                               f"the cloning term's fields {list(CLONING_FIELDS)} (its learner is loaded)")
         if self.initialize_from and not Path(self.initialize_from).is_file():
