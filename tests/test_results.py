@@ -53,6 +53,14 @@ def test_policy_row_from_a_constructed_sidecar(tmp_path):
     assert rows["`returner`: the default controller"].figure == "not measured"
 
 
+def test_policy_row_of_an_export_measured_as_evaluate_measures_says_so(tmp_path):
+    sidecar = small_sidecar()
+    sidecar["final_evaluation"].update(seed=0, stepping="segment", batch=32)  # training.export.final_evaluation today
+    write_json(tmp_path / "models/policies/rally_sac.json", sidecar)
+    row = {row.what: row for row in results.result_rows(tmp_path)}["`policy:rally_sac`: the paper's action (eq. 12)"]
+    assert row.measured_on == "10 recorded human shots of matches.csv, cameras, seed 0, the segment diagram, 32 at a time, 2026-01-02"
+
+
 def test_a_stored_evaluation_fills_the_returner_row(tmp_path):
     evaluation = {"controller": "returner", "data": "../data/matches.csv", "sensors": "cameras", "seed": 0, "episodes": 10,
                   "date": "2026-01-03", "command": "ace-drake evaluate --json",

@@ -20,7 +20,7 @@ from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation import controllers
-from ace_drake.evaluation.evaluate import evaluate
+from ace_drake.evaluation.evaluate import evaluate, evaluate_controller
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.match_data import MatchDataError
@@ -35,6 +35,7 @@ from ace_drake.training.export import (
     evaluation_series,
     heldout_series,
     export,
+    final_evaluation,
     plot_learning_curve,
 )
 from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
@@ -697,6 +698,30 @@ def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
     assert main(args + ["--export-only", "--overwrite"]) == 0  # resumes nothing, trains nothing; replaces the export
     assert "exported" in capsys.readouterr().out
     assert main(["train", str(config), "--run-dir", str(tmp_path / "empty"), "--export-only"]) == 2
+
+
+def test_the_exports_evaluation_is_what_evaluate_measures_of_the_exported_file(tmp_path, monkeypatch):
+    """``train --evaluate-data`` records the figures that ``ace-drake evaluate --controller
+    policy:<name> --data ... [--players held-out]`` gives for the exported file: same shots, seed,
+    sensors and diagram (here the first 3 shots of each, for time)."""
+    _needs_match_data()
+    data = "../shared/data/ace_match_events_elite.csv"
+    trained_on = dataclasses.replace(RallyEnvParams().shots, source=data, players=("Elite A", "Elite B", "Elite C"))
+    config = _config(name="measured", env=dataclasses.replace(_config().env, shots=trained_on))
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    first_shots = lambda *args, **kwargs: evaluate_controller(*args, **{**kwargs, "episodes": 3})
+    monkeypatch.setattr("ace_drake.training.export.evaluate_controller", first_shots)
+    recorded = final_evaluation(trainer, "final", data, progress=lambda line: None)
+    export(trainer, tmp_path / "policies", "final", recorded)
+    monkeypatch.setattr(controllers, "POLICIES_DIR", tmp_path / "policies")
+    shipped = {(): first_shots("policy:measured", data=data, progress=lambda line: None),
+               ("Elite D", "Elite E"): first_shots("policy:measured", data=data, players=("Elite D", "Elite E"), progress=lambda line: None)}
+    measured = dict(recorded, held_out=None)
+    for players, evaluation in (((), measured), (("Elite D", "Elite E"), recorded["held_out"])):
+        assert evaluation["players"] == list(players) and evaluation["controller"] == "policy:measured"
+        assert (evaluation["seed"], evaluation["sensors"], evaluation["stepping"], evaluation["batch"]) == (0, "cameras", "segment", 3)
+        for key in ("return_rate", "episodes", "not_returned_by_reason", "by_incoming_speed", "segments_accepted", "data_sha256"):
+            assert evaluation[key] == shipped[players][key], key
 
 
 def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):

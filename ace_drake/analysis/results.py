@@ -4,7 +4,8 @@ Sources, all relative to the repository root:
 
 - the shipped policies' sidecars ``models/policies/<name>.json`` (``SHIPPED_POLICIES``): the
   export evaluation ``final_evaluation`` that ``ace-drake train --evaluate-data`` records (the
-  recorded human shots through the cameras, at the run's seed);
+  recorded human shots through the cameras: as ``ace-drake evaluate`` plays them, or, exported
+  before that, on the continuous-time diagram at the run's seed);
 - the fitted ball model's sidecar ``models/ball_physics_fitted.json`` (``ace-drake physics-fit``)
   and the fitted racket model's ``models/racket_fitted.json`` (``ace-drake physics-fit-racket``);
 - stored evaluations ``docs/results/<controller>.json`` (``ace-drake evaluate ... --json``
@@ -94,8 +95,17 @@ def policy_row(name: str, sidecar: dict | None, source: str) -> Row:
     held_out = evaluation.get("held_out")
     if held_out:
         figure += f"; held-out players ({', '.join(held_out['players'])}): {return_rate_text(held_out['return_rate'])}"
-    measured_on = f"{_shots_text(evaluation)}, seed {sidecar['seed']} (the run's), {sidecar['date']}"
+    if "seed" in evaluation:  # as `ace-drake evaluate` measures it (training.export.final_evaluation)
+        measured_on = f"{_shots_text(evaluation)}, seed {evaluation['seed']}, {_diagram_text(evaluation)}, {sidecar['date']}"
+    else:  # exported before: the continuous-time diagram at the run's seed
+        measured_on = f"{_shots_text(evaluation)}, seed {sidecar['seed']} (the run's), {sidecar['date']}"
     return Row(what, figure, measured_on, _source(source))
+
+
+def _diagram_text(evaluation: dict) -> str:
+    """'the segment diagram, 32 at a time' from an evaluation's keys (continuous if it has none)."""
+    batch = f", {evaluation['batch']} at a time" if evaluation.get("batch", 1) > 1 else ""
+    return f"the {evaluation.get('stepping', 'continuous')} diagram{batch}"
 
 
 def evaluation_row(controller: str, evaluation: dict | None, source: str) -> Row:
@@ -107,9 +117,7 @@ def evaluation_row(controller: str, evaluation: dict | None, source: str) -> Row
         command = EVALUATE_COMMAND.format(controller=controller)
         return Row(what, NOT_MEASURED, f"`{command} > {source}` measures it on the recorded human shots", _source(source))
     figure = return_rate_text(evaluation["return_rate"])
-    stepping = evaluation.get("stepping", "continuous")
-    batch = f", {evaluation['batch']} at a time" if evaluation.get("batch", 1) > 1 else ""
-    measured_on = (f"{_shots_text(evaluation)}, seed {evaluation['seed']}, the {stepping} diagram{batch}"
+    measured_on = (f"{_shots_text(evaluation)}, seed {evaluation['seed']}, {_diagram_text(evaluation)}"
                    + (f", {evaluation['date']}" if evaluation.get("date") else ""))
     return Row(what, figure, measured_on, _source(source))
 

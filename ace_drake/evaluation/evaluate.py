@@ -197,7 +197,8 @@ def _batch_progress(total: int, progress, start: float):
 
 def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int = 0, ball_params=None, data=None,
                         players: Sequence[str] = (), episodes: int | None = None, skill: str | None = None, skill_sampling=None,
-                        action_noise: float = 0.0, stepping: str = "segment", batch: int = 32, progress: Callable[[str], None] = print) -> dict:
+                        action_noise: float = 0.0, stepping: str = "segment", batch: int = 32, progress: Callable[[str], None] = print,
+                        make: Callable[[RallyParams], object] | None = None) -> dict:
     """``ace-drake evaluate``: ``evaluate`` of the controller named ``controller``
     (``make_controller``; with ``action_noise`` > 0, Gaussian noise of that std in action units on
     every action, seeded) in the rally diagram of ``rally_params(ball_params, sensors, seed)``,
@@ -207,7 +208,10 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     "sampled": one per shot from ``skill_sampling``, or None: the diagram's default. Returns
     ``evaluate``'s figures with the settings, the provenance (command, date) and, with ``data``,
     its sha256. ``stepping``: "segment" (the batched diagram, ``batch`` episodes at a time) or
-    "continuous" (the reference diagram, one at a time). Raises ConfigError for a bad option."""
+    "continuous" (the reference diagram, one at a time). ``make``, if given, builds the controller
+    for a diagram's params instead of ``make_controller`` (e.g. a policy in memory, which
+    ``controller`` then only names: ``training.export.final_evaluation``). Raises ConfigError for a
+    bad option."""
     if episodes is not None and episodes < 1:
         raise ConfigError(f"evaluate: --episodes must be >= 1, got {episodes}")
     players = tuple(players)
@@ -230,9 +234,10 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     skills, skill_text = evaluation_skills(skill, len(shots), params, seed, skill_sampling)
     batch = max(1, min(batch, len(shots)))
     # A controller with a memory (a reset()) plays one episode at a time: one per environment.
-    first = make_controller(controller, params)
+    build = make or (lambda params: make_controller(controller, params))
+    first = build(params)
     stateful = callable(getattr(first, "reset", None)) or action_noise > 0
-    controllers = [first] + [make_controller(controller, params) for _ in range(batch - 1)] if stateful else [first]
+    controllers = [first] + [build(params) for _ in range(batch - 1)] if stateful else [first]
     noise = f", Gaussian action noise {action_noise:g}" if action_noise else ""
     if action_noise:
         controllers = [NoisyActions(player, action_noise, seed=seed) for player in controllers]

@@ -12,13 +12,12 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from ace_drake.artefacts import sha256, write_sidecar
+from ace_drake.artefacts import write_sidecar
 from ace_drake.config import MODELS_DIR, ConfigError, to_dict
-from ace_drake.control.params import RallyParams
-from ace_drake.evaluation.evaluate import evaluate
+from ace_drake.evaluation.evaluate import evaluate_controller
 from ace_drake.learning.sac import SacLearner, save_policy
 from ace_drake.robot.model import load_scenario
-from ace_drake.play.shots import held_out_players, human_shots
+from ace_drake.play.shots import held_out_players
 from ace_drake.training.checkpoint import CHECKPOINT, PREVIOUS_CHECKPOINT, Progress
 from ace_drake.training.loop import TrainConfig, Trainer, load_train_config
 
@@ -67,22 +66,22 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
 
 def final_evaluation(trainer: Trainer, which: str, data, progress: Callable[[str], None] = print) -> dict:
     """The export's evaluation of the ``which`` actor (``chosen_policy``) on the recorded human
-    shots (shot_p2) of the match-data CSV ``data``, through the cameras, at the run's seed:
-    ``evaluation.evaluate``'s figures with ``data``, ``data_sha256`` and ``sensors``, and for a run
-    trained on some players' shots, the others' figures under ``held_out``."""
+    shots (shot_p2) of the match-data CSV ``data``: ``ace-drake evaluate --controller
+    policy:<name> --data <data>`` as if it were shipped (``evaluation.evaluate.evaluate_controller``
+    with its defaults: the cameras, seed 0, the segment-stepped diagram 32 episodes at a time), and
+    for a run trained on some players' shots the same with ``--players`` the others, under
+    ``held_out``: the figure that decides whether it ships (issue 30) and, once stored in
+    docs/results/heldout/, the main job's controller."""
     policy = chosen_policy(trainer, which)
-    seed = trainer.config.seed
+    name = f"policy:{trainer.config.name}"
 
     def human_evaluation(players: tuple[str, ...] = ()) -> dict:
-        shots, serve = human_shots(data, players)
-        of = f" of {', '.join(players)}" if players else ""
-        progress(f"train: evaluating the {which} actor on the {len(shots)} human shots{of} of {data} (cameras)")
-        return evaluate(policy, RallyParams(), shots, serve, seed, progress=progress)
+        return evaluate_controller(name, data=data, players=players, progress=progress, make=lambda params: policy)
 
-    evaluation = {"data": str(data), "data_sha256": sha256(data), "sensors": "cameras", **human_evaluation()}
+    evaluation = human_evaluation()
     held_out = held_out_players(trainer.config.env.shots, data)
     if held_out:  # trained on some players' shots: the others' are reported on their own
-        evaluation["held_out"] = {"players": list(held_out), **human_evaluation(held_out)}
+        evaluation["held_out"] = human_evaluation(held_out)
     return evaluation
 
 
