@@ -25,7 +25,7 @@ from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.match_data import MatchDataError
 from ace_drake.play.shots import human_shots
-from ace_drake.training.checkpoint import CheckpointError, play_options_moved, read_checkpoint
+from ace_drake.training.checkpoint import CHECKPOINT, PORTABLE_CHECKPOINT, CheckpointError, play_options_moved, read_checkpoint
 from ace_drake.training.env import RallyEnvParams, training_rally_params
 from ace_drake.training.export import (
     chosen_actor,
@@ -698,6 +698,28 @@ def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
     assert main(args + ["--export-only", "--overwrite"]) == 0  # resumes nothing, trains nothing; replaces the export
     assert "exported" in capsys.readouterr().out
     assert main(["train", str(config), "--run-dir", str(tmp_path / "empty"), "--export-only"]) == 2
+
+
+def test_a_portable_checkpoint_carries_the_learner_without_the_tables_and_a_new_stage_refills_them(tmp_path):
+    first = Trainer(_config(env_steps=30), tmp_path / "first", progress=lambda line: None)
+    first.run()
+    portable = tmp_path / "first" / PORTABLE_CHECKPOINT
+    whole, carried = read_checkpoint(tmp_path / "first" / CHECKPOINT), read_checkpoint(portable)
+    assert carried["replay"] is None and carried["demonstrations"] is None and whole["replay"] is not None
+    assert all(carried["progress"][key] == whole["progress"][key] for key in ("phase", "env_steps", "episodes", "evaluations"))
+    assert portable.stat().st_size < (tmp_path / "first" / CHECKPOINT).stat().st_size
+    # In the learn phase with the actor playing, the cloning term would have no rows: refused.
+    with pytest.raises(ConfigError, match="portable checkpoint"):
+        Trainer(_config(env_steps=60, initialize_from=str(portable), learn_mode="policy"), tmp_path / "refused", progress=lambda line: None)
+    # Collecting demonstrations again first (totals counted from the checkpoint's), the tables fill anew.
+    config = _config(env_steps=first.state.env_steps + 20, initialize_from=str(portable), initialize_phase="demonstrations",
+                     demonstrations=first.state.demonstration_episodes + 1, pretrain_updates=first.state.pretrain_updates + 2)
+    second = Trainer(config, tmp_path / "second", progress=lambda line: None)
+    assert len(second.replay) == 0 and len(second.demonstrations) == 0 and second.learner.updates == first.learner.updates
+    for name, value in second.learner.actor.state_dict().items():
+        torch.testing.assert_close(value, first.learner.actor.state_dict()[name])
+    state = second.run()
+    assert state.phase == "done" and len(second.demonstrations) > 0 and second.learner.updates > first.learner.updates
 
 
 def test_the_exports_evaluation_is_what_evaluate_measures_of_the_exported_file(tmp_path, monkeypatch):

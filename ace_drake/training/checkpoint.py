@@ -34,6 +34,11 @@ from ace_drake.robot.params import scenario_mismatch
 PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the one before, kept by every write (module docstring)
+# The same without the replay tables and labelled rows (None): networks, optimisers, counters and
+# history in ~3 MB, where the whole checkpoint is ~2.4 GB. A run that moves to a machine without its
+# run directory carries this one; a new stage starts from it (``initialize_from``), its tables
+# filling anew. Written beside every checkpoint.
+PORTABLE_CHECKPOINT = "checkpoint.portable.pt"
 CHECKPOINT_KEYS = ("config", "learner", "replay", "demonstrations", "progress", "recent")
 # Config fields a resumed run may change: its length (to stop a stage early or extend a run) and
 # how many rollout failures it survives (to let a run that reached the limit go on).
@@ -150,14 +155,13 @@ class Checkpointing:
             "robot": self.robot_record(),
         }
         path = self.run_dir / CHECKPOINT
-        temporary = path.with_name(path.name + ".tmp")
-        with open(temporary, "wb") as file:
-            torch.save(payload, file)
-            file.flush()
-            os.fsync(file.fileno())
+        _write(payload, path.with_name(path.name + ".tmp"))
         if path.is_file():  # a crash from here on leaves the previous checkpoint (and the new one)
             os.replace(path, self.run_dir / PREVIOUS_CHECKPOINT)
-        os.replace(temporary, path)
+        os.replace(path.with_name(path.name + ".tmp"), path)
+        portable = self.run_dir / PORTABLE_CHECKPOINT
+        _write({**payload, "replay": None, "demonstrations": None}, portable.with_name(portable.name + ".tmp"))
+        os.replace(portable.with_name(portable.name + ".tmp"), portable)
         _sync_directory(self.run_dir)
 
     def _latest_checkpoint(self) -> tuple[Path, dict] | None:
@@ -231,17 +235,24 @@ class Checkpointing:
     def _initialize_from(self, path: Path) -> None:
         """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
         must be the same but for the cloning term's fields, ``sac.CLONING_FIELDS``), replay
-        tables, demonstrations and counters, in ``initialize_phase``: the learn phase, or the demonstrations phase, whose collections and cloning updates then
+        tables and demonstrations (none from a ``PORTABLE_CHECKPOINT``), and counters, in ``initialize_phase``: the learn phase, or the demonstrations phase, whose collections and cloning updates then
         run on to this config's totals. Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and
         chooses among its own evaluations."""
         payload = read_checkpoint(path)
         self._check_robot(path, payload)
-        self.learner.load_state_dict(payload["learner"])
-        self.replay.load_state_dict(payload["replay"])
-        self.demonstrations.load_state_dict(payload["demonstrations"])
-        s = self.state = Progress(**payload["progress"])  # its counters and history
         c = self.config
+        portable = payload["replay"] is None
+        cloning = max(c.sac.bc_weight if c.bc_weight_start is None else c.bc_weight_start, c.bc_weight_final) > 0
+        if portable and c.initialize_phase == "learn" and c.learn_mode == "policy" and cloning:
+            raise ConfigError(f"train: {path} is a portable checkpoint (no labelled rows), and in the learn phase with learn_mode "
+                              "'policy' the cloning term would have none: start with initialize_phase: demonstrations (and "
+                              "demonstrations to collect) or learn_mode: dagger")
+        self.learner.load_state_dict(payload["learner"])
+        if not portable:
+            self.replay.load_state_dict(payload["replay"])
+            self.demonstrations.load_state_dict(payload["demonstrations"])
+        s = self.state = Progress(**payload["progress"])  # its counters and history
         s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
         s.initialized_at = s.env_steps
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
@@ -249,11 +260,20 @@ class Checkpointing:
         s.worker_failures, s.evaluation_failures = [], []
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
-        self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase")
+        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else ""
+        self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase{tables}")
 
     def _save_config(self) -> None:
         """Writes the run's config to ``run_dir/config.yaml`` (for reading; the checkpoint holds it too)."""
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(to_dict(self.config))), sort_keys=False))
+
+
+def _write(payload: dict, path: Path) -> None:
+    """``torch.save`` of ``payload`` to ``path``, flushed and fsynced (the caller renames it)."""
+    with open(path, "wb") as file:
+        torch.save(payload, file)
+        file.flush()
+        os.fsync(file.fileno())
 
 
 def _sync_directory(directory: Path) -> None:
