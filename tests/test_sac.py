@@ -160,6 +160,32 @@ def test_the_standalone_policy_is_the_deterministic_actor(tmp_path):
     np.testing.assert_allclose(loaded(torch.as_tensor(obs, dtype=torch.float32)).numpy(), expected, atol=1e-6)
 
 
+def test_the_averaged_actor_is_the_polyak_average_the_policy_reads_and_a_stage_may_add_it():
+    rate = 0.25
+    plain = SacLearner(SacConfig(seed=3, **SMALL))
+    averaged = SacLearner(SacConfig(seed=3, actor_average=rate, **SMALL))
+    assert plain.averaged_actor is None and plain.policy_actor is plain.actor
+    before = {k: v.clone() for k, v in averaged.actor.state_dict().items()}
+    batch = make_batch(averaged)
+    assert plain.update(batch) == averaged.update(batch)  # the average does not change the learning
+    for name, value in averaged.averaged_actor.state_dict().items():
+        torch.testing.assert_close(value, (1 - rate) * before[name] + rate * averaged.actor.state_dict()[name])
+        assert not torch.equal(value, averaged.actor.state_dict()[name])
+    obs = torch.as_tensor(make_batch(averaged, seed=1)["obs"][:3], dtype=torch.float32)
+    expected = torch.tanh(averaged.averaged_actor(averaged.actor_features(obs))[0])
+    torch.testing.assert_close(averaged.policy()(obs), expected)  # evaluated and exported: the average
+    torch.testing.assert_close(averaged.policy(averaged.actor.state_dict())(obs), plain.policy()(obs))  # given weights
+    # Checkpointed with it; a later stage may add it to a learner without one (it starts at the actor).
+    restored = SacLearner(SacConfig(seed=3, actor_average=rate, **SMALL))
+    restored.load_state_dict(averaged.state_dict())
+    torch.testing.assert_close(restored.policy()(obs), averaged.policy()(obs))
+    added = SacLearner(SacConfig(seed=3, actor_average=0.01, **SMALL))
+    added.load_state_dict(plain.state_dict())
+    torch.testing.assert_close(added.policy()(obs), plain.policy()(obs))
+    with pytest.raises(ValueError, match="actor_average"):
+        SacConfig(actor_average=1.5)
+
+
 def test_same_seed_same_learner():
     a, b = SacLearner(SacConfig(seed=5, **SMALL)), SacLearner(SacConfig(seed=5, **SMALL))
     batch = make_batch(a)

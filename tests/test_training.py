@@ -214,15 +214,17 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
 
 def test_the_paper_action_run_is_two_stages_in_one_config():
     """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger) with the cloning term at
-    10, stage 2 is SAC with the term held at 2 and the actor's learning rate falling; both clone
-    with the absolute error (docs/experiments/2026-12-06-paper-action-five-stages.md)."""
+    10, stage 2 is SAC with the term held at 2, the actor's learning rate falling and its average
+    evaluated; both clone with the absolute error (docs/experiments/2026-12-06-paper-action-five-stages.md)."""
     _needs_match_data()
     second = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
     first = second.after
     assert first.after is None and first.demonstrations > 0 and first.learn_mode == "dagger"
     assert second.learn_mode == "policy" and second.demonstrations == 0  # it collects none of its own
     assert [first.seed, second.seed] == [40, 41] and first.env_steps < second.env_steps
-    assert first.sac == second.sac and first.sac.bc_loss == "absolute"  # stage 2 loads stage 1's learner
+    # stage 2 loads stage 1's learner and averages its actor from there
+    assert dataclasses.replace(first.sac, actor_average=second.sac.actor_average) == second.sac and first.sac.bc_loss == "absolute"
+    assert (first.sac.actor_average, second.sac.actor_average) == (0.0, 2e-4)
     assert first.sac.bc_weight == 10.0 and (first.bc_weight_start, first.bc_weight_final, first.bc_fade_steps) == (None, 10.0, 0)
     assert (second.bc_weight_start, second.bc_weight_final) == (2.0, 2.0)
     assert (first.actor_lr_final, second.actor_lr_final, second.sac.actor_lr) == (None, 3e-5, 3e-4)
@@ -720,6 +722,19 @@ def test_a_portable_checkpoint_carries_the_learner_without_the_tables_and_a_new_
         torch.testing.assert_close(value, first.learner.actor.state_dict()[name])
     state = second.run()
     assert state.phase == "done" and len(second.demonstrations) > 0 and second.learner.updates > first.learner.updates
+
+
+def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path):
+    config = _config(env_steps=30, sac=dataclasses.replace(SMALL, bc_weight=1.0, actor_average=0.1))
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    trainer.run()
+    average = trainer.learner.averaged_actor.state_dict()
+    assert any(not torch.equal(value, trainer.learner.actor.state_dict()[name]) for name, value in average.items())
+    for name, value in chosen_actor(trainer, "final")[0].items():
+        assert torch.equal(value, average[name])
+    export(trainer, tmp_path / "policies", "final")
+    obs = torch.zeros(2, trainer.learner.observation_size)
+    torch.testing.assert_close(load_policy(tmp_path / "policies" / "tiny.pt")(obs), trainer.learner.policy()(obs))
 
 
 def test_the_exports_evaluation_is_what_evaluate_measures_of_the_exported_file(tmp_path, monkeypatch):

@@ -39,8 +39,15 @@ their mean is a slow swing, their median a decisive one. Measured offline, on th
 rows and updates, a fresh actor cloned with it returned 72.6-76.3% of the held-out players' shots
 against 56.3-63.2% squared (two seeds; docs/experiments/2026-12-06-cloning-loss.md).
 
-The cloning term's fields (``CLONING_FIELDS``) only weigh a loss: a learner's state loads into a
-learner whose config differs in them alone, so that a later training stage may change them.
+The averaged actor (``SacConfig.actor_average`` > 0; this project's, not the paper's): a Polyak
+average of the actor's weights, a <- (1 - r) a + r actor after every update, which the learner's
+``policy`` (what is evaluated and exported) reads, while the rollouts play the actor itself. An
+average over ~1/r updates smooths the actor's swings between evaluations: the paper-action run's
+held-out rate moved by up to 17 points in 10,000 updates (docs/training.md).
+
+The cloning term's fields (``CLONING_FIELDS``) only weigh a loss, and ``actor_average`` only
+averages: a learner's state loads into a learner whose config differs in them alone
+(``STAGE_FIELDS``), so that a later training stage may change them.
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
 the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
@@ -86,6 +93,8 @@ from ace_drake.learning.networks import (
 ACTIONS = ("terminal", "hit_state")
 # SacConfig's fields that only weigh the cloning term (module docstring).
 CLONING_FIELDS = ("bc_weight", "bc_loss", "bc_hit_weight", "bc_hit_window")
+# SacConfig's fields a later training stage may change: a learner's state loads across them (module docstring).
+STAGE_FIELDS = CLONING_FIELDS + ("actor_average",)
 CLONING_LOSSES = ("squared", "absolute")  # SacConfig.bc_loss (module docstring)
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())
@@ -132,6 +141,8 @@ class SacConfig:
     # 0-100: docs/experiments/2026-12-01-hit-state-actor.md) and the task-space scales (blade position m, normal, blade velocity m/s).
     consistency_weight: float = 30.0
     hit_loss_scales: tuple[float, float, float] = (0.02, 0.05, 0.2)
+    # The averaged actor's rate r per update (module docstring; 0: none, the policy is the actor).
+    actor_average: float = 0.0
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -140,6 +151,8 @@ class SacConfig:
         for name in ("actor_lr", "critic_lr", "tau", "batch_size", "embedding_size"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SacConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.actor_average <= 1.0:
+            raise ValueError(f"SacConfig.actor_average must be in [0, 1] (0: no averaged actor), got {self.actor_average}")
         if not 0.0 <= self.gamma < 1.0:
             raise ValueError(f"SacConfig.gamma must be in [0, 1), got {self.gamma}")
         if not self.tau <= 1.0:
@@ -169,9 +182,9 @@ class SacConfig:
 
 
 def learner_config_differences(saved: dict, mine: dict) -> list[str]:
-    """The fields of ``mine`` (a SacConfig as a dict) in which ``saved`` differs, but for the
-    cloning term's (``CLONING_FIELDS``): a learner's state loads only where this is empty."""
-    return sorted(k for k in mine if saved.get(k) != mine[k] and k not in CLONING_FIELDS)
+    """The fields of ``mine`` (a SacConfig as a dict) in which ``saved`` differs, but for those a
+    later stage may change (``STAGE_FIELDS``): a learner's state loads only where this is empty."""
+    return sorted(k for k in mine if saved.get(k) != mine[k] and k not in STAGE_FIELDS)
 
 
 def soft_target(reward, done, next_q1, next_q2, next_log_prob, gamma: float, alpha: float):
@@ -242,6 +255,8 @@ class SacLearner:
             self.actor = Actor(len(self._actor_index), ACTION_SIZE, c.actor_hidden, c.embedding_size, c.decoder_hidden, c.log_std_bounds)
             self.critic = TwinCritic(len(self._critic_scale), ACTION_SIZE, c.critic_hidden)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        # the Polyak average of the actor (module docstring), or None
+        self.averaged_actor = copy.deepcopy(self.actor).requires_grad_(False) if c.actor_average > 0 else None
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr)
         self.updates = 0
@@ -271,11 +286,21 @@ class SacLearner:
             out = torch.tanh(mean + std_scale * log_std.exp() * noise).numpy()
         return out.reshape(*np.shape(obs)[:-1], ACTION_SIZE)
 
-    def policy(self) -> DeterministicPolicy:
-        """A copy of the actor as a standalone deterministic policy module (networks), with its
-        action kind and, for hit states, their parameterisation."""
-        return DeterministicPolicy(copy.deepcopy(self.actor).eval().requires_grad_(False), self._actor_index, self._actor_scale,
+    def policy(self, actor_state: dict | None = None) -> DeterministicPolicy:
+        """A copy of the policy's actor (``policy_actor``, or the actor with the weights
+        ``actor_state``) as a standalone deterministic policy module (networks), with its action
+        kind and, for hit states, their parameterisation."""
+        actor = copy.deepcopy(self.actor if actor_state is not None else self.policy_actor)
+        if actor_state is not None:
+            actor.load_state_dict(actor_state)
+        return DeterministicPolicy(actor.eval().requires_grad_(False), self._actor_index, self._actor_scale,
                                    self.config.action, self.hit_state_action, self.play.meet_ball, self.play.hit_memory)
+
+    @property
+    def policy_actor(self) -> torch.nn.Module:
+        """The actor that is evaluated and exported: the averaged one if the config keeps one
+        (``actor_average``), else the actor itself."""
+        return self.actor if self.averaged_actor is None else self.averaged_actor
 
     @property
     def hit_state_action(self):
@@ -378,6 +403,9 @@ class SacLearner:
         with torch.no_grad():
             for target, source in zip(self.target_critic.parameters(), self.critic.parameters()):
                 target.mul_(1.0 - c.tau).add_(c.tau * source)
+            if self.averaged_actor is not None:
+                for average, source in zip(self.averaged_actor.parameters(), self.actor.parameters()):
+                    average.mul_(1.0 - c.actor_average).add_(c.actor_average * source)
         self.updates += 1
         return {
             **({} if bc_loss is None else {"bc_loss": bc_loss.item()}),
@@ -403,6 +431,7 @@ class SacLearner:
             "critic_optimizer": self.critic_optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "updates": self.updates,
+            **({} if self.averaged_actor is None else {"averaged_actor": self.averaged_actor.state_dict()}),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -422,6 +451,8 @@ class SacLearner:
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.generator.set_state(state["generator"])
         self.updates = int(state["updates"])
+        if self.averaged_actor is not None:  # an earlier stage without one: the average starts at its actor
+            self.averaged_actor.load_state_dict(state.get("averaged_actor", state["actor"]))
 
 
 POLICY_FORMAT = 1
@@ -429,13 +460,13 @@ POLICY_FORMAT = 1
 
 def save_policy(path, learner: SacLearner, actor_state: dict | None = None) -> None:
     """Writes a policy artefact: the SacConfig and the PlayOptions (as dicts) and the actor's
-    weights (``actor_state``, default the learner's actor), atomically. A few hundred kB."""
+    weights (``actor_state``, default the learner's policy actor), atomically. A few hundred kB."""
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
     payload = {"format": POLICY_FORMAT, "sac_config": dataclasses.asdict(learner.config), "play": dataclasses.asdict(learner.play),
-               "actor": actor_state or learner.actor.state_dict()}
+               "actor": actor_state or learner.policy_actor.state_dict()}
     if learner.hit_state_action is not None:
         payload["hit_state"] = learner.hit_state_action.as_dict()
     torch.save(payload, temporary)
@@ -458,5 +489,4 @@ def load_policy(path) -> DeterministicPolicy:
         hit_state_action = HitStateAction.from_dict(payload["hit_state"])
     sac, play = split_play_options(payload["sac_config"])
     learner = SacLearner(from_dict(SacConfig, sac), hit_state_action=hit_state_action, play=from_dict(PlayOptions, payload.get("play", play)))
-    learner.actor.load_state_dict(payload["actor"])
-    return learner.policy()
+    return learner.policy(payload["actor"])  # the weights written (the averaged actor's, if it had one)

@@ -234,7 +234,7 @@ class Checkpointing:
 
     def _initialize_from(self, path: Path) -> None:
         """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
-        must be the same but for the cloning term's fields, ``sac.CLONING_FIELDS``), replay
+        must be the same but for the fields a stage may change, ``sac.STAGE_FIELDS``), replay
         tables and demonstrations (none from a ``PORTABLE_CHECKPOINT``), and counters, in ``initialize_phase``: the learn phase, or the demonstrations phase, whose collections and cloning updates then
         run on to this config's totals. Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from ace_drake.artefacts import write_sidecar
 from ace_drake.config import MODELS_DIR, ConfigError, to_dict
 from ace_drake.evaluation.evaluate import evaluate_controller
-from ace_drake.learning.sac import SacLearner, save_policy
+from ace_drake.learning.sac import save_policy
 from ace_drake.robot.model import load_scenario
 from ace_drake.play.shots import held_out_players
 from ace_drake.training.checkpoint import CHECKPOINT, PREVIOUS_CHECKPOINT, Progress
@@ -120,7 +120,7 @@ def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policie
 
 def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
     """The actor ``export`` writes: its state dict ("best": the best evaluated one, else the
-    final; "final": the learner's) and its evaluation entry (env_steps, updates, figures), None
+    final; "final": the learner's policy actor, the averaged one if it keeps one) and its evaluation entry (env_steps, updates, figures), None
     when that actor was not evaluated."""
     if which not in ("best", "final"):
         raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
@@ -131,14 +131,12 @@ def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
         # A checkpoint from before best_evaluation was recorded: the highest evaluation.
         return s.best_actor, max(s.evaluations, key=lambda e: e[2]["rate"] if e[2]["rate"] is not None else -1.0)
     last = s.evaluations[-1] if s.evaluations and s.evaluations[-1][0] == s.env_steps else None
-    return trainer.learner.actor.state_dict(), last
+    return trainer.learner.policy_actor.state_dict(), last
 
 
 def chosen_policy(trainer: Trainer, which: str):
     """The DeterministicPolicy of ``chosen_actor`` (what the exported file holds)."""
-    learner = SacLearner(trainer.config.sac, trainer.config.env.rally, play=trainer.config.play)
-    learner.actor.load_state_dict(chosen_actor(trainer, which)[0])
-    return learner.policy()
+    return trainer.learner.policy(chosen_actor(trainer, which)[0])
 
 
 def evaluation_description(config: TrainConfig) -> str:

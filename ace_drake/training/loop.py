@@ -66,7 +66,7 @@ from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation.evaluate import evaluate
 from ace_drake.learning.mirror import Mirror
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
-from ace_drake.learning.sac import CLONING_FIELDS, PlayOptions, SacConfig, SacLearner, learner_config_differences
+from ace_drake.learning.sac import STAGE_FIELDS, PlayOptions, SacConfig, SacLearner, learner_config_differences
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.robot.model import RobotModel, load_scenario
 from ace_drake.play.shots import human_shots, make_distribution
@@ -202,7 +202,7 @@ class TrainConfig:
         if self.after is not None and (self.initialize_from or
                                        learner_config_differences(dataclasses.asdict(self.after.sac), dataclasses.asdict(self.sac))):
             raise ConfigError("TrainConfig.after: give it or initialize_from, not both, and the same sac as this stage's but for "
-                              f"the cloning term's fields {list(CLONING_FIELDS)} (its learner is loaded)")
+                              f"the fields a stage may change {list(STAGE_FIELDS)} (its learner is loaded)")
         if self.initialize_from and not Path(self.initialize_from).is_file():
             raise ConfigError(f"TrainConfig.initialize_from: no such file {self.initialize_from}")
         for path in self.demonstration_files:
@@ -534,7 +534,7 @@ class Trainer(Checkpointing):
             self._writer.add_scalar("evaluation/return_rate", rate["rate"], s.env_steps)
             if rate["rate"] > s.best_rate:
                 s.best_rate = rate["rate"]
-                s.best_actor = {k: v.clone() for k, v in self.learner.actor.state_dict().items()}
+                s.best_actor = {k: v.clone() for k, v in self.learner.policy_actor.state_dict().items()}  # what was evaluated
                 s.best_evaluation = len(s.evaluations) - 1
         self.log(f"train: evaluation at {s.env_steps} steps: returned {rate['returned']} of {rate['played']} "
                  f"({(rate['rate'] or 0):.1%}), {time.perf_counter() - start:.0f} s")

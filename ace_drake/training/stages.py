@@ -6,8 +6,8 @@ there if it was stopped, reusing it if it has finished), then starts from its ch
 ``initialize_from`` (its learner, replay tables, demonstrations and counters, in
 ``initialize_phase``): one config and one command for a policy trained in stages
 (``models/train_rally_sac.yaml``; docs/training.md, *The shipped policies*). The stages share the
-learner's config but for the cloning term's fields (``sac.CLONING_FIELDS``; ``TrainConfig``
-checks), as its checkpoint is loaded.
+learner's config but for the fields a stage may change (``sac.STAGE_FIELDS``: the cloning term's
+and the averaged actor's; ``TrainConfig`` checks), as its checkpoint is loaded.
 
 In a config file (``loop.load_train_config``), ``after:`` is written as the earlier stage's
 changes from the stage that follows it (``with_earlier_stages``), and may hold an ``after:`` of its
