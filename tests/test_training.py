@@ -398,6 +398,27 @@ def test_a_batched_run_demonstrates_clones_and_learns_with_dagger_labels(tmp_pat
     assert state.evaluations
 
 
+def test_a_dagger_fraction_labels_that_share_of_the_learn_phases_tasks(tmp_path, monkeypatch):
+    config = _config(batch=2, demonstrations=2, ou_episodes=0, pretrain_updates=4, learn_mode="dagger", dagger_fraction=0.5,
+                     env_steps=120, evaluation_episodes=2, episodes_per_task=1)
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    modes = []
+    ingest = trainer._ingest
+    monkeypatch.setattr(trainer, "_ingest", lambda episode: (modes.append(episode.mode), ingest(episode)))
+    state = trainer.run()
+    learned = [mode for mode in modes if mode != "demonstrator"]
+    assert state.learn_tasks >= 2 and {"dagger", "policy"} <= set(learned)
+    labelled = sum(mode in ("demonstrator", "dagger") for mode in modes)
+    assert 0 < len(trainer.demonstrations) < state.env_steps and labelled < len(modes)  # only the labelled episodes' steps
+    # Task n is labelled when floor((n + 1) f) > floor(n f): every other task at f = 0.5, every fourth at 0.25.
+    fresh = Trainer(dataclasses.replace(config, dagger_fraction=0.25), tmp_path / "other", progress=lambda line: None)
+    assert [fresh._learn_task_mode() for _ in range(8)] == ["policy", "policy", "policy", "dagger"] * 2
+    with pytest.raises(ConfigError, match="dagger_fraction"):
+        _config(dagger_fraction=0.5)  # learn_mode policy
+    with pytest.raises(ConfigError, match="dagger_fraction"):
+        _config(learn_mode="dagger", dagger_fraction=0.0)
+
+
 def test_batched_workers_refuse_the_hit_state_action():
     hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
     with pytest.raises(ConfigError, match="batched workers play the eq. \\(12\\) action"):

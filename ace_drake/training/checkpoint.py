@@ -104,6 +104,7 @@ class Progress:
     worker_failures: list = dataclasses.field(default_factory=list)
     # (env_steps, error's last line) per periodic evaluation that raised (loop.Trainer._evaluate)
     evaluation_failures: list = dataclasses.field(default_factory=list)
+    learn_tasks: int = 0  # the learn phase's rollout tasks given so far (loop.Trainer._learn_task_mode)
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation

@@ -21,7 +21,8 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    ``bc_weight_final`` over the phase (or over its first ``bc_fade_steps`` steps, and stays
    there), and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is
    given (a schedule lets the actor settle on a precise fit by the end of a run; the paper's is
-   fixed).
+   fixed). With ``learn_mode`` "dagger" the returner labels the states the actor visits (all of
+   them, or the episodes of a ``dagger_fraction`` of the tasks).
 
 A rollout task that raises (an environment's simulation failing) or whose worker dies costs its
 episodes, not the run: the worker is replaced by a fresh one with another seed, the failure is
@@ -52,6 +53,7 @@ resumes a run (and holds ``Progress``, the counters a checkpoint records), ``tra
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 import traceback
 from collections import deque
@@ -119,6 +121,10 @@ class TrainConfig:
     # The learn phase's collection: "policy" (SAC's) or "dagger" (the actor plays, the returner
     # labels its states for the cloning term; this project's, rollout docstring).
     learn_mode: str = "policy"
+    # With learn_mode "dagger": the share of the learn phase's rollout tasks whose new episodes the
+    # returner labels; the others' play as in "policy" (1: all). Labelling is what makes DAgger
+    # collection ~8 x slower; a share keeps the cloning rows coming from the actor's current states.
+    dagger_fraction: float = 1.0
     updates_per_step: float = 0.25  # the learner's update-to-data ratio (not public)
     update_chunk: int = 50  # updates between looks at the workers and weight publications
     checkpoint_every: int = 10_000
@@ -174,6 +180,10 @@ class TrainConfig:
             raise ConfigError(f"TrainConfig.actor_lr_final must be > 0 (or left out), got {self.actor_lr_final}")
         if self.learn_mode not in ("policy", "dagger"):
             raise ConfigError(f"TrainConfig.learn_mode must be 'policy' or 'dagger', got {self.learn_mode!r}")
+        if not 0.0 < self.dagger_fraction <= 1.0:
+            raise ConfigError(f"TrainConfig.dagger_fraction must be in (0, 1], got {self.dagger_fraction}")
+        if self.dagger_fraction != 1.0 and self.learn_mode != "dagger":
+            raise ConfigError("TrainConfig.dagger_fraction is the share of labelled tasks with learn_mode 'dagger'")
         if self.backend not in ("ray", "local"):
             raise ConfigError(f"TrainConfig.backend must be 'ray' or 'local', got {self.backend!r}")
         if self.backend == "local" and self.workers != 1:
@@ -397,7 +407,7 @@ class Trainer(Checkpointing):
         pool = self._workers()
         pool.publish(self.learner.actor.state_dict())
         for index in range(pool.count):
-            pool.submit(index, c.task_episodes, c.learn_mode)
+            pool.submit(index, c.task_episodes, self._learn_task_mode())
         learn_start, updates_start = self.state.learn_start
         while self.state.env_steps < c.env_steps:
             result = self._wait(pool, timeout=0.0 if self.config.backend == "ray" else None)
@@ -439,7 +449,18 @@ class Trainer(Checkpointing):
         index, episodes = result
         for episode in episodes:
             self._ingest(episode)
-        pool.submit(index, self.config.task_episodes, self.config.learn_mode)
+        pool.submit(index, self.config.task_episodes, self._learn_task_mode())
+
+    def _learn_task_mode(self) -> str:
+        """The mode of the learn phase's next rollout task: ``learn_mode``, but with a
+        ``dagger_fraction`` below 1, "dagger" for that share of the tasks, evenly spread (task n is
+        labelled when floor((n + 1) f) > floor(n f)), and "policy" for the rest."""
+        c = self.config
+        if c.dagger_fraction >= 1.0:
+            return c.learn_mode
+        n = self.state.learn_tasks
+        self.state.learn_tasks += 1
+        return "dagger" if math.floor((n + 1) * c.dagger_fraction) > math.floor(n * c.dagger_fraction) else "policy"
 
     def _ingest(self, episode: Episode) -> None:
         summary = episode.summary
