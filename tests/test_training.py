@@ -214,13 +214,14 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
 
 def test_the_paper_action_run_is_two_stages_in_one_config():
     """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger) with the cloning term at
-    10, stage 2 is SAC with the term held at 2, the actor's learning rate falling and its average
-    evaluated; both clone with the absolute error (docs/experiments/2026-12-06-paper-action-five-stages.md)."""
+    10, stage 2 is SAC with a quarter of the episodes labelled, the term held at 2, the actor's
+    learning rate falling and its average evaluated; both clone with the absolute error (docs/experiments/2026-12-06-paper-action-five-stages.md)."""
     _needs_match_data()
     second = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
     first = second.after
     assert first.after is None and first.demonstrations > 0 and first.learn_mode == "dagger"
-    assert second.learn_mode == "policy" and second.demonstrations == 0  # it collects none of its own
+    assert second.demonstrations == 0  # it collects none of its own
+    assert (first.learn_mode, first.dagger_fraction, second.learn_mode, second.dagger_fraction) == ("dagger", 1.0, "dagger", 0.25)
     assert [first.seed, second.seed] == [40, 41] and first.env_steps < second.env_steps
     # stage 2 loads stage 1's learner and averages its actor from there
     assert dataclasses.replace(first.sac, actor_average=second.sac.actor_average) == second.sac and first.sac.bc_loss == "absolute"
