@@ -403,7 +403,7 @@ def cmd_train(args) -> int:
     """A training run (``training.export.train_and_export``): resumes from the run directory's
     checkpoint, trains, exports the policy with its sidecar and learning curve."""
     summary = work("train")(args.config, args.run_dir, args.export_dir, args.export, args.evaluate_data, args.export_only, progress=log,
-                            overwrite=args.overwrite)
+                            overwrite=args.overwrite, earlier_stage=args.earlier_stage)
     evaluation = summary["final_evaluation"]
     if args.json:
         emit_json(summary)
@@ -535,6 +535,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--evaluate-data", help="match-data CSV: evaluate the exported policy on its human shots (cameras) into the sidecar")
     train.add_argument("--export-only", action="store_true", help="export the run's checkpoint as it stands (e.g. a run stopped early) without training")
     train.add_argument("--overwrite", action="store_true", help="replace a policy of the same name in --export-dir (refused otherwise)")
+    train.add_argument("--earlier-stage", metavar="CHECKPOINT",
+                       help="a checkpoint of the config's after: stage (e.g. its checkpoint.portable.pt) to start from instead of running "
+                            "that stage in RUN_DIR/after")
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
 

@@ -759,6 +759,33 @@ def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path
     torch.testing.assert_close(load_policy(tmp_path / "policies" / "tiny.pt")(obs), trainer.learner.policy()(obs))
 
 
+def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhere(tmp_path, capsys):
+    """``train --earlier-stage``: the after: stage's (portable) checkpoint from another directory, as
+    on a machine without ``run_dir/after``; only a finished checkpoint of that very stage."""
+    earlier = _config(env_steps=30)
+    first = Trainer(earlier, tmp_path / "elsewhere", progress=lambda line: None)
+    first.run()
+    portable = tmp_path / "elsewhere" / PORTABLE_CHECKPOINT
+    config = _config(seed=4, env_steps=first.state.env_steps + 20, learn_mode="dagger", dagger_fraction=0.5, after=earlier)
+    second = Trainer(config, tmp_path / "run", progress=lambda line: None, earlier_stage=portable)
+    assert not (tmp_path / "run" / EARLIER_STAGE_DIR).exists() and second.learner.updates == first.learner.updates
+    assert second.state.env_steps == first.state.env_steps and len(second.replay) == 0  # the tables fill anew
+    state = second.run()
+    assert state.phase == "done" and len(second.demonstrations) > 0
+    # Resumed, it reads its own checkpoint; the earlier stage's is not needed any more.
+    assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.phase == "done"
+    other = dataclasses.replace(config, after=_config(seed=9, env_steps=30))
+    with pytest.raises(ConfigError, match="not a checkpoint of the config's earlier stage.*seed"):
+        Trainer(other, tmp_path / "other", progress=lambda line: None, earlier_stage=portable)
+    with pytest.raises(ConfigError, match="no after: stage"):
+        Trainer(earlier, tmp_path / "third", progress=lambda line: None, earlier_stage=portable)
+    unfinished = Trainer(_config(env_steps=30, seed=7), tmp_path / "unfinished", progress=lambda line: None)
+    unfinished.checkpoint()
+    with pytest.raises(ConfigError, match="before its end"):
+        Trainer(dataclasses.replace(config, after=_config(env_steps=30, seed=7)), tmp_path / "fourth", progress=lambda line: None,
+                earlier_stage=tmp_path / "unfinished" / PORTABLE_CHECKPOINT)
+
+
 def test_the_exports_evaluation_is_what_evaluate_measures_of_the_exported_file(tmp_path, monkeypatch):
     """``train --evaluate-data`` records the figures that ``ace-drake evaluate --controller
     policy:<name> --data ... [--players held-out]`` gives for the exported file: same shots, seed,

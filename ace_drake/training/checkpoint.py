@@ -119,6 +119,16 @@ def _without_changeable(config: dict) -> dict:
     return out
 
 
+def config_differences(saved: dict, config) -> list[str]:
+    """The top-level fields in which a checkpoint's config ``saved`` (a dict) differs from
+    ``config`` (a TrainConfig), but for those a resumed run may change (``CHANGEABLE_ON_RESUME``).
+    ``saved`` is read back through the config classes, so that a field added since it was written
+    compares at its default (a new field's default keeps the old behaviour)."""
+    saved = to_dict(from_dict(type(config), play_options_moved(saved)))
+    current = to_dict(config)
+    return sorted(k for k, v in _without_changeable(current).items() if _without_changeable(saved).get(k) != v)
+
+
 def schedule_progress(state: Progress, length: int) -> float:
     """How far (0..1) the learn phase's schedules (cloning weight, actor learning rate) stand at
     ``state.env_steps`` in a run of ``length`` steps: linear from the learn phase's start to its
@@ -190,20 +200,19 @@ class Checkpointing:
     def _load(self, path: Path, payload: dict) -> None:
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
-        saved = to_dict(from_dict(type(self.config), play_options_moved(payload["config"])))
-        current = to_dict(self.config)
-        differing = sorted(k for k, v in _without_changeable(current).items() if _without_changeable(saved).get(k) != v)
+        differing = config_differences(payload["config"], self.config)
         if differing:
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
         self._check_robot(path, payload)
-        resized = saved["env_steps"] != current["env_steps"]
+        saved_steps = payload["config"]["env_steps"]
+        resized = saved_steps != self.config.env_steps
         self.learner.load_state_dict(payload["learner"])
         self.replay.load_state_dict(payload["replay"])
         self.demonstrations.load_state_dict(payload["demonstrations"])
         self.state = Progress(**payload["progress"])
         self.state.resumptions += 1
         if resized:
-            self._resize(saved["env_steps"], current["env_steps"])
+            self._resize(saved_steps, self.config.env_steps)
         self._recent.extend(payload["recent"])
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
 

@@ -87,7 +87,7 @@ def final_evaluation(trainer: Trainer, which: str, data, progress: Callable[[str
 
 def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policies", which: str = "best",
                      evaluate_data=None, export_only: bool = False, progress: Callable[[str], None] = print,
-                     overwrite: bool = False) -> dict:
+                     overwrite: bool = False, earlier_stage=None) -> dict:
     """``ace-drake train``: the run of the config YAML ``config_path`` in ``run_dir`` (default
     out/train/<name>; resumed from its checkpoint if it has one; with ``export_only`` not trained
     further), then ``export`` into ``export_dir`` with, given the match-data CSV
@@ -96,7 +96,8 @@ def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policie
     ``final_evaluation`` (None without ``evaluate_data``). Raises ConfigError for a bad config,
     with ``export_only`` for a run directory without a checkpoint, and, before anything is trained
     or written, when ``export_dir`` already holds a policy of the config's name (a shipped one,
-    say) unless ``overwrite``."""
+    say) unless ``overwrite``. ``earlier_stage``: a checkpoint of the config's ``after:`` stage to
+    start from instead of running it (``Trainer``)."""
     config = load_train_config(config_path)
     run_dir = Path(run_dir or MODELS_DIR.parent / "out" / "train" / config.name)
     progress(f"train: {config_path} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
@@ -106,7 +107,7 @@ def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policie
     if existing and not overwrite:
         raise ConfigError(f"train: {existing[0]} exists (a policy named {config.name!r}, e.g. a shipped one); give --overwrite to "
                           "replace it, or another --export-dir or config name")
-    trainer = Trainer(config, run_dir, progress=progress)
+    trainer = Trainer(config, run_dir, progress=progress, earlier_stage=earlier_stage)
     if export_only:
         progress(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
     else:

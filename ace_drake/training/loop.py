@@ -75,7 +75,7 @@ from ace_drake.play.shots import human_shots, make_distribution
 from ace_drake.training.checkpoint import Checkpointing, Progress, schedule_progress
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
-from ace_drake.training.stages import earlier_stage_checkpoint, with_earlier_stages
+from ace_drake.training.stages import earlier_stage_checkpoint, earlier_stage_from, with_earlier_stages
 from ace_drake.training.workers import WorkerFailed, WorkerPool
 
 
@@ -245,7 +245,12 @@ class Trainer(Checkpointing):
     from the checkpoint if there is one) and returns the final Progress. Saving, loading and
     resuming are ``checkpoint.Checkpointing``'s."""
 
-    def __init__(self, config: TrainConfig, run_dir, progress=print):
+    def __init__(self, config: TrainConfig, run_dir, progress=print, earlier_stage=None):
+        """``earlier_stage``: for a config with ``after``, a checkpoint of that earlier stage to
+        start from instead of running it in ``run_dir/after`` (e.g. its portable checkpoint, carried
+        to a machine without that directory; ``stages.earlier_stage_from``)."""
+        if earlier_stage is not None and config.after is None:
+            raise ConfigError(f"train: an earlier stage's checkpoint ({earlier_stage}) was given, but the config has no after: stage")
         self.config = config
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -275,7 +280,7 @@ class Trainer(Checkpointing):
         elif config.initialize_from:
             self._initialize_from(Path(config.initialize_from))
         elif config.after is not None:
-            self._initialize_from(earlier_stage_checkpoint(self))
+            self._initialize_from(earlier_stage_from(self, Path(earlier_stage)) if earlier_stage else earlier_stage_checkpoint(self))
         self._save_config()
 
     # ------------------------------------------------------------------------------ the run

@@ -19,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ace_drake.config import ConfigError, merge
+from ace_drake.training.checkpoint import config_differences, read_checkpoint
 
 EARLIER_STAGE_DIR = "after"  # the earlier stage's run directory, inside the later stage's
 
@@ -51,3 +52,20 @@ def earlier_stage_checkpoint(trainer) -> Path:
     if latest is None:
         raise ConfigError(f"train: the earlier stage in {run_dir} has no checkpoint")
     return latest[0]
+
+
+def earlier_stage_from(trainer, path: Path) -> Path:
+    """``path``, a checkpoint of ``trainer.config.after`` written elsewhere (e.g. its portable
+    checkpoint, carried to a machine without ``run_dir/after``: ``ace-drake train --earlier-stage``),
+    to start from instead of running that stage. Raises ConfigError if it was written with
+    another config than the earlier stage's (but for its length, ``CHANGEABLE_ON_RESUME``) or
+    before that stage finished."""
+    payload = read_checkpoint(path)
+    differing = config_differences(payload["config"], trainer.config.after)
+    if differing:
+        raise ConfigError(f"train: {path} is not a checkpoint of the config's earlier stage (after:): it differs in {differing}")
+    if payload["progress"]["phase"] != "done":
+        raise ConfigError(f"train: {path} is a checkpoint of the earlier stage before its end (phase {payload['progress']['phase']}); "
+                          "finish that stage first")
+    trainer.log(f"train: the earlier stage (after:) from {path}")
+    return path
