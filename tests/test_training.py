@@ -998,7 +998,9 @@ def test_a_checkpoint_write_keeps_the_previous_one(tmp_path):
     dut.checkpoint()
     assert read_checkpoint(tmp_path / "run" / "checkpoint.pt")["progress"]["env_steps"] == 7
     assert read_checkpoint(tmp_path / "run" / "checkpoint.prev.pt")["progress"]["env_steps"] == 0
-    assert sorted(p.name for p in (tmp_path / "run").glob("checkpoint*")) == ["checkpoint.prev.pt", "checkpoint.pt"]  # no .tmp left
+    assert read_checkpoint(tmp_path / "run" / PORTABLE_CHECKPOINT)["progress"]["env_steps"] == 7  # beside the latest
+    assert sorted(p.name for p in (tmp_path / "run").glob("checkpoint*")) == [
+        "checkpoint.portable.pt", "checkpoint.prev.pt", "checkpoint.pt"]  # no .tmp left
 
 
 @pytest.mark.parametrize("damage", ["truncated", "empty"])
