@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -784,6 +785,20 @@ def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhe
     with pytest.raises(ConfigError, match="before its end"):
         Trainer(dataclasses.replace(config, after=_config(env_steps=30, seed=7)), tmp_path / "fourth", progress=lambda line: None,
                 earlier_stage=tmp_path / "unfinished" / PORTABLE_CHECKPOINT)
+
+
+def test_a_later_stage_does_not_count_the_time_its_earlier_stage_ran_twice(tmp_path, monkeypatch):
+    earlier = _config(env_steps=30)
+    Trainer(earlier, tmp_path / "run" / EARLIER_STAGE_DIR, progress=lambda line: None).run()
+    finished = {}
+
+    def run_earlier_stage(trainer):  # stands for running the earlier stage: its time is in its checkpoint
+        finished["at"] = time.perf_counter()
+        return tmp_path / "run" / EARLIER_STAGE_DIR / CHECKPOINT
+
+    monkeypatch.setattr("ace_drake.training.loop.earlier_stage_checkpoint", run_earlier_stage)
+    second = Trainer(_config(seed=4, env_steps=60, after=earlier), tmp_path / "run", progress=lambda line: None)
+    assert second._started >= finished["at"]
 
 
 def test_the_exports_evaluation_is_what_evaluate_measures_of_the_exported_file(tmp_path, monkeypatch):

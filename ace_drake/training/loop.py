@@ -282,6 +282,8 @@ class Trainer(Checkpointing):
         elif config.after is not None:
             self._initialize_from(earlier_stage_from(self, Path(earlier_stage)) if earlier_stage else earlier_stage_checkpoint(self))
         self._save_config()
+        # this run's own time starts now (an earlier stage run above counted its time in its checkpoint)
+        self._started = self._last_log = time.perf_counter()
 
     # ------------------------------------------------------------------------------ the run
     def run(self):
