@@ -226,7 +226,7 @@ def test_the_paper_action_run_is_two_stages_in_one_config():
     assert [first.seed, second.seed] == [40, 41] and first.env_steps < second.env_steps
     # stage 2 loads stage 1's learner and averages its actor from there
     assert dataclasses.replace(first.sac, actor_average=second.sac.actor_average) == second.sac and first.sac.bc_loss == "absolute"
-    assert (first.sac.actor_average, second.sac.actor_average) == (0.0, 2e-4)
+    assert (first.sac.actor_average, second.sac.actor_average) == (0.0, 1e-4)
     assert first.sac.bc_weight == 10.0 and (first.bc_weight_start, first.bc_weight_final, first.bc_fade_steps) == (None, 10.0, 0)
     assert (second.bc_weight_start, second.bc_weight_final) == (2.0, 2.0)
     assert (first.actor_lr_final, second.actor_lr_final, second.sac.actor_lr) == (None, 3e-5, 3e-4)
@@ -412,9 +412,9 @@ def test_a_dagger_fraction_labels_that_share_of_the_learn_phases_tasks(tmp_path,
     assert state.learn_tasks >= 2 and {"dagger", "policy"} <= set(learned)
     labelled = sum(mode in ("demonstrator", "dagger") for mode in modes)
     assert 0 < len(trainer.demonstrations) < state.env_steps and labelled < len(modes)  # only the labelled episodes' steps
-    # Task n is labelled when floor((n + 1) f) > floor(n f): every other task at f = 0.5, every fourth at 0.25.
+    # Task n is labelled when ceil((n + 1) f) > ceil(n f): the first, then every fourth at f = 0.25.
     fresh = Trainer(dataclasses.replace(config, dagger_fraction=0.25), tmp_path / "other", progress=lambda line: None)
-    assert [fresh._learn_task_mode() for _ in range(8)] == ["policy", "policy", "policy", "dagger"] * 2
+    assert [fresh._learn_task_mode() for _ in range(8)] == ["dagger", "policy", "policy", "policy"] * 2
     with pytest.raises(ConfigError, match="dagger_fraction"):
         _config(dagger_fraction=0.5)  # learn_mode policy
     with pytest.raises(ConfigError, match="dagger_fraction"):
@@ -747,11 +747,21 @@ def test_a_portable_checkpoint_carries_the_learner_without_the_tables_and_a_new_
     assert state.phase == "done" and len(second.demonstrations) > 0 and second.learner.updates > first.learner.updates
 
 
-def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path):
+def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path, monkeypatch):
     config = _config(env_steps=30, sac=dataclasses.replace(SMALL, bc_weight=1.0, actor_average=0.1))
     trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    published = []
+    publish = WorkerPool.publish
+    monkeypatch.setattr(WorkerPool, "publish", lambda pool, state: (published.append(state), publish(pool, state))[1])
     trainer.run()
     average = trainer.learner.averaged_actor.state_dict()
+    # The rollouts play the actor itself: the last weights published are the actor's, not the average.
+    assert published and all(torch.equal(value, trainer.learner.actor.state_dict()[name]) for name, value in published[-1].items())
+    # The best evaluated actor is the average as it was evaluated: made the best by one more evaluation, this one.
+    trainer.state.best_rate = -1.0
+    trainer._evaluate_once()
+    assert trainer.state.best_evaluation == len(trainer.state.evaluations) - 1
+    assert all(torch.equal(value, average[name]) for name, value in chosen_actor(trainer, "best")[0].items())
     assert any(not torch.equal(value, trainer.learner.actor.state_dict()[name]) for name, value in average.items())
     for name, value in chosen_actor(trainer, "final")[0].items():
         assert torch.equal(value, average[name])
@@ -771,8 +781,13 @@ def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhe
     second = Trainer(config, tmp_path / "run", progress=lambda line: None, earlier_stage=portable)
     assert not (tmp_path / "run" / EARLIER_STAGE_DIR).exists() and second.learner.updates == first.learner.updates
     assert second.state.env_steps == first.state.env_steps and len(second.replay) == 0  # the tables fill anew
+    second.state.learn_tasks = 1  # the first task unlabelled (task 1 of the pattern at f = 0.5): updates must wait
+    rows_at_update = []
+    update = second.learner.update
+    second.learner.update = lambda *args, **kwargs: (rows_at_update.append(len(second.demonstrations)), update(*args, **kwargs))[1]
     state = second.run()
     assert state.phase == "done" and len(second.demonstrations) > 0
+    assert rows_at_update and min(rows_at_update) > 0  # no update without the cloning term's rows (labels were due)
     # Resumed, it reads its own checkpoint; the earlier stage's is not needed any more.
     assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.phase == "done"
     other = dataclasses.replace(config, after=_config(seed=9, env_steps=30))

@@ -35,7 +35,7 @@ PHASES = ("demonstrations", "ou", "pretrain", "learn", "done")
 CHECKPOINT = "checkpoint.pt"
 PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"  # the one before, kept by every write (module docstring)
 # The same without the replay tables and labelled rows (None): networks, optimisers, counters and
-# history in ~3 MB, where the whole checkpoint is ~2.4 GB. A run that moves to a machine without its
+# history in ~7 MB (the paper-action run's), where the whole checkpoint is ~2.4 GB. A run that moves to a machine without its
 # run directory carries this one; a new stage starts from it (``initialize_from``), its tables
 # filling anew. Written beside every checkpoint.
 PORTABLE_CHECKPOINT = "checkpoint.portable.pt"
@@ -104,7 +104,9 @@ class Progress:
     worker_failures: list = dataclasses.field(default_factory=list)
     # (env_steps, error's last line) per periodic evaluation that raised (loop.Trainer._evaluate)
     evaluation_failures: list = dataclasses.field(default_factory=list)
-    learn_tasks: int = 0  # the learn phase's rollout tasks given so far (loop.Trainer._learn_task_mode)
+    # the learn phase's rollout tasks given a mode under a dagger_fraction below 1 (loop.Trainer._learn_task_mode;
+    # per stage: tasks in flight at a checkpoint are counted and, after a resume, not played)
+    learn_tasks: int = 0
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
@@ -268,6 +270,7 @@ class Checkpointing:
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
         # counted per run (max_worker_failures); the earlier run's stay in its logs
         s.worker_failures, s.evaluation_failures = [], []
+        s.learn_tasks = 0  # the stage's labelling pattern starts with a labelled task
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
         tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else ""

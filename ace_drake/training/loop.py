@@ -281,6 +281,8 @@ class Trainer(Checkpointing):
             self._initialize_from(Path(config.initialize_from))
         elif config.after is not None:
             self._initialize_from(earlier_stage_from(self, Path(earlier_stage)) if earlier_stage else earlier_stage_checkpoint(self))
+            if earlier_stage:
+                self.checkpoint()  # from now on the run resumes from its own directory, without --earlier-stage
         self._save_config()
         # this run's own time starts now (an earlier stage run above counted its time in its checkpoint)
         self._started = self._last_log = time.perf_counter()
@@ -420,7 +422,11 @@ class Trainer(Checkpointing):
             result = self._wait(pool, timeout=0.0 if self.config.backend == "ray" else None)
             self._take(pool, result)
             learned = self.state.env_steps - learn_start
-            if len(self.replay) >= c.sac.batch_size and self.learner.updates - updates_start < c.updates_per_step * learned:
+            # With labels to come (DAgger) but none yet (a stage started from a portable checkpoint), SAC
+            # without its cloning term would move the actor off what it was cloned to: wait for them.
+            labels_due = c.learn_mode == "dagger" and len(self.demonstrations) == 0 and self.bc_weight() > 0
+            if (len(self.replay) >= c.sac.batch_size and not labels_due
+                    and self.learner.updates - updates_start < c.updates_per_step * learned):
                 progress = schedule_progress(self.state, c.env_steps)
                 if c.actor_lr_final is not None:
                     self.learner.set_actor_lr(c.sac.actor_lr + progress * (c.actor_lr_final - c.sac.actor_lr))
@@ -460,14 +466,15 @@ class Trainer(Checkpointing):
 
     def _learn_task_mode(self) -> str:
         """The mode of the learn phase's next rollout task: ``learn_mode``, but with a
-        ``dagger_fraction`` below 1, "dagger" for that share of the tasks, evenly spread (task n is
-        labelled when floor((n + 1) f) > floor(n f)), and "policy" for the rest."""
+        ``dagger_fraction`` below 1, "dagger" for that share of the tasks, evenly spread and
+        first (task n is labelled when ceil((n + 1) f) > ceil(n f): the stage's first task is), and
+        "policy" for the rest."""
         c = self.config
         if c.dagger_fraction >= 1.0:
             return c.learn_mode
         n = self.state.learn_tasks
         self.state.learn_tasks += 1
-        return "dagger" if math.floor((n + 1) * c.dagger_fraction) > math.floor(n * c.dagger_fraction) else "policy"
+        return "dagger" if math.ceil((n + 1) * c.dagger_fraction) > math.ceil(n * c.dagger_fraction) else "policy"
 
     def _ingest(self, episode: Episode) -> None:
         summary = episode.summary
