@@ -222,7 +222,7 @@ def test_the_paper_action_run_is_two_stages_in_one_config():
     first = second.after
     assert first.after is None and first.demonstrations > 0 and first.learn_mode == "dagger"
     assert second.demonstrations == 0  # it collects none of its own
-    assert (first.learn_mode, first.dagger_fraction, second.learn_mode, second.dagger_fraction) == ("dagger", 1.0, "dagger", 0.25)
+    assert (first.learn_mode, first.dagger_fraction, second.learn_mode, second.dagger_fraction) == ("dagger", 1.0, "dagger", 0.1)
     assert [first.seed, second.seed] == [40, 41] and first.env_steps < second.env_steps
     # stage 2 loads stage 1's learner and averages its actor from there
     assert dataclasses.replace(first.sac, actor_average=second.sac.actor_average) == second.sac and first.sac.bc_loss == "absolute"
