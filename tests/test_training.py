@@ -26,6 +26,7 @@ from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.match_data import MatchDataError
 from ace_drake.play.shots import human_shots
+from ace_drake.training import checkpoint as checkpoint_module
 from ace_drake.training.checkpoint import CHECKPOINT, PORTABLE_CHECKPOINT, CheckpointError, play_options_moved, read_checkpoint
 from ace_drake.training.env import RallyEnvParams, training_rally_params
 from ace_drake.training.export import (
@@ -250,7 +251,7 @@ def _write_yaml(path: Path, data: dict) -> Path:
     return path
 
 
-def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_checkpoint(tmp_path):
+def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_checkpoint(tmp_path, monkeypatch):
     base = to_dict(_config(env_steps=30))
     del base["after"]
     _write_yaml(tmp_path / "base.yaml", base)
@@ -279,8 +280,18 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     for name in ("checkpoint.pt", "checkpoint.prev.pt"):
         (tmp_path / "run" / name).unlink(missing_ok=True)
     lines.clear()
+    reads = []
+    real_read = checkpoint_module.read_checkpoint
+    monkeypatch.setattr(checkpoint_module, "read_checkpoint", lambda path: reads.append(path) or real_read(path))
     again = Trainer(config, tmp_path / "run", progress=lines.append)
     assert any("has finished" in line for line in lines) and again.state.initialized_at == first.state.env_steps
+    assert reads == [earlier / CHECKPOINT]  # read once: a real run's is ~2.3 GB
+    # An earlier stage made longer than it ran is not finished: it learns on to its new length first.
+    for name in ("checkpoint.pt", "checkpoint.prev.pt"):
+        (tmp_path / "run" / name).unlink(missing_ok=True)
+    longer = dataclasses.replace(config, after=dataclasses.replace(config.after, env_steps=first.state.env_steps + 20))
+    extended = Trainer(longer, tmp_path / "run", progress=lambda line: None)
+    assert extended.state.initialized_at >= first.state.env_steps + 20
     with pytest.raises(ConfigError, match="after"):
         _config(after=_config(), initialize_from=str(earlier / "checkpoint.pt"))
     with pytest.raises(ConfigError, match="same sac"):
@@ -809,7 +820,8 @@ def test_a_later_stage_does_not_count_the_time_its_earlier_stage_ran_twice(tmp_p
 
     def run_earlier_stage(trainer):  # stands for running the earlier stage: its time is in its checkpoint
         finished["at"] = time.perf_counter()
-        return tmp_path / "run" / EARLIER_STAGE_DIR / CHECKPOINT
+        path = tmp_path / "run" / EARLIER_STAGE_DIR / CHECKPOINT
+        return path, read_checkpoint(path)
 
     monkeypatch.setattr("ace_drake.training.loop.earlier_stage_checkpoint", run_earlier_stage)
     second = Trainer(_config(seed=4, env_steps=60, after=earlier), tmp_path / "run", progress=lambda line: None)

@@ -149,6 +149,30 @@ def play_options_moved(config: dict) -> dict:
     return {**config, "sac": sac, "play": {**play, **(config.get("play") or {})}}
 
 
+def latest_checkpoint(run_dir) -> tuple[Path, dict] | None:
+    """(path, payload) of the checkpoint in ``run_dir`` to resume from: the latest, or the previous
+    one with a warning on stderr when the latest is missing or cannot be read; None when the run
+    has none. Raises CheckpointError when neither can be read."""
+    run_dir = Path(run_dir)
+    latest, previous = run_dir / CHECKPOINT, run_dir / PREVIOUS_CHECKPOINT
+    if not latest.is_file():
+        if not previous.is_file():
+            return None
+        print(f"warning: train: {latest} is missing; resuming from the previous checkpoint {previous}", file=sys.stderr)
+        return previous, read_checkpoint(previous)
+    try:
+        return latest, read_checkpoint(latest)
+    except CheckpointError as error:
+        if not previous.is_file():
+            raise
+        try:
+            payload = read_checkpoint(previous)
+        except CheckpointError as previous_error:
+            raise CheckpointError(f"{error}; the previous checkpoint cannot be read either: {previous_error}") from None
+        print(f"warning: train: {error}; resuming from the previous checkpoint {previous}", file=sys.stderr)
+        return previous, payload
+
+
 class Checkpointing:
     """Saving, loading and resuming a ``loop.Trainer``'s run (module docstring)."""
 
@@ -176,28 +200,6 @@ class Checkpointing:
         _write({**payload, "replay": None, "demonstrations": None}, portable.with_name(portable.name + ".tmp"))
         os.replace(portable.with_name(portable.name + ".tmp"), portable)
         _sync_directory(self.run_dir)
-
-    def _latest_checkpoint(self) -> tuple[Path, dict] | None:
-        """(path, payload) of the run's checkpoint to resume from: the latest, or the previous one
-        with a warning on stderr when the latest is missing or cannot be read; None when the run
-        has none. Raises CheckpointError when neither can be read."""
-        latest, previous = self.run_dir / CHECKPOINT, self.run_dir / PREVIOUS_CHECKPOINT
-        if not latest.is_file():
-            if not previous.is_file():
-                return None
-            print(f"warning: train: {latest} is missing; resuming from the previous checkpoint {previous}", file=sys.stderr)
-            return previous, read_checkpoint(previous)
-        try:
-            return latest, read_checkpoint(latest)
-        except CheckpointError as error:
-            if not previous.is_file():
-                raise
-            try:
-                payload = read_checkpoint(previous)
-            except CheckpointError as previous_error:
-                raise CheckpointError(f"{error}; the previous checkpoint cannot be read either: {previous_error}") from None
-            print(f"warning: train: {error}; resuming from the previous checkpoint {previous}", file=sys.stderr)
-            return previous, payload
 
     def _load(self, path: Path, payload: dict) -> None:
         # Read back through the config classes, so that a field added since the checkpoint was
@@ -244,14 +246,16 @@ class Checkpointing:
         if s.phase == "done" and s.env_steps < new:
             s.phase = "learn"  # a finished run extended: learn on to the new length
 
-    def _initialize_from(self, path: Path) -> None:
-        """Starts from another run's checkpoint (``initialize_from``): its learner (the SacConfig
-        must be the same but for the fields a stage may change, ``sac.STAGE_FIELDS``), replay
-        tables and demonstrations (none from a ``PORTABLE_CHECKPOINT``), and counters, in ``initialize_phase``: the learn phase, or the demonstrations phase, whose collections and cloning updates then
-        run on to this config's totals. Its best actor is forgotten (its evaluations may be of
+    def _initialize_from(self, path: Path, payload: dict | None = None) -> None:
+        """Starts from another run's checkpoint at ``path`` (``initialize_from``; ``payload``: its
+        contents when already read): its learner (the SacConfig must be the same but for the
+        fields a stage may change, ``sac.STAGE_FIELDS``), replay tables and demonstrations (none
+        from a ``PORTABLE_CHECKPOINT``), and counters, in ``initialize_phase``: the learn phase,
+        or the demonstrations phase, whose collections and cloning updates then run on to this
+        config's totals. Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and
         chooses among its own evaluations."""
-        payload = read_checkpoint(path)
+        payload = read_checkpoint(path) if payload is None else payload
         self._check_robot(path, payload)
         c = self.config
         portable = payload["replay"] is None

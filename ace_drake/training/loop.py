@@ -72,7 +72,7 @@ from ace_drake.learning.sac import STAGE_FIELDS, PlayOptions, SacConfig, SacLear
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.robot.model import RobotModel, load_scenario
 from ace_drake.play.shots import human_shots, make_distribution
-from ace_drake.training.checkpoint import Checkpointing, Progress, schedule_progress
+from ace_drake.training.checkpoint import Checkpointing, Progress, latest_checkpoint, schedule_progress
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
 from ace_drake.training.stages import earlier_stage_checkpoint, earlier_stage_from, with_earlier_stages
@@ -274,13 +274,13 @@ class Trainer(Checkpointing):
         self._pool = None
         self._started = time.perf_counter()
         self._last_log = self._started
-        latest = self._latest_checkpoint()
+        latest = latest_checkpoint(self.run_dir)
         if latest is not None:
             self._load(*latest)
         elif config.initialize_from:
             self._initialize_from(Path(config.initialize_from))
         elif config.after is not None:
-            self._initialize_from(earlier_stage_from(self, Path(earlier_stage)) if earlier_stage else earlier_stage_checkpoint(self))
+            self._initialize_from(*(earlier_stage_from(self, Path(earlier_stage)) if earlier_stage else earlier_stage_checkpoint(self)))
             if earlier_stage:
                 self.checkpoint()  # from now on the run resumes from its own directory, without --earlier-stage
         self._save_config()

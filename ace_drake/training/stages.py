@@ -19,7 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ace_drake.config import ConfigError, merge
-from ace_drake.training.checkpoint import config_differences, read_checkpoint
+from ace_drake.training.checkpoint import config_differences, latest_checkpoint, read_checkpoint
 
 EARLIER_STAGE_DIR = "after"  # the earlier stage's run directory, inside the later stage's
 
@@ -37,29 +37,39 @@ def with_earlier_stages(data):
     return {**data, "after": with_earlier_stages(merge(stage, changes))}
 
 
-def earlier_stage_checkpoint(trainer) -> Path:
+def earlier_stage_checkpoint(trainer) -> tuple[Path, dict]:
     """Runs ``trainer.config.after`` to its end in ``trainer.run_dir / EARLIER_STAGE_DIR`` with
     ``trainer``'s class and progress callable (resuming it there, or nothing if it has finished)
-    and returns its checkpoint."""
+    and returns its checkpoint's path and payload (a finished stage's checkpoint is read once: a
+    full one is ~2.3 GB)."""
     run_dir = trainer.run_dir / EARLIER_STAGE_DIR
-    earlier = type(trainer)(trainer.config.after, run_dir, trainer.log)
-    if earlier.state.phase != "done":
-        trainer.log(f"train: the earlier stage (after:) first, in {run_dir}")
-        earlier.run()
-    else:
+    latest = latest_checkpoint(run_dir)  # the latest, or the one before it if that cannot be read
+    if latest is not None and _finished(latest[1], trainer.config.after):
         trainer.log(f"train: the earlier stage (after:) has finished in {run_dir}: continuing from its checkpoint")
-    latest = earlier._latest_checkpoint()  # the latest, or the one before it if that cannot be read
+        return latest
+    # to run, resume, extend, or refuse (another config) as any run in its directory
+    trainer.log(f"train: the earlier stage (after:) first, in {run_dir}")
+    type(trainer)(trainer.config.after, run_dir, trainer.log).run()
+    latest = latest_checkpoint(run_dir)
     if latest is None:
         raise ConfigError(f"train: the earlier stage in {run_dir} has no checkpoint")
-    return latest[0]
+    return latest
 
 
-def earlier_stage_from(trainer, path: Path) -> Path:
+def _finished(payload: dict, config) -> bool:
+    """Whether the checkpoint ``payload`` is of a run of ``config`` that has finished (not one
+    extended since: its steps reach the config's)."""
+    progress = payload["progress"]
+    return (progress["phase"] == "done" and progress["env_steps"] >= config.env_steps
+            and not config_differences(payload["config"], config))
+
+
+def earlier_stage_from(trainer, path: Path) -> tuple[Path, dict]:
     """``path``, a checkpoint of ``trainer.config.after`` written elsewhere (e.g. its portable
     checkpoint, carried to a machine without ``run_dir/after``: ``ace-drake train --earlier-stage``),
     to start from instead of running that stage. Raises ConfigError if it was written with
     another config than the earlier stage's (but for its length, ``CHANGEABLE_ON_RESUME``) or
-    before that stage finished."""
+    before that stage finished. Returns its path and payload."""
     payload = read_checkpoint(path)
     differing = config_differences(payload["config"], trainer.config.after)
     if differing:
@@ -68,4 +78,4 @@ def earlier_stage_from(trainer, path: Path) -> Path:
         raise ConfigError(f"train: {path} is a checkpoint of the earlier stage before its end (phase {payload['progress']['phase']}); "
                           "finish that stage first")
     trainer.log(f"train: the earlier stage (after:) from {path}")
-    return path
+    return path, payload
