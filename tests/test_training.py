@@ -788,11 +788,13 @@ def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhe
     first = Trainer(earlier, tmp_path / "elsewhere", progress=lambda line: None)
     first.run()
     portable = tmp_path / "elsewhere" / PORTABLE_CHECKPOINT
-    config = _config(seed=4, env_steps=first.state.env_steps + 20, learn_mode="dagger", dagger_fraction=0.5, after=earlier)
+    config = _config(seed=4, env_steps=first.state.env_steps + 100, learn_mode="dagger", dagger_fraction=0.25, after=earlier)
     second = Trainer(config, tmp_path / "run", progress=lambda line: None, earlier_stage=portable)
     assert not (tmp_path / "run" / EARLIER_STAGE_DIR).exists() and second.learner.updates == first.learner.updates
     assert second.state.env_steps == first.state.env_steps and len(second.replay) == 0  # the tables fill anew
-    second.state.learn_tasks = 1  # the first task unlabelled (task 1 of the pattern at f = 0.5): updates must wait
+    # Tasks 1-3 of the pattern at f = 0.25 are unlabelled: the replay holds a batch before the first
+    # labelled rows come with task 4, and updates must wait for them.
+    second.state.learn_tasks = 1
     rows_at_update = []
     update = second.learner.update
     second.learner.update = lambda *args, **kwargs: (rows_at_update.append(len(second.demonstrations)), update(*args, **kwargs))[1]
