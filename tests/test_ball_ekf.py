@@ -235,6 +235,24 @@ def test_a_position_the_prediction_cannot_explain_restarts_the_track():
         assert dut.update(state, moved).latest.resets == resets
 
 
+def test_a_diverged_track_gives_no_estimate_and_its_next_position_restarts_it():
+    """A track whose velocity diverged (an absurd fit) predicts inf and NaN through the quadratic
+    drag: it must give no estimate rather than a NaN one, and the next position must restart it
+    (NaN fails every comparison, so a bound written as "reset if above" would fuse it)."""
+    start = make_state([1.5, 0.0, 0.3], [-8.0, 0.0, 1.5])
+    truth_at = trajectory(start, 0.2)
+    dut = BallEkf()
+    state = dut.update(dut.initial_state(), positions_along(truth_at, np.arange(0.0, 0.1, 0.005)))
+    index = state.batch.index[0]
+    latest = int(index[ekf_kernels.X_CORE0] + index[ekf_kernels.X_N] - index[ekf_kernels.X_FIRST])
+    state.batch.core_f[0, latest, ekf_kernels.C_MEAN + 3] = -1e100  # the diverged velocity, m/s
+    assert not np.all(np.isfinite(dut.predict(state.latest.mean, state.latest.covariance, 0.005)[0]))
+    assert dut.estimate(state, 0.1) is None
+    state = dut.update(state, positions_along(truth_at, [0.1, 0.105, 0.11, 0.115], start_sequence=30))
+    assert state.latest.resets == 1
+    np.testing.assert_allclose(dut.estimate(state, 0.115).mean[:3], truth_at(0.115)[:3], atol=1e-3)
+
+
 def test_a_racket_contact_restarts_from_the_measurements_after_it():
     incoming = make_state([1.5, 0.0, 0.3], [-8.0, 0.0, 1.5], [0.0, -200.0, 0.0])
     incoming_at = trajectory(incoming, 0.1)

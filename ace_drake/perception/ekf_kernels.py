@@ -552,7 +552,9 @@ def _fuse_position(core_f, core_i, obs_row_f, obs_row_i, obs_number, obs_f, offs
     noise = np.empty((3, 3))
     _noise(obs_row_f, cfg[F_POSITION_VARIANCE], noise)
     normalised = _quadratic3(covariance[:3, :3] + noise, innovation)
-    if _norm3(innovation[0], innovation[1], innovation[2]) > cfg[F_JUMP] or normalised > cfg[F_INNOVATION]:
+    # Written as "not within both bounds" so that a non-finite prediction (a diverged track: an
+    # absurd velocity through the quadratic drag overflows RK4 to inf and NaN) restarts it too.
+    if not (_norm3(innovation[0], innovation[1], innovation[2]) <= cfg[F_JUMP] and normalised <= cfg[F_INNOVATION]):
         _reset(core_f, core_i, core_f[C_NOT_BEFORE])
         return _collect(core_f, core_i, obs_row_f, obs_row_i, obs_number, obs_f, offset, cfg, start_covariance, request, result)
     _kalman_update(mean, covariance, innovation, False, noise)
@@ -774,8 +776,9 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
     """Predicts each pending environment's latest posterior to times[b] (s) into means (B, 9),
     covariances (B, 9, 9) and status (B, 3) [valid, spin fused, last capture (s)]; pending[b]
     False when done, True when blocked (a request in requests[b], as in ``advance``). An
-    environment without a track gets valid 0; times[b] before the posterior gives valid -1.
-    Returns how many environments are blocked."""
+    environment without a track, or whose prediction is not finite (a diverged track), gets
+    valid 0; times[b] before the posterior gives valid -1. Returns how many environments are
+    blocked."""
     blocked_count = 0
     for b in range(index.shape[0]):
         if not pending[b]:
@@ -795,6 +798,9 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
         if result == BLOCKED:
             pending[b] = True
             blocked_count += 1
+            continue
+        if not np.all(np.isfinite(predicted_mean)):  # a diverged track: no estimate (its next position restarts it)
+            status[b, 0] = 0.0
             continue
         means[b] = predicted_mean
         covariances[b] = predicted_covariance[:9, :9]
