@@ -87,6 +87,45 @@ def test_squashed_log_prob_matches_the_change_of_variables():
     np.testing.assert_allclose(squashed_gaussian_log_prob(u, mean, log_std).numpy(), reference.numpy(), rtol=1e-5)
 
 
+def test_the_policys_spread_narrows_every_draw_and_keeps_the_entropy_terms_size():
+    """SacConfig.std_scale s: the target's a', the actor loss's a~ and the rollouts draw from
+    N(mean, (s std)^2); log_prob is that distribution's density plus n log s; the state loads
+    across s (a later stage may change it)."""
+    wide = SacLearner(SacConfig(seed=5, **SMALL))
+    narrow = SacLearner(SacConfig(seed=5, std_scale=0.1, **SMALL))
+    narrow.load_state_dict(wide.state_dict())
+    features = wide.actor_features(wide._tensors(make_batch(wide))["obs"])
+    draws = {}
+    for name, scale in (("wide", 1.0), ("narrow", 0.1)):
+        generator = torch.Generator().manual_seed(0)
+        with torch.no_grad():
+            draws[name] = wide.actor.sample(features, generator, scale)
+    mean, log_std, _ = wide.actor(features)
+    with torch.no_grad():
+        u_wide, u_narrow = torch.atanh(draws["wide"][0].clamp(-1 + 1e-6, 1 - 1e-6)), torch.atanh(draws["narrow"][0])
+        np.testing.assert_allclose((u_narrow - mean).numpy(), 0.1 * (u_wide - mean).numpy(), rtol=1e-3, atol=1e-4)
+        reference = torch.distributions.TransformedDistribution(
+            torch.distributions.Normal(mean, 0.1 * log_std.exp()), [torch.distributions.TanhTransform()]
+        ).log_prob(draws["narrow"][0]).sum(-1) + 16 * math.log(0.1)
+        np.testing.assert_allclose(draws["narrow"][1].numpy(), reference.numpy(), rtol=1e-4, atol=1e-3)
+    # The Bellman target draws a' the same way.
+    batch = make_batch(wide)
+    narrow.generator.manual_seed(1)
+    y = narrow.target(batch)
+    b = narrow._tensors(batch)
+    with torch.no_grad():
+        a, log_prob, _, _ = narrow.actor.sample(narrow.actor_features(b["next_obs"]), torch.Generator().manual_seed(1), 0.1)
+        q1, q2 = narrow.target_critic(narrow.critic_features(b["next_privileged"], b["next_obs"]), a)
+    expected = soft_target(b["reward"], b["done"], q1, q2, log_prob, narrow.config.gamma, narrow.config.alpha)
+    np.testing.assert_allclose(y.numpy(), expected.numpy(), rtol=1e-5, atol=1e-6)
+    # The rollouts too: acting with the narrow policy is acting with the wide one at a tenth.
+    obs = np.zeros((3, wide.observation_size))
+    np.testing.assert_allclose(narrow.act(obs, generator=torch.Generator().manual_seed(2)),
+                               wide.act(obs, generator=torch.Generator().manual_seed(2), std_scale=0.1), atol=1e-6)
+    with pytest.raises(ValueError, match="std_scale"):
+        SacConfig(std_scale=0.0)
+
+
 def test_auxiliary_loss_is_the_decoder_mse_against_the_privileged_ball_state():
     learner = SacLearner(SacConfig(**SMALL))
     b = learner._tensors(make_batch(learner))

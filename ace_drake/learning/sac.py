@@ -45,9 +45,18 @@ average of the actor's weights, a <- (1 - r) a + r actor after every update, whi
 average over ~1/r updates smooths the actor's swings between evaluations: the paper-action run's
 held-out rate moved by up to 17 points in 10,000 updates (docs/training.md).
 
-The cloning term's fields (``CLONING_FIELDS``) only weigh a loss, and ``actor_average`` only
-averages: a learner's state loads into a learner whose config differs in them alone
-(``STAGE_FIELDS``), so that a later training stage may change them.
+The policy's spread (``SacConfig.std_scale`` s < 1; this project's, not the paper's): the policy's
+Gaussian is the actor network's with its standard deviation times s, wherever the policy is drawn
+from: the Bellman target's a', the actor loss's a~ and the rollouts. Episodes played at a tenth of
+the network's spread (``ExplorationParams.policy_std_scale``) while the losses drew at its full
+spread asked the critic about actions it had no data for; without a strong cloning term the
+actor followed the critic's errors there and collapsed (docs/experiments/2026-12-06-paper-action-five-stages.md).
+With s the learner draws where the episodes play. Its log density leaves out the constant n log s
+(``networks.Actor.sample``).
+
+The cloning term's fields (``CLONING_FIELDS``) only weigh a loss, and ``actor_average`` and
+``std_scale`` do not change the networks: a learner's state loads into a learner whose config
+differs in them alone (``STAGE_FIELDS``), so that a later training stage may change them.
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
 the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
@@ -94,7 +103,7 @@ ACTIONS = ("terminal", "hit_state")
 # SacConfig's fields that only weigh the cloning term (module docstring).
 CLONING_FIELDS = ("bc_weight", "bc_loss", "bc_hit_weight", "bc_hit_window")
 # SacConfig's fields a later training stage may change: a learner's state loads across them (module docstring).
-STAGE_FIELDS = CLONING_FIELDS + ("actor_average",)
+STAGE_FIELDS = CLONING_FIELDS + ("actor_average", "std_scale")
 CLONING_LOSSES = ("squared", "absolute")  # SacConfig.bc_loss (module docstring)
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())
@@ -143,6 +152,9 @@ class SacConfig:
     hit_loss_scales: tuple[float, float, float] = (0.02, 0.05, 0.2)
     # The averaged actor's rate r per update (module docstring; 0: none, the policy is the actor).
     actor_average: float = 0.0
+    # The policy's spread s (module docstring): its Gaussian's standard deviation is the actor
+    # network's times s, in the Bellman target, the actor loss and the rollouts alike (1: SAC's).
+    std_scale: float = 1.0
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -151,6 +163,8 @@ class SacConfig:
         for name in ("actor_lr", "critic_lr", "tau", "batch_size", "embedding_size"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SacConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 < self.std_scale <= 1.0:
+            raise ValueError(f"SacConfig.std_scale must be in (0, 1] (1: the actor network's spread), got {self.std_scale}")
         if not 0.0 <= self.actor_average <= 1.0:
             raise ValueError(f"SacConfig.actor_average must be in [0, 1] (0: no averaged actor), got {self.actor_average}")
         if not 0.0 <= self.gamma < 1.0:
@@ -276,14 +290,15 @@ class SacLearner:
             std_scale: float = 1.0) -> np.ndarray:
         """Actions (..., 16) in [-1, 1] for observations (..., layout.size); sampled with
         ``generator`` (default: the learner's own) unless ``deterministic`` (tanh of the mean).
-        ``std_scale`` multiplies the Gaussian's standard deviation (1: the policy itself)."""
+        ``std_scale`` multiplies the policy's standard deviation (the actor network's times
+        ``SacConfig.std_scale``; 1: the policy itself)."""
         obs_t = torch.as_tensor(np.atleast_2d(obs), dtype=torch.float32)
         if deterministic:
             out = self.actor.sample(self.actor_features(obs_t), generator or self.generator)[2].numpy()
         else:
             mean, log_std, _ = self.actor(self.actor_features(obs_t))
             noise = torch.randn(mean.shape, generator=generator or self.generator, dtype=mean.dtype)
-            out = torch.tanh(mean + std_scale * log_std.exp() * noise).numpy()
+            out = torch.tanh(mean + std_scale * self.config.std_scale * log_std.exp() * noise).numpy()
         return out.reshape(*np.shape(obs)[:-1], ACTION_SIZE)
 
     def policy(self, actor_state: dict | None = None) -> DeterministicPolicy:
@@ -337,7 +352,7 @@ class SacLearner:
     def target(self, batch: dict) -> torch.Tensor:
         """The soft Bellman target y (B,) of the module docstring (samples a' from the actor)."""
         b = batch if isinstance(batch.get("reward"), torch.Tensor) else self._tensors(batch)
-        next_action, next_log_prob, _, _ = self.actor.sample(self.actor_features(b["next_obs"]), self.generator)
+        next_action, next_log_prob, _, _ = self.actor.sample(self.actor_features(b["next_obs"]), self.generator, self.config.std_scale)
         next_q1, next_q2 = self.target_critic(self.critic_features(b["next_privileged"], b["next_obs"]), next_action)
         return soft_target(b["reward"], b["done"], next_q1, next_q2, next_log_prob, self.config.gamma, self.config.alpha)
 
@@ -387,7 +402,7 @@ class SacLearner:
         critic_loss.backward()
         self.critic_optimizer.step()
 
-        action, log_prob, _, embedding = self.actor.sample(self.actor_features(b["obs"]), self.generator)
+        action, log_prob, _, embedding = self.actor.sample(self.actor_features(b["obs"]), self.generator, c.std_scale)
         q1_pi, q2_pi = self.critic(critic_input, action)
         policy_loss = torch.mean(c.alpha * log_prob - torch.minimum(q1_pi, q2_pi))
         aux_loss = self.auxiliary_loss(embedding, b["privileged"])

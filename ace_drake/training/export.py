@@ -54,8 +54,9 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         config=to_dict(c),
         robot=trainer.robot_record(),  # the robot it was trained for (robot.params.scenario_record)
     )
-    rollouts = "actor's mean" if c.exploration.policy_std_scale == 0.0 else (
-        "stochastic actor" if c.exploration.policy_std_scale == 1.0 else f"actor at {c.exploration.policy_std_scale:g} of its spread")
+    spread = c.exploration.policy_std_scale * c.sac.std_scale  # of the actor network's
+    rollouts = "actor's mean" if spread == 0.0 else (
+        "stochastic actor" if spread == 1.0 else f"actor at {spread:g} of its spread")
     started_at = s.initialized_at
     if started_at is None and c.initialize_from:
         started_at = s.learn_start[0]  # a run initialised before Progress.initialized_at existed: the same step

@@ -66,9 +66,10 @@ class ExplorationParams:
     sigma / sqrt(2 theta) = 0.5 and a correlation time of 1 / theta = 0.2 s, about a third of an
     incoming ball's flight). demo_noise: std of the Gaussian added to the returner's actions;
     demo_noise_fraction: the share of its steps that get noise (DART). policy_std_scale: the
-    ``policy`` mode samples the actor's Gaussian with its standard deviation times this (1: SAC's
-    own sampling; below 1 explores less around the mean, e.g. for an actor cloned from
-    demonstrations whose untrained spread would spoil every hit).
+    ``policy`` mode samples the policy's Gaussian with its standard deviation times this (1: the
+    policy's own sampling; below 1 explores less around the mean than the learner draws, e.g. for
+    an actor cloned from demonstrations whose untrained spread would spoil every hit). To narrow
+    the policy itself, for the learner too, use ``SacConfig.std_scale`` instead.
     """
 
     ou_theta: float = 5.0
