@@ -242,15 +242,20 @@ def test_a_diverged_track_gives_no_estimate_and_its_next_position_restarts_it():
     start = make_state([1.5, 0.0, 0.3], [-8.0, 0.0, 1.5])
     truth_at = trajectory(start, 0.2)
     dut = BallEkf()
-    state = dut.update(dut.initial_state(), positions_along(truth_at, np.arange(0.0, 0.1, 0.005)))
-    index = state.batch.index[0]
-    latest = int(index[ekf_kernels.X_CORE0] + index[ekf_kernels.X_N] - index[ekf_kernels.X_FIRST])
-    state.batch.core_f[0, latest, ekf_kernels.C_MEAN + 3] = -1e100  # the diverged velocity, m/s
-    assert not np.all(np.isfinite(dut.predict(state.latest.mean, state.latest.covariance, 0.005)[0]))
-    assert dut.estimate(state, 0.1) is None
-    state = dut.update(state, positions_along(truth_at, [0.1, 0.105, 0.11, 0.115], start_sequence=30))
-    assert state.latest.resets == 1
-    np.testing.assert_allclose(dut.estimate(state, 0.115).mean[:3], truth_at(0.115)[:3], atol=1e-3)
+    tracked = dut.update(dut.initial_state(), positions_along(truth_at, np.arange(0.0, 0.1, 0.005)))
+    # -1e100 m/s: the mean itself becomes NaN; -1e6 m/s: the mean stays finite (if absurd) while
+    # the covariance, through the finite-difference Jacobian, overflows
+    for speed, mean_finite in ((-1e100, False), (-1e6, True)):
+        state = dut.update(dut.initial_state(), positions_along(truth_at, np.arange(0.0, 0.1, 0.005)))
+        index = state.batch.index[0]
+        latest = int(index[ekf_kernels.X_CORE0] + index[ekf_kernels.X_N] - index[ekf_kernels.X_FIRST])
+        state.batch.core_f[0, latest, ekf_kernels.C_MEAN + 3] = speed  # the diverged velocity, m/s
+        mean, covariance, _ = dut.predict(state.latest.mean, state.latest.covariance, 0.005)
+        assert np.all(np.isfinite(mean)) == mean_finite and not np.all(np.isfinite(covariance))
+        assert dut.estimate(state, 0.1) is None and dut.estimate(tracked, 0.1) is not None
+        state = dut.update(state, positions_along(truth_at, [0.1, 0.105, 0.11, 0.115], start_sequence=30))
+        assert state.latest.resets == 1
+        np.testing.assert_allclose(dut.estimate(state, 0.115).mean[:3], truth_at(0.115)[:3], atol=1e-3)
 
 
 def test_a_racket_contact_restarts_from_the_measurements_after_it():

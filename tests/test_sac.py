@@ -122,6 +122,12 @@ def test_the_policys_spread_narrows_every_draw_and_keeps_the_entropy_terms_size(
     obs = np.zeros((3, wide.observation_size))
     np.testing.assert_allclose(narrow.act(obs, generator=torch.Generator().manual_seed(2)),
                                wide.act(obs, generator=torch.Generator().manual_seed(2), std_scale=0.1), atol=1e-6)
+    # And the actor loss: an update draws both its a' and its a~ at the narrow spread.
+    scales = []
+    sample = narrow.actor.sample
+    narrow.actor.sample = lambda features, generator=None, std_scale=1.0: (scales.append(std_scale), sample(features, generator, std_scale))[1]
+    narrow.update(batch)
+    assert scales == [0.1, 0.1]
     with pytest.raises(ValueError, match="std_scale"):
         SacConfig(std_scale=0.0)
 

@@ -292,6 +292,11 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     longer = dataclasses.replace(config, after=dataclasses.replace(config.after, env_steps=first.state.env_steps + 20))
     extended = Trainer(longer, tmp_path / "run", progress=lambda line: None)
     assert extended.state.initialized_at >= first.state.env_steps + 20
+    # A finished checkpoint of another earlier stage in its place is refused, not started from.
+    for name in ("checkpoint.pt", "checkpoint.prev.pt"):
+        (tmp_path / "run" / name).unlink(missing_ok=True)
+    with pytest.raises(ConfigError, match="another config"):
+        Trainer(dataclasses.replace(longer, after=dataclasses.replace(longer.after, seed=9)), tmp_path / "run", progress=lambda line: None)
     with pytest.raises(ConfigError, match="after"):
         _config(after=_config(), initialize_from=str(earlier / "checkpoint.pt"))
     with pytest.raises(ConfigError, match="same sac"):
@@ -813,6 +818,10 @@ def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhe
     with pytest.raises(ConfigError, match="before its end"):
         Trainer(dataclasses.replace(config, after=_config(env_steps=30, seed=7)), tmp_path / "fourth", progress=lambda line: None,
                 earlier_stage=tmp_path / "unfinished" / PORTABLE_CHECKPOINT)
+    # nor a finished one of a stage extended since (it would learn on to its new length first)
+    with pytest.raises(ConfigError, match="before its end"):
+        Trainer(dataclasses.replace(config, after=dataclasses.replace(earlier, env_steps=first.state.env_steps + 20)),
+                tmp_path / "fifth", progress=lambda line: None, earlier_stage=portable)
 
 
 def test_a_later_stage_does_not_count_the_time_its_earlier_stage_ran_twice(tmp_path, monkeypatch):

@@ -776,9 +776,9 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
     """Predicts each pending environment's latest posterior to times[b] (s) into means (B, 9),
     covariances (B, 9, 9) and status (B, 3) [valid, spin fused, last capture (s)]; pending[b]
     False when done, True when blocked (a request in requests[b], as in ``advance``). An
-    environment without a track, or whose prediction is not finite (a diverged track), gets
-    valid 0; times[b] before the posterior gives valid -1. Returns how many environments are
-    blocked."""
+    environment without a track, or whose prediction (mean or covariance) is not finite (a
+    diverged track), gets valid 0; times[b] before the posterior gives valid -1. Returns how
+    many environments are blocked."""
     blocked_count = 0
     for b in range(index.shape[0]):
         if not pending[b]:
@@ -799,7 +799,9 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
             pending[b] = True
             blocked_count += 1
             continue
-        if not np.all(np.isfinite(predicted_mean)):  # a diverged track: no estimate (its next position restarts it)
+        # a diverged track: no estimate (its next position restarts it); its covariance, through the
+        # finite-difference Jacobian, overflows before its mean does
+        if not (np.all(np.isfinite(predicted_mean)) and np.all(np.isfinite(predicted_covariance[:9, :9]))):
             status[b, 0] = 0.0
             continue
         means[b] = predicted_mean

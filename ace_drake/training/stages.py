@@ -47,9 +47,12 @@ def earlier_stage_checkpoint(trainer) -> tuple[Path, dict]:
     if latest is not None and _finished(latest[1], trainer.config.after):
         trainer.log(f"train: the earlier stage (after:) has finished in {run_dir}: continuing from its checkpoint")
         return latest
+    latest = None  # not held while the earlier stage runs (a full payload is ~2.3 GB)
     # to run, resume, extend, or refuse (another config) as any run in its directory
+    earlier = type(trainer)(trainer.config.after, run_dir, trainer.log)
     trainer.log(f"train: the earlier stage (after:) first, in {run_dir}")
-    type(trainer)(trainer.config.after, run_dir, trainer.log).run()
+    earlier.run()
+    del earlier
     latest = latest_checkpoint(run_dir)
     if latest is None:
         raise ConfigError(f"train: the earlier stage in {run_dir} has no checkpoint")
@@ -69,13 +72,15 @@ def earlier_stage_from(trainer, path: Path) -> tuple[Path, dict]:
     checkpoint, carried to a machine without ``run_dir/after``: ``ace-drake train --earlier-stage``),
     to start from instead of running that stage. Raises ConfigError if it was written with
     another config than the earlier stage's (but for its length, ``CHANGEABLE_ON_RESUME``) or
-    before that stage finished. Returns its path and payload."""
+    before that stage finished (at the config's length: a stage since extended has not). Returns
+    its path and payload."""
     payload = read_checkpoint(path)
     differing = config_differences(payload["config"], trainer.config.after)
     if differing:
         raise ConfigError(f"train: {path} is not a checkpoint of the config's earlier stage (after:): it differs in {differing}")
-    if payload["progress"]["phase"] != "done":
-        raise ConfigError(f"train: {path} is a checkpoint of the earlier stage before its end (phase {payload['progress']['phase']}); "
-                          "finish that stage first")
+    if not _finished(payload, trainer.config.after):
+        progress = payload["progress"]
+        raise ConfigError(f"train: {path} is a checkpoint of the earlier stage before its end (phase {progress['phase']}, "
+                          f"{progress['env_steps']} of {trainer.config.after.env_steps} steps); finish that stage first")
     trainer.log(f"train: the earlier stage (after:) from {path}")
     return path, payload
