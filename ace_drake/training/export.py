@@ -221,6 +221,6 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     axes.set_ylim(0.0, 1.0)
     axes.set_title(title)
     axes.grid(alpha=0.3)
-    axes.legend(loc="upper left", fontsize=7)
+    axes.legend(loc="best", fontsize=7)  # where it hides the fewest points
     figure.tight_layout()
     figure.savefig(path)
