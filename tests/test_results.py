@@ -39,13 +39,13 @@ def write_json(path: Path, payload: dict) -> None:
 def test_policy_row_from_a_constructed_sidecar(tmp_path):
     write_json(tmp_path / "models/policies/rally_sac.json", small_sidecar())
     rows = {row.what: row for row in results.result_rows(tmp_path)}
-    row = rows["`policy:rally_sac`: the paper's action (eq. 12)"]
+    row = rows["`policy:rally_sac`: the paper's action (eq. 12), an early short run"]
     assert row.figure == ("75.0% (3 of 4 playable; 95% CI 30.1-95.4%); "
                           "held-out players (Elite D): 50.0% (1 of 2 playable; 95% CI 9.4-90.5%)")
     assert row.measured_on == "10 recorded human shots of matches.csv, cameras, seed 3 (the run's), 2026-01-02"
     assert row.source == "`models/policies/rally_sac.json`"
     table = results.render_results(tmp_path)
-    assert ("| `policy:rally_sac`: the paper's action (eq. 12) | 75.0% (3 of 4 playable; 95% CI 30.1-95.4%); held-out players "
+    assert ("| `policy:rally_sac`: the paper's action (eq. 12), an early short run | 75.0% (3 of 4 playable; 95% CI 30.1-95.4%); held-out players "
             "(Elite D): 50.0% (1 of 2 playable; 95% CI 9.4-90.5%) | 10 recorded human shots of matches.csv, cameras, seed 3 "
             "(the run's), 2026-01-02 | `models/policies/rally_sac.json` |") in table.splitlines()
     # Files that are absent say so instead of showing a number.
@@ -57,7 +57,7 @@ def test_policy_row_of_an_export_measured_as_evaluate_measures_says_so(tmp_path)
     sidecar = small_sidecar()
     sidecar["final_evaluation"].update(seed=0, stepping="segment", batch=32)  # training.export.final_evaluation today
     write_json(tmp_path / "models/policies/rally_sac.json", sidecar)
-    row = {row.what: row for row in results.result_rows(tmp_path)}["`policy:rally_sac`: the paper's action (eq. 12)"]
+    row = {row.what: row for row in results.result_rows(tmp_path)}["`policy:rally_sac`: the paper's action (eq. 12), an early short run"]
     assert row.measured_on == "10 recorded human shots of matches.csv, cameras, seed 0, the segment diagram, 32 at a time, 2026-01-02"
 
 

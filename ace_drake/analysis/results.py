@@ -31,10 +31,11 @@ from pathlib import Path
 from ace_drake.contracts import DEFAULT_CONTROLLER  # the row the table starts with
 from ace_drake.evaluation.heldout import choose_controller, heldout_evaluations
 
-SHIPPED_POLICIES = ("rally_hit_state_braking", "rally_sac", "rally_skill")
+SHIPPED_POLICIES = ("rally_hit_state_braking", "rally_paper", "rally_sac", "rally_skill")
 POLICY_ROLES = {
     "rally_hit_state_braking": "best policy (hit-state actor)",
-    "rally_sac": "the paper's action (eq. 12)",
+    "rally_paper": "the paper's action (eq. 12), SAC at scale",
+    "rally_sac": "the paper's action (eq. 12), an early short run",
     "rally_skill": "follows the skill's aim and spin",
 }
 RESULTS_BEGIN, RESULTS_END = "<!-- results:begin -->", "<!-- results:end -->"
