@@ -52,7 +52,9 @@ the network's spread (``ExplorationParams.policy_std_scale``) while the losses d
 spread asked the critic about actions it had no data for; without a strong cloning term the
 actor followed the critic's errors there and collapsed (docs/experiments/2026-12-06-paper-action-five-stages.md).
 With s the learner draws where the episodes play. Its log density leaves out the constant n log s
-(``networks.Actor.sample``).
+(``networks.Actor.sample``). Measured once at s = 0.1 with the fixed alpha, it collapsed the
+paper-action actor within ~1,600 updates (docs/training.md): near the mean the draws no longer
+saturate tanh, whose log-Jacobian had held the spread down, and the entropy bonus widened it.
 
 The cloning term's fields (``CLONING_FIELDS``) only weigh a loss, and ``actor_average`` and
 ``std_scale`` do not change the networks: a learner's state loads into a learner whose config
