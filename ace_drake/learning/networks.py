@@ -113,13 +113,9 @@ class Actor(nn.Module):
         mean, log_std, embedding = self(features)
         std = log_std.exp()
         noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
-        if std_scale == 1.0:
-            u = mean + std * noise
-            log_prob = squashed_gaussian_log_prob(u, mean, log_std)
-        else:
-            u = mean + std_scale * std * noise
-            log_scale = math.log(std_scale)
-            log_prob = squashed_gaussian_log_prob(u, mean, log_std + log_scale) + mean.shape[-1] * log_scale
+        u = mean + std_scale * std * noise  # at s = 1 exactly SAC's draw (log s = 0 below)
+        log_scale = math.log(std_scale)
+        log_prob = squashed_gaussian_log_prob(u, mean, log_std + log_scale) + mean.shape[-1] * log_scale
         return torch.tanh(u), log_prob, torch.tanh(mean), embedding
 
 

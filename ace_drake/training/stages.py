@@ -44,15 +44,16 @@ def earlier_stage_checkpoint(trainer) -> tuple[Path, dict]:
     full one is ~2.3 GB)."""
     run_dir = trainer.run_dir / EARLIER_STAGE_DIR
     latest = latest_checkpoint(run_dir)  # the latest, or the one before it if that cannot be read
-    if latest is not None and _finished(latest[1], trainer.config.after):
+    finished = latest is not None and _finished(latest[1], trainer.config.after)
+    if finished and not config_differences(latest[1]["config"], trainer.config.after):
         trainer.log(f"train: the earlier stage (after:) has finished in {run_dir}: continuing from its checkpoint")
         return latest
-    latest = None  # not held while the earlier stage runs (a full payload is ~2.3 GB)
+    del latest  # not held while the earlier stage runs (a full payload is ~2.3 GB)
     # to run, resume, extend, or refuse (another config) as any run in its directory
     earlier = type(trainer)(trainer.config.after, run_dir, trainer.log)
     trainer.log(f"train: the earlier stage (after:) first, in {run_dir}")
     earlier.run()
-    del earlier
+    del earlier  # nor its tables
     latest = latest_checkpoint(run_dir)
     if latest is None:
         raise ConfigError(f"train: the earlier stage in {run_dir} has no checkpoint")
@@ -60,11 +61,10 @@ def earlier_stage_checkpoint(trainer) -> tuple[Path, dict]:
 
 
 def _finished(payload: dict, config) -> bool:
-    """Whether the checkpoint ``payload`` is of a run of ``config`` that has finished (not one
-    extended since: its steps reach the config's)."""
+    """Whether the checkpoint ``payload`` has finished its run at ``config``'s length (a stage
+    extended since has not); its config is the caller's to compare."""
     progress = payload["progress"]
-    return (progress["phase"] == "done" and progress["env_steps"] >= config.env_steps
-            and not config_differences(payload["config"], config))
+    return progress["phase"] == "done" and progress["env_steps"] >= config.env_steps
 
 
 def earlier_stage_from(trainer, path: Path) -> tuple[Path, dict]:
