@@ -300,9 +300,9 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     with pytest.raises(ConfigError, match="after"):
         _config(after=_config(), initialize_from=str(earlier / "checkpoint.pt"))
     with pytest.raises(ConfigError, match="same sac"):
-        _config(after=_config(sac=dataclasses.replace(SMALL, bc_weight=1.0, actor_lr=1e-3)))
-    # but the cloning term's fields, which only weigh a loss, may change from stage to stage
-    _config(after=_config(sac=dataclasses.replace(SMALL, bc_weight=2.0, bc_hit_weight=3.0)))
+        _config(after=_config(sac=dataclasses.replace(SMALL, bc_weight=1.0, critic_lr=1e-3)))
+    # but the cloning term's fields, which only weigh a loss, and the actor's learning rate may change from stage to stage
+    _config(after=_config(sac=dataclasses.replace(SMALL, bc_weight=2.0, bc_hit_weight=3.0, actor_lr=1e-3)))
     _write_yaml(path, {"base": "base.yaml", "after": [1]})
     with pytest.raises(ConfigError, match="after: expected a mapping"):
         load_train_config(path)
@@ -880,6 +880,10 @@ def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):
     lr = second.learner.actor_optimizer.param_groups[0]["lr"]
     assert 0.999 * config.actor_lr_final <= lr < config.sac.actor_lr
     assert chosen_actor(second, "best")[1] in own
+    # A stage may change the actor's learning rate, and starts at its own (not the schedule's end).
+    third = Trainer(_config(env_steps=state.env_steps + 10, initialize_from=str(tmp_path / "second" / "checkpoint.pt"),
+                            sac=dataclasses.replace(config.sac, actor_lr=2e-4)), tmp_path / "third", progress=lambda line: None)
+    assert third.learner.actor_optimizer.param_groups[0]["lr"] == 2e-4
     with pytest.raises(ConfigError, match="initialize_from"):
         _config(initialize_from=str(tmp_path / "missing.pt"))
     with pytest.raises(ConfigError, match="actor_lr_final"):

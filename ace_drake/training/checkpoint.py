@@ -252,7 +252,8 @@ class Checkpointing:
         fields a stage may change, ``sac.STAGE_FIELDS``), replay tables and demonstrations (none
         from a ``PORTABLE_CHECKPOINT``), and counters, in ``initialize_phase``: the learn phase,
         or the demonstrations phase, whose collections and cloning updates then run on to this
-        config's totals. Its best actor is forgotten (its evaluations may be of
+        config's totals, the actor's learning rate set to this stage's ``sac.actor_lr`` (the
+        optimiser's state carries the earlier stage's). Its best actor is forgotten (its evaluations may be of
         other shots): this run evaluates its actor first (after its cloning updates, if any) and
         chooses among its own evaluations."""
         payload = read_checkpoint(path) if payload is None else payload
@@ -265,6 +266,7 @@ class Checkpointing:
                               "'policy' the cloning term would have none: start with initialize_phase: demonstrations (and "
                               "demonstrations to collect) or learn_mode: dagger")
         self.learner.load_state_dict(payload["learner"])
+        self.learner.set_actor_lr(c.sac.actor_lr)  # then the schedule (actor_lr_final), if any
         if not portable:
             self.replay.load_state_dict(payload["replay"])
             self.demonstrations.load_state_dict(payload["demonstrations"])
