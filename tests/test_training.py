@@ -15,6 +15,7 @@ import ray
 import torch
 import yaml
 
+from ace_drake.analysis.results import SHIPPED_POLICIES as SHIPPED_POLICY_NAMES
 from ace_drake.cli import main
 from ace_drake.config import MODELS_DIR, ConfigError, from_dict, to_dict
 from ace_drake.contracts import ObservationLayout
@@ -156,8 +157,8 @@ def _config(**overrides) -> TrainConfig:
     return TrainConfig(**fields)
 
 
-# The kept policies and their one config each: models/train_<name>.yaml.
-KEPT_POLICIES = ("rally_hit_state_braking", "rally_paper", "rally_sac", "rally_skill")
+# The kept policies (the product's list) and their one config each: models/train_<name>.yaml.
+KEPT_POLICIES = SHIPPED_POLICY_NAMES
 # Fields that do not change a run: the earlier run it started from, named by its checkpoint's path
 # in a sidecar (initialize_from) and by its config in models/ (after: training.stages).
 NOT_THE_RUN = ("initialize_from", "after")
@@ -214,24 +215,33 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
 
 
-def test_the_paper_action_run_is_two_stages_in_one_config():
+def test_the_paper_action_run_is_three_stages_in_one_config():
     """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger) with the cloning term at
     10, stage 2 is SAC with a tenth of the episodes labelled, the term held at 2, the actor's
-    learning rate falling and its average evaluated; both clone with the absolute error (docs/experiments/2026-12-06-paper-action-five-stages.md)."""
+    learning rate falling and its average evaluated, stage 3 stage 2 on from its best evaluation at
+    a sixth of the learning rate, chosen on all of the training players' shots; all clone with the
+    absolute error (docs/experiments/2026-12-06-paper-action-five-stages.md)."""
     _needs_match_data()
-    second = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    third = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    second = third.after
     first = second.after
     assert first.after is None and first.demonstrations > 0 and first.learn_mode == "dagger"
-    assert second.demonstrations == 0  # it collects none of its own
+    assert second.demonstrations == third.demonstrations == 0  # they collect none of their own
     assert (first.learn_mode, first.dagger_fraction, second.learn_mode, second.dagger_fraction) == ("dagger", 1.0, "dagger", 0.1)
-    assert [first.seed, second.seed] == [40, 41] and first.env_steps < second.env_steps
-    # stage 2 loads stage 1's learner and averages its actor from there
+    assert [first.seed, second.seed, third.seed] == [40, 41, 42] and first.env_steps < second.env_steps < third.env_steps
+    # stage 2 loads stage 1's learner and averages its actor from there; stage 3 changes only the learning rate
     assert dataclasses.replace(first.sac, actor_average=second.sac.actor_average) == second.sac and first.sac.bc_loss == "absolute"
+    assert dataclasses.replace(third.sac, actor_lr=second.sac.actor_lr) == second.sac
     assert (first.sac.actor_average, second.sac.actor_average) == (0.0, 1e-4)
     assert first.sac.bc_weight == 10.0 and (first.bc_weight_start, first.bc_weight_final, first.bc_fade_steps) == (None, 10.0, 0)
-    assert (second.bc_weight_start, second.bc_weight_final) == (2.0, 2.0)
+    assert (second.bc_weight_start, second.bc_weight_final) == (third.bc_weight_start, third.bc_weight_final) == (2.0, 2.0)
     assert (first.actor_lr_final, second.actor_lr_final, second.sac.actor_lr) == (None, 3e-5, 3e-4)
-    assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 and stage.sac.std_scale == 1.0 for stage in (first, second))
+    assert (third.actor_lr_final, third.sac.actor_lr) == (None, 5e-5)
+    assert (second.evaluation_episodes, third.evaluation_episodes) == (100, 400)
+    assert dataclasses.replace(third, seed=second.seed, env_steps=second.env_steps, sac=second.sac, actor_lr_final=second.actor_lr_final,
+                               evaluation_episodes=second.evaluation_episodes, evaluate_every=second.evaluate_every,
+                               checkpoint_every=second.checkpoint_every, after=second.after) == second
+    assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 and stage.sac.std_scale == 1.0 for stage in (first, second, third))
 
 
 def test_rally_sac_trains_in_its_three_stages_from_one_config():
@@ -1090,7 +1100,7 @@ def test_a_run_resumes_from_the_previous_checkpoint_when_the_latest_is_damaged_o
     assert "is missing; resuming from the previous checkpoint" in capsys.readouterr().err
 
 
-SHIPPED_POLICIES = sorted((Path(__file__).resolve().parents[1] / "models" / "policies").glob("*.pt"))
+SHIPPED_POLICIES = sorted((MODELS_DIR / "policies").glob("*.pt"))
 
 
 @pytest.mark.parametrize("path", SHIPPED_POLICIES, ids=lambda path: path.stem)
@@ -1101,8 +1111,8 @@ def test_each_shipped_policy_loads_weights_only(path):
     assert isinstance(dut, torch.nn.Module)
 
 
-def test_there_are_four_shipped_policies():
-    assert [path.stem for path in SHIPPED_POLICIES] == ["rally_hit_state_braking", "rally_paper", "rally_sac", "rally_skill"]
+def test_the_shipped_policies_are_the_products_list():
+    assert [path.stem for path in SHIPPED_POLICIES] == list(SHIPPED_POLICY_NAMES) and len(SHIPPED_POLICY_NAMES) == 4
 
 
 @dataclasses.dataclass

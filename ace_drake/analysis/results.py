@@ -2,7 +2,8 @@
 
 Sources, all relative to the repository root:
 
-- the shipped policies' sidecars ``models/policies/<name>.json`` (``SHIPPED_POLICIES``): the
+- the shipped policies' sidecars ``models/policies/<name>.json`` (``SHIPPED_POLICIES``, the one
+  list of what ships: the tests hold ``models/policies/`` and ``models/train_<name>.yaml`` to it): the
   export evaluation ``final_evaluation`` that ``ace-drake train --evaluate-data`` records (the
   recorded human shots through the cameras: as ``ace-drake evaluate`` plays them, or, exported
   before that, on the continuous-time diagram at the run's seed);
@@ -31,13 +32,13 @@ from pathlib import Path
 from ace_drake.contracts import DEFAULT_CONTROLLER  # the row the table starts with
 from ace_drake.evaluation.heldout import choose_controller, heldout_evaluations
 
-SHIPPED_POLICIES = ("rally_hit_state_braking", "rally_paper", "rally_sac", "rally_skill")
-POLICY_ROLES = {
+POLICY_ROLES = {  # the shipped policies, each with what its row says it is
     "rally_hit_state_braking": "best policy (hit-state actor)",
     "rally_paper": "the paper's action (eq. 12), SAC at scale",
     "rally_sac": "the paper's action (eq. 12), an early short run",
     "rally_skill": "follows the skill's aim and spin",
 }
+SHIPPED_POLICIES = tuple(sorted(POLICY_ROLES))
 RESULTS_BEGIN, RESULTS_END = "<!-- results:begin -->", "<!-- results:end -->"
 BENCHMARKS_BEGIN, BENCHMARKS_END = "<!-- benchmarks:begin -->", "<!-- benchmarks:end -->"
 README = "README.md"
@@ -88,7 +89,7 @@ def _shots_text(evaluation: dict) -> str:
 
 def policy_row(name: str, sidecar: dict | None, source: str) -> Row:
     """The export evaluation of a shipped policy's sidecar (``final_evaluation``)."""
-    what = f"`policy:{name}`: {POLICY_ROLES.get(name, 'a shipped policy')}"
+    what = f"`policy:{name}`: {POLICY_ROLES[name]}"
     evaluation = None if sidecar is None else sidecar.get("final_evaluation")
     if evaluation is None:
         return Row(what, NOT_MEASURED, "-", _source(source))
