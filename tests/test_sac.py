@@ -257,7 +257,7 @@ def test_config_errors_name_the_field():
 
 # What each kept policy needs from its diagram, as its sidecar's recorded config gives it
 # (sac.meet_ball, sac.hit_memory before PlayOptions existed).
-KEPT_POLICY_PLAY = {"rally_hit_state_braking": (True, True), "rally_skill": (True, True), "rally_sac": (False, False)}
+KEPT_POLICY_PLAY = {"rally_hit_state_braking": (True, True), "rally_skill": (True, True)}
 
 
 @pytest.mark.parametrize("name", sorted(KEPT_POLICY_PLAY))

@@ -244,18 +244,6 @@ def test_the_paper_action_run_is_three_stages_in_one_config():
     assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 and stage.sac.std_scale == 1.0 for stage in (first, second, third))
 
 
-def test_rally_sac_trains_in_its_three_stages_from_one_config():
-    _needs_match_data()
-    fifth = load_train_config(MODELS_DIR / "train_rally_sac.yaml")
-    fourth = fifth.after
-    third = fourth.after
-    assert third.after is None and not third.initialize_from and third.demonstrations > 0  # from scratch
-    assert [stage.seed for stage in (third, fourth, fifth)] == [0, 1, 2]
-    assert third.env_steps < fourth.env_steps < fifth.env_steps  # totals, counted from the first stage's start
-    assert third.env.shots.source == "synthetic" and fourth.env.shots.players == ("Elite A", "Elite B", "Elite C")
-    assert third.sac == fourth.sac == fifth.sac  # each loads the one before's learner
-
-
 def _write_yaml(path: Path, data: dict) -> Path:
     path.write_text(yaml.safe_dump(json.loads(json.dumps(data)), sort_keys=False))
     return path
@@ -949,9 +937,7 @@ def test_the_shipped_policies_return_recorded_human_shots(name, at_least):
     # The first 12 recorded shots of Elite A (a training player), cameras, seed 0: 7 are playable;
     # rally_hit_state_braking (cloned from the labeller whose IK starts where braking would stop
     # the arm) returned 7, rally_skill (the same recipe, the labeller following the skill; default
-    # skill here) 5, rally_sac 3 (the returner's planned hit states through the layer:
-    # tests/test_experiments.py),
-    # still 0 (measured). rally_paper, the paper's action with nothing between the actor and eq.
+    # skill here) 5, still 0 (measured). rally_paper, the paper's action with nothing between the actor and eq.
     # (12)'s mapping, returned 6 of the 9 playable on the robot of 2026-12-06 (measured).
     # A behaviour, not a benchmark (docs/experiments/2026-12-01-hit-state-actor.md
 
@@ -1112,7 +1098,7 @@ def test_each_shipped_policy_loads_weights_only(path):
 
 
 def test_the_shipped_policies_are_the_products_list():
-    assert [path.stem for path in SHIPPED_POLICIES] == list(SHIPPED_POLICY_NAMES) and len(SHIPPED_POLICY_NAMES) == 4
+    assert [path.stem for path in SHIPPED_POLICIES] == list(SHIPPED_POLICY_NAMES) and len(SHIPPED_POLICY_NAMES) == 3
 
 
 @dataclasses.dataclass

@@ -2,7 +2,7 @@
 
 Read this file top to bottom like a notebook. The paper's policy is trained with Soft
 Actor-Critic (Methods *Algorithm*); this tutorial runs the same machinery as
-``ace-drake train models/train_rally_sac.yaml``, only very small, so that every part shows:
+``ace-drake train models/train_rally_paper.yaml``, only very small, so that every part shows:
 
   1. the environment: one episode of ``RallyEnv`` (the training diagram: ball, robot, the cheap
      statistical sensors, control stack) played by a rollout worker, what a transition holds;

@@ -87,7 +87,7 @@ class TrainConfig:
     """A training run (module docstring). Steps are environment steps (32 ms policy steps) of
     every mode, demonstrations included."""
 
-    name: str = "rally_sac"  # the exported policy's name: models/policies/<name>.pt
+    name: str = "rally"  # the exported policy's name: models/policies/<name>.pt
     seed: int = 0
     env_steps: int = 200_000
     workers: int = 2

@@ -5,9 +5,9 @@ own first runs that stage to its end in its own run directory, ``<run_dir>/after
 there if it was stopped, reusing it if it has finished), then starts from its checkpoint as from
 ``initialize_from`` (its learner, replay tables, demonstrations and counters, in
 ``initialize_phase``): one config and one command for a policy trained in stages
-(``models/train_rally_sac.yaml``; docs/training.md, *The shipped policies*). The stages share the
-learner's config but for the fields a stage may change (``sac.STAGE_FIELDS``: the cloning term's
-and the averaged actor's; ``TrainConfig`` checks), as its checkpoint is loaded.
+(``models/train_rally_paper.yaml``; docs/training.md, *Training the paper's policy*). The stages share the
+learner's config but for the fields a stage may change (``sac.STAGE_FIELDS``: the cloning term's,
+the averaged actor's, the spread's scale and the actor's learning rate; ``TrainConfig`` checks), as its checkpoint is loaded.
 
 In a config file (``loop.load_train_config``), ``after:`` is written as the earlier stage's
 changes from the stage that follows it (``with_earlier_stages``), and may hold an ``after:`` of its
