@@ -219,7 +219,7 @@ def test_the_paper_action_run_is_three_stages_in_one_config():
     """models/train_rally_paper.yaml: stage 1 clones and labels (DAgger) with the cloning term at
     10, stage 2 is SAC with a tenth of the episodes labelled, the term held at 2, the actor's
     learning rate falling and its average evaluated, stage 3 stage 2 on from its best evaluation at
-    a sixth of the learning rate, chosen on all of the training players' shots; all clone with the
+    a sixth of the learning rate on a wider KDE, chosen on all of the training players' shots; all clone with the
     absolute error (docs/experiments/2026-12-06-paper-action-five-stages.md)."""
     _needs_match_data()
     third = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
@@ -238,7 +238,9 @@ def test_the_paper_action_run_is_three_stages_in_one_config():
     assert (first.actor_lr_final, second.actor_lr_final, second.sac.actor_lr) == (None, 3e-5, 3e-4)
     assert (third.actor_lr_final, third.sac.actor_lr) == (None, 5e-5)
     assert (second.evaluation_episodes, third.evaluation_episodes) == (100, 400)
+    assert (second.env.shots.bandwidth, third.env.shots.bandwidth) == (None, 0.95)  # Scott's rule, then 1.5 times as wide
     assert dataclasses.replace(third, seed=second.seed, env_steps=second.env_steps, sac=second.sac, actor_lr_final=second.actor_lr_final,
+                               env=dataclasses.replace(third.env, shots=second.env.shots),
                                evaluation_episodes=second.evaluation_episodes, evaluate_every=second.evaluate_every,
                                checkpoint_every=second.checkpoint_every, after=second.after) == second
     assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 and stage.sac.std_scale == 1.0 for stage in (first, second, third))
