@@ -194,6 +194,28 @@ def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
     assert (MODELS_DIR / "policies" / f"{name}.pt").is_file()
 
 
+@pytest.mark.parametrize("name", [path.name for path in sorted((MODELS_DIR / "runs").iterdir()) if path.is_dir()])
+def test_each_kept_runs_checkpoints_are_of_its_configs_stages(name):
+    """models/runs/<name>/[after/...]/checkpoint.portable.pt: each kept portable checkpoint is a
+    finished one of the stage of models/train_<name>.yaml at that depth, at that stage's length (as
+    ``train --earlier-stage`` takes it), and every earlier stage has one."""
+    from ace_drake.training.checkpoint import config_differences
+
+    _needs_match_data()
+    stage, directory, kept = load_train_config(MODELS_DIR / f"train_{name}.yaml"), MODELS_DIR / "runs" / name, 0
+    while stage is not None:
+        sidecar = directory / "checkpoint.portable.json"
+        if sidecar.is_file():
+            record = json.loads(sidecar.read_text())
+            assert config_differences(record["config"], stage) == [], directory
+            assert record["phase"] == "done" and record["config"]["env_steps"] == stage.env_steps <= record["env_steps"], directory
+            kept += 1
+        else:
+            assert directory == MODELS_DIR / "runs" / name, f"an earlier stage's checkpoint is missing in {directory}"
+        stage, directory = stage.after, directory / "after"
+    assert kept >= 1
+
+
 def _needs_match_data() -> None:
     """Skips a test of a shipped config when the match data it names is not beside the project."""
     data = Path("../shared/data/ace_match_events_elite.csv")
@@ -292,6 +314,11 @@ def test_a_run_after_an_earlier_stage_runs_that_first_then_continues_from_its_ch
     longer = dataclasses.replace(config, after=dataclasses.replace(config.after, env_steps=first.state.env_steps + 20))
     extended = Trainer(longer, tmp_path / "run", progress=lambda line: None)
     assert extended.state.initialized_at >= first.state.env_steps + 20
+    # Shortened again, below where it finished, it is refused rather than taken from past its length.
+    for name in ("checkpoint.pt", "checkpoint.prev.pt"):
+        (tmp_path / "run" / name).unlink(missing_ok=True)
+    with pytest.raises(ConfigError, match="cannot be rewound"):
+        Trainer(config, tmp_path / "run", progress=lambda line: None)
     # A finished checkpoint of another earlier stage in its place is refused, not started from.
     for name in ("checkpoint.pt", "checkpoint.prev.pt"):
         (tmp_path / "run" / name).unlink(missing_ok=True)
@@ -822,6 +849,10 @@ def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhe
     with pytest.raises(ConfigError, match="before its end"):
         Trainer(dataclasses.replace(config, after=dataclasses.replace(earlier, env_steps=first.state.env_steps + 20)),
                 tmp_path / "fifth", progress=lambda line: None, earlier_stage=portable)
+    # nor one that ran past a stage shortened since (its actor is a later one than the config's)
+    with pytest.raises(ConfigError, match="past the earlier stage's length 10"):
+        Trainer(dataclasses.replace(config, after=dataclasses.replace(earlier, env_steps=10)),
+                tmp_path / "sixth", progress=lambda line: None, earlier_stage=portable)
 
 
 def test_a_later_stage_does_not_count_the_time_its_earlier_stage_ran_twice(tmp_path, monkeypatch):

@@ -44,6 +44,8 @@ def earlier_stage_checkpoint(trainer) -> tuple[Path, dict]:
     full one is ~2.3 GB)."""
     run_dir = trainer.run_dir / EARLIER_STAGE_DIR
     latest = latest_checkpoint(run_dir)  # the latest, or the one before it if that cannot be read
+    if latest is not None:
+        _refuse_past_its_length(*latest, trainer.config.after)
     finished = latest is not None and _finished(latest[1], trainer.config.after)
     if finished and not config_differences(latest[1]["config"], trainer.config.after):
         trainer.log(f"train: the earlier stage (after:) has finished in {run_dir}: continuing from its checkpoint")
@@ -58,6 +60,17 @@ def earlier_stage_checkpoint(trainer) -> tuple[Path, dict]:
     if latest is None:
         raise ConfigError(f"train: the earlier stage in {run_dir} has no checkpoint")
     return latest
+
+
+def _refuse_past_its_length(path: Path, payload: dict, config) -> None:
+    """Raises ConfigError if the checkpoint ``payload`` (at ``path``) of the earlier stage
+    ``config`` has run past that stage's length without having been finished at it: a stage
+    shortened since (e.g. to the step of its best evaluation) cannot be rewound, and starting from
+    the later actor would be another run than the config says."""
+    steps, length = payload["progress"]["env_steps"], payload["config"]["env_steps"]
+    if steps > config.env_steps and length != config.env_steps:
+        raise ConfigError(f"train: {path} ran to {steps} steps (of {length}), past the earlier stage's length {config.env_steps}: "
+                          "it cannot be rewound; start from a checkpoint of that stage at its length")
 
 
 def _finished(payload: dict, config) -> bool:
@@ -78,6 +91,7 @@ def earlier_stage_from(trainer, path: Path) -> tuple[Path, dict]:
     differing = config_differences(payload["config"], trainer.config.after)
     if differing:
         raise ConfigError(f"train: {path} is not a checkpoint of the config's earlier stage (after:): it differs in {differing}")
+    _refuse_past_its_length(path, payload, trainer.config.after)
     if not _finished(payload, trainer.config.after):
         progress = payload["progress"]
         raise ConfigError(f"train: {path} is a checkpoint of the earlier stage before its end (phase {progress['phase']}, "
