@@ -156,6 +156,28 @@ def test_ring_buffer_overwrites_the_oldest():
     assert sorted(buffer.get(np.arange(4))["reward"]) == [2.0, 3.0, 4.0, 5.0]
 
 
+def test_a_ring_buffer_loads_into_another_capacity_oldest_first():
+    """A later training stage may give a table another capacity: the rows keep their order (the
+    newest that fit), and the next row goes after them."""
+    buffer = RingBuffer(4)
+    for start in (0, 3):  # rows 0-5 into 4: 2, 3, 4, 5 remain, wrapped
+        t = episode(steps=3)
+        t["reward"] = np.arange(start, start + 3, dtype=np.float32)
+        buffer.add(t)
+    state = buffer.state_dict()
+    for capacity, kept in ((8, [2.0, 3.0, 4.0, 5.0]), (2, [4.0, 5.0]), (4, [2.0, 3.0, 4.0, 5.0])):
+        dut = RingBuffer(capacity)
+        dut.load_state_dict(state)
+        assert dut.size == len(kept) and dut.get(dut.oldest_first())["reward"].tolist() == kept
+        t = episode(steps=1)
+        t["reward"] = np.array([6.0], np.float32)
+        dut.add(t)
+        assert dut.get(dut.oldest_first())["reward"].tolist() == (kept + [6.0])[-capacity:]
+    empty = RingBuffer(8)
+    empty.load_state_dict(RingBuffer(4).state_dict())
+    assert empty.size == 0
+
+
 def test_state_dict_restores_tables_and_sampling(tmp_path):
     import pickle
 

@@ -193,13 +193,22 @@ class RingBuffer:
         return {"capacity": self.capacity, "size": self.size, "next": self._next, "data": data}
 
     def load_state_dict(self, state: dict) -> None:
-        if state["capacity"] != self.capacity:
-            raise ValueError(f"RingBuffer: the saved capacity {state['capacity']} differs from {self.capacity}")
-        self.size, self._next, self._data = int(state["size"]), int(state["next"]), None
+        """Restores a ``state_dict``. One saved with another capacity (a later training stage's
+        table: ``ReplayConfig.table_capacities``) loads its rows oldest first, the newest
+        ``capacity`` of them where they do not all fit, and the next row goes after them."""
+        size, written_next, self._data = int(state["size"]), int(state["next"]), None
+        if state["data"] is None or state["capacity"] == self.capacity:
+            self.size, self._next = size, written_next  # as it lay
+            rows = slice(None)
+        else:
+            start = written_next if size == state["capacity"] else 0
+            rows = ((start + np.arange(size)) % state["capacity"])[-self.capacity:]
+            self.size = len(rows)
+            self._next = self.size % self.capacity
         if state["data"] is not None:
             self._data = {key: np.zeros((self.capacity, *value.shape[1:]), np.float32) for key, value in state["data"].items()}
             for key, value in state["data"].items():  # tensors, or NumPy arrays in older checkpoints
-                self._data[key][: self.size] = np.asarray(value)
+                self._data[key][: self.size] = np.asarray(value)[rows]
 
 
 def relabel_episode(transitions: dict[str, np.ndarray], landing_state: np.ndarray, layout: ObservationLayout,
