@@ -221,6 +221,7 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     axes.set_ylim(0.0, 1.0)
     axes.set_title(title)
     axes.grid(alpha=0.3)
-    axes.legend(loc="best", fontsize=7)  # where it hides the fewest points
+    if axes.get_legend_handles_labels()[0]:  # a run with nothing drawn yet has no legend
+        axes.legend(loc="best", fontsize=7)  # where it hides the fewest points
     figure.tight_layout()
     figure.savefig(path)
