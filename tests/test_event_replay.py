@@ -173,6 +173,17 @@ def test_a_ring_buffer_loads_into_another_capacity_oldest_first():
         t["reward"] = np.array([6.0], np.float32)
         dut.add(t)
         assert dut.get(dut.oldest_first())["reward"].tolist() == (kept + [6.0])[-capacity:]
+    partial = RingBuffer(4)  # not full: rows 0-2
+    t = episode(steps=3)
+    t["reward"] = np.arange(3, dtype=np.float32)
+    partial.add(t)
+    for capacity, kept in ((8, [0.0, 1.0, 2.0]), (2, [1.0, 2.0])):
+        dut = RingBuffer(capacity)
+        dut.load_state_dict(partial.state_dict())
+        assert dut.get(dut.oldest_first())["reward"].tolist() == kept
+    same = RingBuffer(4)  # at the same capacity, the layout as it lay
+    same.load_state_dict(state)
+    assert (same._next, same.get(np.arange(4))["reward"].tolist()) == (buffer._next, buffer.get(np.arange(4))["reward"].tolist())
     empty = RingBuffer(8)
     empty.load_state_dict(RingBuffer(4).state_dict())
     assert empty.size == 0

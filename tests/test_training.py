@@ -843,6 +843,12 @@ def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhe
     with pytest.raises(ConfigError, match="past the earlier stage's length 10"):
         Trainer(dataclasses.replace(config, after=dataclasses.replace(earlier, env_steps=10)),
                 tmp_path / "sixth", progress=lambda line: None, earlier_stage=portable)
+    # nor when that stage was resumed at the shorter length, and so finished at once past it
+    shortened = Trainer(dataclasses.replace(earlier, env_steps=10), tmp_path / "elsewhere", progress=lambda line: None)
+    assert shortened.run().phase == "done" and shortened.state.env_steps > 10
+    with pytest.raises(ConfigError, match="cannot be rewound"):
+        Trainer(dataclasses.replace(config, after=dataclasses.replace(earlier, env_steps=10)),
+                tmp_path / "seventh", progress=lambda line: None, earlier_stage=portable)
 
 
 def test_a_later_stage_does_not_count_the_time_its_earlier_stage_ran_twice(tmp_path, monkeypatch):

@@ -44,10 +44,10 @@ def earlier_stage_checkpoint(trainer) -> tuple[Path, dict]:
     full one is ~2.3 GB)."""
     run_dir = trainer.run_dir / EARLIER_STAGE_DIR
     latest = latest_checkpoint(run_dir)  # the latest, or the one before it if that cannot be read
-    if latest is not None:
+    same = latest is not None and not config_differences(latest[1]["config"], trainer.config.after)
+    if same:  # (another config is refused below, as in any run directory)
         _refuse_past_its_length(*latest, trainer.config.after)
-    finished = latest is not None and _finished(latest[1], trainer.config.after)
-    if finished and not config_differences(latest[1]["config"], trainer.config.after):
+    if same and _finished(latest[1], trainer.config.after):
         trainer.log(f"train: the earlier stage (after:) has finished in {run_dir}: continuing from its checkpoint")
         return latest
     del latest  # not held while the earlier stage runs (a full payload is ~2.3 GB)
@@ -66,9 +66,14 @@ def _refuse_past_its_length(path: Path, payload: dict, config) -> None:
     """Raises ConfigError if the checkpoint ``payload`` (at ``path``) of the earlier stage
     ``config`` has run past that stage's length without having been finished at it: a stage
     shortened since (e.g. to the step of its best evaluation) cannot be rewound, and starting from
-    the later actor would be another run than the config says."""
-    steps, length = payload["progress"]["env_steps"], payload["config"]["env_steps"]
-    if steps > config.env_steps and length != config.env_steps:
+    the later actor would be another run than the config says. That is a checkpoint past the
+    length it was written with, or one that this run (since ``initialized_at``) shortened to below
+    where it stood, and which then finished at once (``Progress.length_changes``)."""
+    progress = payload["progress"]
+    steps, length = progress["env_steps"], payload["config"]["env_steps"]
+    since = progress.get("initialized_at") or 0
+    shortened_below = any(at >= since and at > new for at, _, new in progress.get("length_changes", ()))
+    if (steps > config.env_steps and length != config.env_steps) or shortened_below:
         raise ConfigError(f"train: {path} ran to {steps} steps (of {length}), past the earlier stage's length {config.env_steps}: "
                           "it cannot be rewound; start from a checkpoint of that stage at its length")
 
