@@ -907,10 +907,22 @@ def test_a_run_can_start_from_another_runs_checkpoint(tmp_path):
     lr = second.learner.actor_optimizer.param_groups[0]["lr"]
     assert 0.999 * config.actor_lr_final <= lr < config.sac.actor_lr
     assert chosen_actor(second, "best")[1] in own
-    # A stage may change the actor's learning rate, and starts at its own (not the schedule's end).
+    # A stage may change the actor's learning rate, and starts at its own (not the schedule's end),
+    # and its replay tables' capacities: the earlier stage's rows load in order.
+    replay = dataclasses.replace(config.replay, table_capacities={"all": 300_000, "miss": 40})
     third = Trainer(_config(env_steps=state.env_steps + 10, initialize_from=str(tmp_path / "second" / "checkpoint.pt"),
-                            sac=dataclasses.replace(config.sac, actor_lr=2e-4)), tmp_path / "third", progress=lambda line: None)
+                            sac=dataclasses.replace(config.sac, actor_lr=2e-4), replay=replay), tmp_path / "third", progress=lambda line: None)
     assert third.learner.actor_optimizer.param_groups[0]["lr"] == 2e-4
+    assert third.replay.tables["all"].capacity == 300_000 and len(third.replay) == len(second.replay)
+    assert second.replay.tables["all"].size > 0
+    for name, table in second.replay.tables.items():
+        if table.size == 0:  # an event no episode had
+            assert third.replay.tables[name].size == 0
+            continue
+        rows = table.get(table.oldest_first())
+        loaded = third.replay.tables[name].get(third.replay.tables[name].oldest_first())
+        np.testing.assert_array_equal(loaded["reward"], rows["reward"][-third.replay.tables[name].capacity:])
+    assert third.run().phase == "done" and len(third.replay) > len(second.replay)
     with pytest.raises(ConfigError, match="initialize_from"):
         _config(initialize_from=str(tmp_path / "missing.pt"))
     with pytest.raises(ConfigError, match="actor_lr_final"):
