@@ -185,8 +185,8 @@ def test_checkpoint_gives_identical_outputs_and_next_updates(tmp_path):
         assert torch.equal(a, b)
     with pytest.raises(ValueError, match=r"differs in \['gamma'\]"):
         SacLearner(SacConfig(gamma=0.5, bc_weight=3.0, seed=3, **SMALL)).load_state_dict(learner.state_dict())
-    # The cloning term's fields only weigh a loss: a later stage may change them.
-    cloning = SacLearner(SacConfig(bc_weight=2.0, bc_loss="absolute", bc_hit_weight=1.0, bc_hit_window=0.2, seed=3, **SMALL))
+    # The cloning term's fields and the entropy weight only weigh a loss: a later stage may change them.
+    cloning = SacLearner(SacConfig(bc_weight=2.0, bc_loss="absolute", bc_hit_weight=1.0, bc_hit_window=0.2, alpha=0.0, seed=3, **SMALL))
     cloning.load_state_dict(learner.state_dict())
     np.testing.assert_array_equal(learner.act(obs, deterministic=True), cloning.act(obs, deterministic=True))
 

@@ -56,10 +56,10 @@ With s the learner draws where the episodes play. Its log density leaves out the
 paper-action actor within ~1,600 updates (docs/training.md): near the mean the draws no longer
 saturate tanh, whose log-Jacobian had held the spread down, and the entropy bonus widened it.
 
-The cloning term's fields (``CLONING_FIELDS``) only weigh a loss, and ``actor_average``,
-``std_scale`` and ``actor_lr`` do not change the networks: a learner's state loads into a learner
-whose config differs in them alone (``STAGE_FIELDS``), so that a later training stage may change
-them (a stage starts at its own ``actor_lr``: ``training.checkpoint``).
+The cloning term's fields (``CLONING_FIELDS``) and the entropy weight ``alpha`` only weigh a
+loss, and ``actor_average``, ``std_scale`` and ``actor_lr`` do not change the networks: a
+learner's state loads into a learner whose config differs in them alone (``STAGE_FIELDS``), so
+that a later training stage may change them (a stage starts at its own ``actor_lr``: ``training.checkpoint``).
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
 the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
@@ -106,7 +106,7 @@ ACTIONS = ("terminal", "hit_state")
 # SacConfig's fields that only weigh the cloning term (module docstring).
 CLONING_FIELDS = ("bc_weight", "bc_loss", "bc_hit_weight", "bc_hit_window")
 # SacConfig's fields a later training stage may change: a learner's state loads across them (module docstring).
-STAGE_FIELDS = CLONING_FIELDS + ("actor_average", "std_scale", "actor_lr")
+STAGE_FIELDS = CLONING_FIELDS + ("actor_average", "std_scale", "actor_lr", "alpha")
 CLONING_LOSSES = ("squared", "absolute")  # SacConfig.bc_loss (module docstring)
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())

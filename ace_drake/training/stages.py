@@ -7,7 +7,8 @@ there if it was stopped, reusing it if it has finished), then starts from its ch
 ``initialize_phase``): one config and one command for a policy trained in stages
 (``models/train_rally_paper.yaml``; docs/training.md, *Training the paper's policy*). The stages share the
 learner's config but for the fields a stage may change (``sac.STAGE_FIELDS``: the cloning term's,
-the averaged actor's, the spread's scale and the actor's learning rate; ``TrainConfig`` checks), as its checkpoint is loaded.
+the averaged actor's, the spread's scale, the entropy weight and the actor's learning rate;
+``TrainConfig`` checks), as its checkpoint is loaded.
 
 In a config file (``loop.load_train_config``), ``after:`` is written as the earlier stage's
 changes from the stage that follows it (``with_earlier_stages``), and may hold an ``after:`` of its
