@@ -128,7 +128,7 @@ def cmd_evaluate(args) -> int:
     sampling = work("evaluate --skill sampled")() if args.skill == "sampled" else None
     figures = work("evaluate")(args.controller, sensors=args.sensors, seed=args.seed, ball_params=args.params, data=args.data,
                                players=players, episodes=args.episodes, skill=args.skill, skill_sampling=sampling,
-                               action_noise=args.action_noise, stepping=args.stepping, batch=args.batch, progress=log)
+                               action_noise=args.action_noise, stepping=args.stepping, batch=args.batch, progress=log, repeats=args.repeats)
     if args.json:
         emit_json(figures)
         return 0
@@ -145,7 +145,12 @@ def _print_evaluation(figures: dict) -> None:
         return f"{entry['rate']:.1%} [{low:.1%}, {high:.1%}] of {entry['played']}"
 
     noise = f" with action noise {figures['action_noise']:g}" if figures.get("action_noise") else ""
-    print(f"controller {figures['controller']}{noise}: return rate {rate(figures['return_rate'])} (95% Wilson interval); {figures['invalid_shots']} unplayable shots left out")
+    repeats = figures.get("repeats", 1)
+    interval = "95% Wilson interval" if repeats == 1 else f"each shot {repeats} times; 95% interval of a bootstrap over the shots"
+    print(f"controller {figures['controller']}{noise}: return rate {rate(figures['return_rate'])} ({interval}); {figures['invalid_shots']} unplayable episodes left out")
+    if repeats > 1:
+        rates = ", ".join(f"{entry['rate']:.1%}" if entry["rate"] is not None else "-" for entry in figures["return_rate_by_repeat"])
+        print(f"  by repeat (seeds {figures['seed']}-{figures['seed'] + repeats - 1}): {rates}")
     for key, unit in (("by_incoming_speed", "m/s"), ("by_incoming_spin", "rad/s")):
         print(f"  {key.replace('_', ' ')}:")
         for row in figures[key]:
@@ -525,6 +530,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--stepping", choices=("segment", "continuous"), default="segment",
                           help="the batched segment-stepped diagram, or the continuous-time reference one episode at a time (default: %(default)s)")
     evaluate.add_argument("--batch", type=int, default=32, help="episodes played at once on the segment-stepped diagram (default: %(default)s)")
+    evaluate.add_argument("--repeats", type=int, default=1,
+                          help="play every shot this many times, with seeds --seed, --seed + 1, ...; the figures pool them, the intervals by a bootstrap over the shots (default: %(default)s)")
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")

@@ -101,6 +101,18 @@ def test_evaluate_counts_every_episode_with_its_interval(capsys):
         assert "--skill must be" in capsys.readouterr().err
 
 
+def test_evaluate_repeats_every_shot_with_the_next_seeds(capsys):
+    common = ("evaluate", "--controller", "still", "--episodes", "3", "--sensors", "statistical", "--json")
+    pooled = run_json(capsys, *common, "--repeats", "2", "--seed", "4")
+    first, second = run_json(capsys, *common, "--seed", "4"), run_json(capsys, *common, "--seed", "5")
+    assert pooled["repeats"] == 2 and pooled["seed"] == 4 and pooled["episodes"] == 6 and first["repeats"] == 1
+    assert pooled["return_rate_by_repeat"] == [first["return_rate"], second["return_rate"]]
+    assert pooled["return_rate"]["played"] == first["return_rate"]["played"] + second["return_rate"]["played"]
+    assert pooled["invalid_shots"] == first["invalid_shots"] + second["invalid_shots"]
+    assert main(["evaluate", "--controller", "still", "--episodes", "1", "--repeats", "0"]) == 2
+    assert "--repeats must be >= 1" in capsys.readouterr().err
+
+
 @needs_data
 def test_evaluate_plays_the_human_shots_of_a_match_file(capsys):
     result = run_json(capsys, "evaluate", "--controller", "still", "--data", str(DATA), "--episodes", "2", "--sensors", "statistical", "--json")

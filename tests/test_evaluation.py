@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ace_drake.contracts import EpisodeResult, Outcome
-from ace_drake.evaluation.evaluate import run_episodes, skill_figures, summarize
+from ace_drake.evaluation.evaluate import return_rate, run_episodes, shot_bootstrap_rate, skill_figures, summarize
 from ace_drake.evaluation.runner import Episode
 from ace_drake.learning.params import RewardParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind
@@ -114,6 +114,13 @@ def test_the_main_jobs_controller_is_the_best_measured_on_the_heldout_players(tm
     _heldout(tmp_path / "c", "policy:rally_paper", 0.95, sensors="statistical")
     with pytest.raises(ConfigError, match="other conditions.*sensors"):
         best_controller(tmp_path / "c")
+    # An evaluation stored before `repeats` was recorded played each shot once.
+    _heldout(tmp_path / "d", "returner", 0.91)
+    _heldout(tmp_path / "d", "policy:rally_paper", 0.95, repeats=1)
+    assert best_controller(tmp_path / "d") == ("policy:rally_paper", 0.95)
+    _heldout(tmp_path / "d", "policy:rally_paper", 0.95, repeats=5)
+    with pytest.raises(ConfigError, match="other conditions.*repeats"):
+        best_controller(tmp_path / "d")
 
 
 def test_the_stored_heldout_evaluations_are_comparable_and_name_the_controller_the_main_job_plays():
@@ -125,3 +132,31 @@ def test_the_stored_heldout_evaluations_are_comparable_and_name_the_controller_t
     name, rate = best_controller()
     assert rate == max(e["return_rate"]["rate"] for e in evaluations.values())
     assert (HELDOUT_DIR / "README.md").is_file()
+
+
+def test_repeats_of_a_shot_are_not_independent_trials():
+    """A repeated evaluation's interval is a bootstrap over the shots: repeating every shot's
+    outcome three times adds no information, so it gives the same interval, where Wilson's over
+    the episodes would narrow by ~1/sqrt(3); outcomes that differ between repeats do count."""
+    outcomes = np.random.default_rng(3).random(60) < 0.8
+    once = shot_bootstrap_rate(outcomes, np.arange(60))
+    thrice = shot_bootstrap_rate(np.tile(outcomes, 3), np.tile(np.arange(60), 3))
+    assert thrice["rate"] == once["rate"] == pytest.approx(outcomes.mean()) and thrice["played"] == 180
+    assert thrice["ci95"] == once["ci95"] and once["ci95"][0] < once["rate"] < once["ci95"][1]
+    wilson = return_rate(int(np.tile(outcomes, 3).sum()), 180)["ci95"]
+    assert wilson[1] - wilson[0] < 0.7 * (thrice["ci95"][1] - thrice["ci95"][0])
+    assert shot_bootstrap_rate(np.zeros(0, dtype=bool), np.zeros(0, dtype=int))["rate"] is None
+
+
+def test_a_repeated_evaluation_pools_its_episodes_by_shot():
+    """summarize(episodes, shot_count): episode i played shot i mod shot_count; the pooled figures
+    count every episode, an unplayable one (here shot 1 in the second repeat) left out."""
+    invalid = Episode(SHOT, EpisodeResult(Outcome.INVALID, "not a legal shot"), 1.0, (0, 0), np.array([0.0, 1.0, 0.0]))
+    skill = (0.0, 1.0, 0.0)
+    first = [returned(0.0, 100.0, skill), missed(), returned(0.1, 100.0, skill)]
+    second = [returned(0.0, 100.0, skill), invalid, missed()]
+    pooled = summarize(first + second, shot_count=3)
+    assert pooled["episodes"] == 6 and pooled["invalid_shots"] == 1
+    assert pooled["return_rate"]["returned"] == 3 and pooled["return_rate"]["played"] == 5
+    assert sum(row["played"] for row in pooled["by_incoming_speed"]) == 5
+    assert summarize(first)["return_rate"] == return_rate(2, 3)  # one play of each shot: Wilson's

@@ -9,6 +9,12 @@ and every episode that was not returned counted by its reason. Shots that were n
 did not bounce legally on the robot's half under the simulated physics: ``Outcome.INVALID``) are
 counted and left out of the rate.
 
+The sensors' noise, the robot's and the episode's seeds move a controller's rate on the same
+shots by several points (docs/evaluation.md). ``evaluate_controller(repeats=n)`` plays every shot
+n times, with seeds seed, seed + 1, ...; its figures pool all the episodes, and its intervals are
+a bootstrap over the shots (each shot's repeats drawn together), since the repeats of one shot are
+not independent trials.
+
 Each episode is played with a skill [y_desired (m), w_p, w_s] (paper, *States*, *Rewards*): the
 diagram's default (the centre line, w_p = 1, w_s = 0) or one per shot. ``skill_figures`` says
 how the returns followed it: where they landed against y_desired (the aim), their topspin at
@@ -59,18 +65,45 @@ def _distribution(values) -> dict | None:
     return {"count": int(values.size), "p10": p10, "median": median, "p90": p90}
 
 
-def _binned(values: np.ndarray, returned: np.ndarray, edges) -> list[dict]:
+BOOTSTRAP_DRAWS = 2000  # resamplings of the shots for a repeated evaluation's 95% interval
+
+
+def shot_bootstrap_rate(returned: np.ndarray, shot: np.ndarray, seed: int = 0) -> dict:
+    """The fraction of ``returned`` (n,) episodes, played on shots ``shot`` (n,) (an index each;
+    a shot's repeats share it), with a 95% percentile interval from ``BOOTSTRAP_DRAWS``
+    resamplings of the shots, each drawn with all its episodes (seeded by ``seed``). The
+    ``return_rate`` dict's keys; for repeated evaluations, whose episodes of one shot are not
+    independent."""
+    returned = np.asarray(returned, dtype=bool)
+    if returned.size == 0:
+        return return_rate(0, 0)
+    shots, index = np.unique(np.asarray(shot), return_inverse=True)
+    hits = np.bincount(index, weights=returned, minlength=len(shots))
+    plays = np.bincount(index, minlength=len(shots)).astype(float)
+    draws = np.random.default_rng([seed, 0xB0075]).integers(0, len(shots), size=(BOOTSTRAP_DRAWS, len(shots)))
+    rates = hits[draws].sum(axis=1) / plays[draws].sum(axis=1)
+    low, high = np.percentile(rates, [2.5, 97.5])
+    return {"returned": int(returned.sum()), "played": int(returned.size), "rate": float(returned.mean()), "ci95": [float(low), float(high)]}
+
+
+def _binned(values: np.ndarray, returned: np.ndarray, edges, shot: np.ndarray | None = None, seed: int = 0) -> list[dict]:
     rows = []
     for low, high in zip(edges[:-1], edges[1:]):
         inside = (values >= low) & (values < high)
-        rows.append({"low": low, "high": None if np.isinf(high) else high, **return_rate(int(returned[inside].sum()), int(inside.sum()))})
+        rate = return_rate(int(returned[inside].sum()), int(inside.sum())) if shot is None else shot_bootstrap_rate(returned[inside], shot[inside], seed)
+        rows.append({"low": low, "high": None if np.isinf(high) else high, **rate})
     return rows
 
 
-def summarize(episodes: list[Episode]) -> dict:
-    """The evaluation figures (module docstring) of finished episodes."""
+def summarize(episodes: list[Episode], shot_count: int | None = None, seed: int = 0) -> dict:
+    """The evaluation figures (module docstring) of finished episodes. ``shot_count``: for a
+    repeated evaluation, the number of distinct shots, episode i having played shot i mod
+    ``shot_count``; its intervals are then ``shot_bootstrap_rate``'s (seeded by ``seed``), else
+    Wilson's."""
     outcomes = [episode.result.outcome for episode in episodes]
-    playable = [episode for episode, outcome in zip(episodes, outcomes) if outcome is not Outcome.INVALID]
+    playable_index = np.array([i for i, outcome in enumerate(outcomes) if outcome is not Outcome.INVALID], dtype=int)
+    playable = [episodes[i] for i in playable_index]
+    shot = None if shot_count is None else playable_index % shot_count
     returned = np.array([episode.result.outcome is Outcome.RETURNED for episode in playable], dtype=bool)
     shots = np.array([episode.shot for episode in playable]).reshape(-1, 9)
     hits = [episode.result.hit for episode in playable if episode.result.outcome is Outcome.RETURNED]
@@ -81,9 +114,9 @@ def summarize(episodes: list[Episode]) -> dict:
     return {
         "episodes": len(episodes),
         "invalid_shots": len(episodes) - len(playable),
-        "return_rate": return_rate(int(returned.sum()), len(playable)),
-        "by_incoming_speed": _binned(np.linalg.norm(shots[:, 3:6], axis=1), returned, SPEED_BINS),
-        "by_incoming_spin": _binned(np.linalg.norm(shots[:, 6:9], axis=1), returned, SPIN_BINS),
+        "return_rate": return_rate(int(returned.sum()), len(playable)) if shot is None else shot_bootstrap_rate(returned, shot, seed),
+        "by_incoming_speed": _binned(np.linalg.norm(shots[:, 3:6], axis=1), returned, SPEED_BINS, shot, seed),
+        "by_incoming_spin": _binned(np.linalg.norm(shots[:, 6:9], axis=1), returned, SPIN_BINS, shot, seed),
         "outgoing_speed_m_s": _distribution([np.linalg.norm(hit.state_post[3:6]) for hit in hits]),
         "outgoing_spin_rad_s": _distribution([np.linalg.norm(hit.state_post[6:9]) for hit in hits]),
         "bounce_to_hit_s": _distribution(bounce_to_hit),
@@ -154,13 +187,22 @@ def run_episodes(
 
 def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarray, seed: int = 0, progress=None,
              skills: np.ndarray | None = None, batch: int = 1) -> dict:
-    """Evaluates ``controller`` (a policy callable or torch module; for a batch of a stateful
+    """``play``'s episodes summarized (``summarize``), with the wall time (s), the stepping and
+    the batch."""
+    start = time.perf_counter()
+    episodes = play(controller, params, shots, serve, seed, progress, skills, batch)
+    return {**summarize(episodes), "wall_time_s": time.perf_counter() - start, "stepping": params.stepping, "batch": batch}
+
+
+def play(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarray, seed: int = 0, progress=None,
+         skills: np.ndarray | None = None, batch: int = 1) -> list[Episode]:
+    """Plays ``controller`` (a policy callable or torch module; for a batch of a stateful
     controller, a sequence of ``batch`` of them, one per environment) on ``shots`` with the rally
     diagram of ``params`` (without the observation's hit prediction when the controller does not
     read it: ``evaluation.controllers.diagram_params_for``), each shot with its skill of ``skills``
     and shot i seeded ``seed * 1_000_003 + i``: on the continuous-time diagram one episode after
     another (``run_episodes``), on the segment-stepped one (``params.stepping``) ``batch`` at a
-    time (``SegmentRallyRunner``). Returns the figures of ``summarize`` plus the wall time."""
+    time (``SegmentRallyRunner``). Returns the episodes, in the order of ``shots``."""
     controllers = list(controller) if isinstance(controller, (list, tuple)) else [controller]
     controllers = [hit_state_controller(c, params) for c in controllers]
     params = diagram_params_for(controllers[0], params)
@@ -177,7 +219,7 @@ def evaluate(controller, params: RallyParams, shots: np.ndarray, serve: np.ndarr
         runner = SegmentRallyRunner(build_segment_rally_diagram(params, policy, batch), params)
         seeds = seed * 1_000_003 + np.arange(len(shots))
         episodes = runner.run_many(shots, serve, seeds, skills, _batch_progress(len(shots), progress, start))
-    return {**summarize(episodes), "wall_time_s": time.perf_counter() - start, "stepping": params.stepping, "batch": batch}
+    return episodes
 
 
 def _batch_progress(total: int, progress, start: float):
@@ -198,7 +240,7 @@ def _batch_progress(total: int, progress, start: float):
 def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int = 0, ball_params=None, data=None,
                         players: Sequence[str] = (), episodes: int | None = None, skill: str | None = None, skill_sampling=None,
                         action_noise: float = 0.0, stepping: str = "segment", batch: int = 32, progress: Callable[[str], None] = print,
-                        make: Callable[[RallyParams], object] | None = None) -> dict:
+                        make: Callable[[RallyParams], object] | None = None, repeats: int = 1) -> dict:
     """``ace-drake evaluate``: ``evaluate`` of the controller named ``controller``
     (``make_controller``; with ``action_noise`` > 0, Gaussian noise of that std in action units on
     every action, seeded) in the rally diagram of ``rally_params(ball_params, sensors, seed)``,
@@ -210,10 +252,15 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     its sha256. ``stepping``: "segment" (the batched diagram, ``batch`` episodes at a time) or
     "continuous" (the reference diagram, one at a time). ``make``, if given, builds the controller
     for a diagram's params instead of ``make_controller`` (e.g. a policy in memory, which
-    ``controller`` then only names: ``training.export.final_evaluation``). Raises ConfigError for a
-    bad option."""
+    ``controller`` then only names: ``training.export.final_evaluation``). ``repeats``: play every
+    shot that many times, with seeds ``seed``, ``seed`` + 1, ... (each its own sensors' and
+    actions' noise; the skills are the same), the figures pooling them with intervals over the
+    shots (``summarize``) and each repeat's rate in ``return_rate_by_repeat``. Raises ConfigError
+    for a bad option."""
     if episodes is not None and episodes < 1:
         raise ConfigError(f"evaluate: --episodes must be >= 1, got {episodes}")
+    if repeats < 1:
+        raise ConfigError(f"evaluate: --repeats must be >= 1, got {repeats}")
     players = tuple(players)
     if players and not data:
         raise ConfigError("evaluate: --players selects shots of --data; give a match-data CSV")
@@ -233,19 +280,37 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
         source = f"{len(shots)} shots from the built-in synthetic distribution"
     skills, skill_text = evaluation_skills(skill, len(shots), params, seed, skill_sampling)
     batch = max(1, min(batch, len(shots)))
-    # A controller with a memory (a reset()) plays one episode at a time: one per environment.
     build = make or (lambda params: make_controller(controller, params))
+    noise = f", Gaussian action noise {action_noise:g}" if action_noise else ""
+    stepped = f", {stepping} diagram" + (f", {batch} at a time" if batch > 1 else "")
+    seeds = f"seeds {seed}-{seed + repeats - 1} (each shot {repeats} times)" if repeats > 1 else f"seed {seed}"
+    progress(f"evaluate: '{controller}'{noise} on {source}, {sensors} sensors, {seeds}, {skill_text}{stepped}")
+    start, episodes, by_repeat = time.perf_counter(), [], []
+    for repeat_seed in range(seed, seed + repeats):
+        if repeat_seed != seed:
+            params = rally_params(ball_params, sensors, repeat_seed, stepping)
+        played = play(_controllers(build, params, batch, action_noise, repeat_seed), params, shots, serve, repeat_seed, progress, skills, batch)
+        by_repeat.append(summarize(played)["return_rate"])
+        episodes += played
+    figures = {**summarize(episodes, len(shots) if repeats > 1 else None, seed), "wall_time_s": time.perf_counter() - start,
+               "stepping": stepping, "batch": batch}
+    if repeats > 1:
+        figures["return_rate_by_repeat"] = by_repeat
+    return {"controller": controller, "action_noise": action_noise, "data": data, "players": list(players), "sensors": sensors,
+            "seed": seed, "repeats": repeats, "skills": skill or "default", "ball_params": str(ball_params) if ball_params else None,
+            **figures, **provenance(), **({"data_sha256": sha256(data)} if data else {})}
+
+
+def _controllers(build: Callable[[RallyParams], object], params: RallyParams, batch: int, action_noise: float, seed: int):
+    """What ``play`` takes for ``evaluate_controller``: the controller ``build(params)`` makes, or,
+    for one with a memory (a reset()) or with action noise, ``batch`` of them (one per environment,
+    the noise seeded by ``seed``)."""
     first = build(params)
     stateful = callable(getattr(first, "reset", None)) or action_noise > 0
     controllers = [first] + [build(params) for _ in range(batch - 1)] if stateful else [first]
-    noise = f", Gaussian action noise {action_noise:g}" if action_noise else ""
     if action_noise:
         controllers = [NoisyActions(player, action_noise, seed=seed) for player in controllers]
-    stepped = f", {stepping} diagram" + (f", {batch} at a time" if batch > 1 else "")
-    progress(f"evaluate: '{controller}'{noise} on {source}, {sensors} sensors, seed {seed}, {skill_text}{stepped}")
-    figures = evaluate(controllers if len(controllers) > 1 else controllers[0], params, shots, serve, seed, progress=progress, skills=skills, batch=batch)
-    return {"controller": controller, "action_noise": action_noise, "data": data, "players": list(players), "sensors": sensors,
-            "seed": seed, "skills": skill or "default", "ball_params": str(ball_params) if ball_params else None, **figures, **provenance(), **({"data_sha256": sha256(data)} if data else {})}
+    return controllers if len(controllers) > 1 else controllers[0]
 
 
 def evaluation_skills(spec: str | None, count: int, params: RallyParams, seed: int, skill_sampling=None) -> tuple[np.ndarray | None, str]:

@@ -18,7 +18,8 @@ from ace_drake.contracts import DEFAULT_CONTROLLER
 
 HELDOUT_DIR = RESULTS_DIR / "heldout"
 # What must agree between two held-out evaluations for their rates to be compared.
-HELDOUT_CONDITIONS = ("data_sha256", "players", "sensors", "seed", "skills", "ball_params", "action_noise")
+HELDOUT_CONDITIONS = ("data_sha256", "players", "sensors", "seed", "repeats", "skills", "ball_params", "action_noise")
+CONDITION_DEFAULTS = {"repeats": 1}  # a condition an evaluation stored before it was recorded had
 
 
 def heldout_evaluations(directory: Path | None = None) -> dict[str, dict]:
@@ -37,7 +38,7 @@ def heldout_evaluations(directory: Path | None = None) -> dict[str, dict]:
             raise ConfigError(f"{path}: not an 'ace-drake evaluate --json' output (no controller or return_rate)")
         if name in evaluations:
             raise ConfigError(f"{path}: a second held-out evaluation of {name}")
-        conditions = {key: evaluation.get(key) for key in HELDOUT_CONDITIONS}
+        conditions = {key: evaluation.get(key, CONDITION_DEFAULTS.get(key)) for key in HELDOUT_CONDITIONS}
         if reference is None:
             reference = (path, conditions)
         elif conditions != reference[1]:
