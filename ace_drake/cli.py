@@ -146,7 +146,7 @@ def _print_evaluation(figures: dict) -> None:
 
     noise = f" with action noise {figures['action_noise']:g}" if figures.get("action_noise") else ""
     repeats = figures.get("repeats", 1)
-    interval = "95% Wilson interval" if repeats == 1 else f"each shot {repeats} times; 95% interval of a bootstrap over the shots"
+    interval = "95% Wilson interval" if repeats == 1 else f"each shot {repeats} times; 95% Wilson interval over the effective number of episodes"
     print(f"controller {figures['controller']}{noise}: return rate {rate(figures['return_rate'])} ({interval}); {figures['invalid_shots']} unplayable episodes left out")
     if repeats > 1:
         rates = ", ".join(f"{entry['rate']:.1%}" if entry["rate"] is not None else "-" for entry in figures["return_rate_by_repeat"])
@@ -531,7 +531,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="the batched segment-stepped diagram, or the continuous-time reference one episode at a time (default: %(default)s)")
     evaluate.add_argument("--batch", type=int, default=32, help="episodes played at once on the segment-stepped diagram (default: %(default)s)")
     evaluate.add_argument("--repeats", type=int, default=1,
-                          help="play every shot this many times, with seeds --seed, --seed + 1, ...; the figures pool them, the intervals by a bootstrap over the shots (default: %(default)s)")
+                          help="play every shot this many times, with seeds --seed, --seed + 1, ... for the noise (the shots and skills stay those of --seed); "
+                               "the figures pool them, the intervals over the effective number of episodes (default: %(default)s)")
     evaluate.set_defaults(run=cmd_evaluate)
 
     train = commands.add_parser("train", help="train the rally policy (SAC; resumable) and export it")

@@ -101,14 +101,18 @@ def test_evaluate_counts_every_episode_with_its_interval(capsys):
         assert "--skill must be" in capsys.readouterr().err
 
 
+@needs_data
 def test_evaluate_repeats_every_shot_with_the_next_seeds(capsys):
-    common = ("evaluate", "--controller", "still", "--episodes", "3", "--sensors", "statistical", "--json")
-    pooled = run_json(capsys, *common, "--repeats", "2", "--seed", "4")
-    first, second = run_json(capsys, *common, "--seed", "4"), run_json(capsys, *common, "--seed", "5")
-    assert pooled["repeats"] == 2 and pooled["seed"] == 4 and pooled["episodes"] == 6 and first["repeats"] == 1
-    assert pooled["return_rate_by_repeat"] == [first["return_rate"], second["return_rate"]]
-    assert pooled["return_rate"]["played"] == first["return_rate"]["played"] + second["return_rate"]["played"]
-    assert pooled["invalid_shots"] == first["invalid_shots"] + second["invalid_shots"]
+    """--repeats 3 --seed 4 plays the recorded shots as --seed 4, 5 and 6 would (their noise; the
+    recorded shots are the same whatever the seed) and pools the episodes."""
+    common = ("evaluate", "--controller", "returner", "--data", str(DATA), "--episodes", "6", "--sensors", "statistical", "--json")
+    pooled = run_json(capsys, *common, "--repeats", "3", "--seed", "4")
+    each = [run_json(capsys, *common, "--seed", str(seed)) for seed in (4, 5, 6)]
+    assert pooled["repeats"] == 3 and pooled["seed"] == 4 and pooled["episodes"] == 18 and each[0]["repeats"] == 1
+    assert pooled["return_rate_by_repeat"] == [one["return_rate"] for one in each]
+    assert pooled["return_rate"]["returned"] == sum(one["return_rate"]["returned"] for one in each) > 0
+    assert pooled["return_rate"]["played"] == sum(one["return_rate"]["played"] for one in each)
+    assert pooled["invalid_shots"] == sum(one["invalid_shots"] for one in each)
     assert main(["evaluate", "--controller", "still", "--episodes", "1", "--repeats", "0"]) == 2
     assert "--repeats must be >= 1" in capsys.readouterr().err
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ace_drake.contracts import EpisodeResult, Outcome
-from ace_drake.evaluation.evaluate import return_rate, run_episodes, shot_bootstrap_rate, skill_figures, summarize
+from ace_drake.evaluation.evaluate import clustered_return_rate, return_rate, run_episodes, skill_figures, summarize
 from ace_drake.evaluation.runner import Episode
 from ace_drake.learning.params import RewardParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind
@@ -135,28 +135,38 @@ def test_the_stored_heldout_evaluations_are_comparable_and_name_the_controller_t
 
 
 def test_repeats_of_a_shot_are_not_independent_trials():
-    """A repeated evaluation's interval is a bootstrap over the shots: repeating every shot's
-    outcome three times adds no information, so it gives the same interval, where Wilson's over
-    the episodes would narrow by ~1/sqrt(3); outcomes that differ between repeats do count."""
+    """A repeated evaluation's interval is Wilson's over the effective number of episodes: one play
+    per shot gives Wilson's over the shots; every shot's outcome repeated three times adds no
+    information and gives the same; outcomes that differ between a shot's repeats narrow it; an
+    evaluation where every episode agrees keeps Wilson's over its shots."""
     outcomes = np.random.default_rng(3).random(60) < 0.8
-    once = shot_bootstrap_rate(outcomes, np.arange(60))
-    thrice = shot_bootstrap_rate(np.tile(outcomes, 3), np.tile(np.arange(60), 3))
-    assert thrice["rate"] == once["rate"] == pytest.approx(outcomes.mean()) and thrice["played"] == 180
-    assert thrice["ci95"] == once["ci95"] and once["ci95"][0] < once["rate"] < once["ci95"][1]
-    wilson = return_rate(int(np.tile(outcomes, 3).sum()), 180)["ci95"]
-    assert wilson[1] - wilson[0] < 0.7 * (thrice["ci95"][1] - thrice["ci95"][0])
-    assert shot_bootstrap_rate(np.zeros(0, dtype=bool), np.zeros(0, dtype=int))["rate"] is None
+    wilson = return_rate(int(outcomes.sum()), 60)
+    once = clustered_return_rate(outcomes, np.arange(60))
+    assert once["rate"] == pytest.approx(wilson["rate"]) and once["ci95"] == pytest.approx(wilson["ci95"], abs=1e-12)
+    thrice = clustered_return_rate(np.tile(outcomes, 3), np.tile(np.arange(60), 3))
+    assert thrice["played"] == 180 and thrice["rate"] == pytest.approx(outcomes.mean())
+    assert thrice["ci95"] == pytest.approx(wilson["ci95"], abs=1e-12)
+    independent = np.random.default_rng(4).random(180) < 0.8  # each repeat its own draw
+    narrower = clustered_return_rate(independent, np.tile(np.arange(60), 3))
+    assert narrower["ci95"] == pytest.approx(return_rate(int(independent.sum()), 180)["ci95"], rel=0.05)
+    all_returned = clustered_return_rate(np.ones(15, dtype=bool), np.repeat(np.arange(3), 5))
+    assert all_returned["ci95"] == pytest.approx(return_rate(3, 3)["ci95"], abs=1e-12) and all_returned["ci95"][0] < 0.5
+    assert clustered_return_rate(np.zeros(0, dtype=bool), np.zeros(0, dtype=int))["rate"] is None
 
 
 def test_a_repeated_evaluation_pools_its_episodes_by_shot():
     """summarize(episodes, shot_count): episode i played shot i mod shot_count; the pooled figures
-    count every episode, an unplayable one (here shot 1 in the second repeat) left out."""
+    count every episode, an unplayable one (here shot 1 in the second repeat) left out, and the
+    intervals are those of the episodes grouped by their shots."""
     invalid = Episode(SHOT, EpisodeResult(Outcome.INVALID, "not a legal shot"), 1.0, (0, 0), np.array([0.0, 1.0, 0.0]))
     skill = (0.0, 1.0, 0.0)
     first = [returned(0.0, 100.0, skill), missed(), returned(0.1, 100.0, skill)]
     second = [returned(0.0, 100.0, skill), invalid, missed()]
     pooled = summarize(first + second, shot_count=3)
     assert pooled["episodes"] == 6 and pooled["invalid_shots"] == 1
-    assert pooled["return_rate"]["returned"] == 3 and pooled["return_rate"]["played"] == 5
-    assert sum(row["played"] for row in pooled["by_incoming_speed"]) == 5
+    expected = clustered_return_rate(np.array([True, False, True, True, False]), np.array([0, 1, 2, 0, 2]))
+    assert pooled["return_rate"] == expected and expected["ci95"] != return_rate(3, 5)["ci95"]
+    assert expected["ci95"] != clustered_return_rate(np.array([True, False, True, True, False]), np.arange(5))["ci95"]
+    (row,) = [row for row in pooled["by_incoming_speed"] if row["played"]]
+    assert {key: row[key] for key in expected} == expected  # every shot is SHOT: one bin
     assert summarize(first)["return_rate"] == return_rate(2, 3)  # one play of each shot: Wilson's

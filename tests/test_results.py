@@ -141,3 +141,11 @@ def test_stored_matches_make_one_row_each_beside_the_papers(tmp_path):
     assert rows[0].measured_on == "5 matches (best of 3, golden point), cameras, seed 0, 2026-12-06"
     assert "3 of 5 matches, 7 of 13 games" in rows[1].figure
     assert results.match_rows(tmp_path / "nowhere") == []
+
+
+def test_a_repeated_evaluation_says_its_seeds_and_repeats():
+    evaluation = {"controller": "returner", "episodes": 30, "sensors": "cameras", "seed": 2, "data": None, "stepping": "segment", "batch": 32,
+                  "return_rate": {"rate": 0.9, "returned": 27, "played": 30, "ci95": [0.74, 0.97]}}
+    assert ", seed 2, " in results.evaluation_row("returner", evaluation, "x.json").measured_on
+    repeated = results.evaluation_row("returner", {**evaluation, "repeats": 3}, "x.json").measured_on
+    assert ", seeds 2-4, each shot 3 times, " in repeated

@@ -86,6 +86,12 @@ def _shots_text(evaluation: dict) -> str:
     return f"{shots}, {evaluation['sensors']}"
 
 
+def _seed_text(evaluation: dict) -> str:
+    """'seed 0', or for an ``evaluate --repeats 5`` 'seeds 0-4, each shot 5 times'."""
+    seed, repeats = evaluation["seed"], evaluation.get("repeats", 1)
+    return f"seed {seed}" if repeats == 1 else f"seeds {seed}-{seed + repeats - 1}, each shot {repeats} times"
+
+
 def policy_row(name: str, sidecar: dict | None, source: str) -> Row:
     """The export evaluation of a shipped policy's sidecar (``final_evaluation``)."""
     what = f"`policy:{name}`: {POLICY_ROLES[name]}"
@@ -118,7 +124,7 @@ def evaluation_row(controller: str, evaluation: dict | None, source: str) -> Row
         command = EVALUATE_COMMAND.format(controller=controller)
         return Row(what, NOT_MEASURED, f"`{command} > {source}` measures it on the recorded human shots", _source(source))
     figure = return_rate_text(evaluation["return_rate"])
-    measured_on = (f"{_shots_text(evaluation)}, seed {evaluation['seed']}, {_diagram_text(evaluation)}"
+    measured_on = (f"{_shots_text(evaluation)}, {_seed_text(evaluation)}, {_diagram_text(evaluation)}"
                    + (f", {evaluation['date']}" if evaluation.get("date") else ""))
     return Row(what, figure, measured_on, _source(source))
 
@@ -169,7 +175,7 @@ def heldout_row(root: Path) -> list[Row]:
     figure = "; ".join(f"`{name}` {return_rate_text(evaluation['return_rate'])}" for name, evaluation in ranked)
     some = ranked[0][1]
     what = f"the main job's controller, chosen on the held-out players: `{chosen}`"
-    measured_on = f"all recorded shots of {', '.join(some['players'])}, {some['sensors']}, seed {some['seed']}, the {some.get('stepping', 'segment')} diagram"
+    measured_on = f"all recorded shots of {', '.join(some['players'])}, {some['sensors']}, {_seed_text(some)}, the {some.get('stepping', 'segment')} diagram"
     return [Row(what, figure, measured_on, "`docs/results/heldout/`")]
 
 

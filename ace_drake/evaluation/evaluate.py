@@ -9,11 +9,11 @@ and every episode that was not returned counted by its reason. Shots that were n
 did not bounce legally on the robot's half under the simulated physics: ``Outcome.INVALID``) are
 counted and left out of the rate.
 
-The sensors' noise, the robot's and the episode's seeds move a controller's rate on the same
-shots by several points (docs/evaluation.md). ``evaluate_controller(repeats=n)`` plays every shot
-n times, with seeds seed, seed + 1, ...; its figures pool all the episodes, and its intervals are
-a bootstrap over the shots (each shot's repeats drawn together), since the repeats of one shot are
-not independent trials.
+The seed (the sensors', the robot's and the ball's noise) moves a controller's rate on the same
+shots by several points (docs/robot_and_control.md). ``evaluate_controller(repeats=n)`` plays
+every shot n times, with seeds seed, seed + 1, ...; its figures pool all the episodes, and its
+intervals are Wilson's over the effective number of episodes (``clustered_return_rate``), since
+the repeats of one shot are not independent trials.
 
 Each episode is played with a skill [y_desired (m), w_p, w_s] (paper, *States*, *Rewards*): the
 diagram's default (the centre line, w_p = 1, w_s = 0) or one per shot. ``skill_figures`` says
@@ -65,41 +65,53 @@ def _distribution(values) -> dict | None:
     return {"count": int(values.size), "p10": p10, "median": median, "p90": p90}
 
 
-BOOTSTRAP_DRAWS = 2000  # resamplings of the shots for a repeated evaluation's 95% interval
-
-
-def shot_bootstrap_rate(returned: np.ndarray, shot: np.ndarray, seed: int = 0) -> dict:
-    """The fraction of ``returned`` (n,) episodes, played on shots ``shot`` (n,) (an index each;
-    a shot's repeats share it), with a 95% percentile interval from ``BOOTSTRAP_DRAWS``
-    resamplings of the shots, each drawn with all its episodes (seeded by ``seed``). The
-    ``return_rate`` dict's keys; for repeated evaluations, whose episodes of one shot are not
-    independent."""
+def clustered_return_rate(returned: np.ndarray, shot: np.ndarray) -> dict:
+    """The fraction of ``returned`` (n,) episodes, played on shots ``shot`` (n,) (an index each; a
+    shot's repeats share it), with a 95% Wilson interval over the effective number of episodes
+    n / deff: deff is the design effect of playing each shot several times (Kish), the variance
+    of the rate as a ratio estimator over the shots against a binomial's over n episodes, kept
+    between 1 (repeats as informative as new shots) and n / shots (a repeat adds nothing; also
+    when every episode agrees, where the variances vanish). The ``return_rate`` dict's keys; for
+    repeated evaluations, whose episodes of one shot are not independent trials."""
     returned = np.asarray(returned, dtype=bool)
-    if returned.size == 0:
+    n = returned.size
+    if n == 0:
         return return_rate(0, 0)
-    shots, index = np.unique(np.asarray(shot), return_inverse=True)
-    hits = np.bincount(index, weights=returned, minlength=len(shots))
-    plays = np.bincount(index, minlength=len(shots)).astype(float)
-    draws = np.random.default_rng([seed, 0xB0075]).integers(0, len(shots), size=(BOOTSTRAP_DRAWS, len(shots)))
-    rates = hits[draws].sum(axis=1) / plays[draws].sum(axis=1)
-    low, high = np.percentile(rates, [2.5, 97.5])
-    return {"returned": int(returned.sum()), "played": int(returned.size), "rate": float(returned.mean()), "ci95": [float(low), float(high)]}
+    _, index = np.unique(np.asarray(shot), return_inverse=True)
+    hits = np.bincount(index, weights=returned).astype(float)
+    plays = np.bincount(index).astype(float)
+    shots, rate = len(plays), float(returned.mean())
+    most = n / shots  # the mean repeats of a shot
+    binomial = rate * (1.0 - rate) / n
+    if shots > 1 and binomial > 0.0:
+        clustered = shots / (shots - 1) * np.sum((hits - rate * plays) ** 2) / n**2
+        deff = float(np.clip(clustered / binomial, 1.0, most))
+    else:
+        deff = most
+    return {"returned": int(returned.sum()), "played": n, "rate": rate, "ci95": list(wilson_interval(rate, n / deff))}
 
 
-def _binned(values: np.ndarray, returned: np.ndarray, edges, shot: np.ndarray | None = None, seed: int = 0) -> list[dict]:
+def wilson_interval(rate: float, n: float, z: float = 1.959963984540054) -> tuple[float, float]:
+    """The Wilson score interval (95% for the default z) of a proportion ``rate`` over ``n``
+    trials, ``n`` possibly fractional (an effective number)."""
+    centre = (rate + z * z / (2.0 * n)) / (1.0 + z * z / n)
+    half = z / (1.0 + z * z / n) * np.sqrt(rate * (1.0 - rate) / n + z * z / (4.0 * n * n))
+    return max(0.0, float(centre - half)), min(1.0, float(centre + half))
+
+
+def _binned(values: np.ndarray, returned: np.ndarray, edges, shot: np.ndarray | None = None) -> list[dict]:
     rows = []
     for low, high in zip(edges[:-1], edges[1:]):
         inside = (values >= low) & (values < high)
-        rate = return_rate(int(returned[inside].sum()), int(inside.sum())) if shot is None else shot_bootstrap_rate(returned[inside], shot[inside], seed)
+        rate = return_rate(int(returned[inside].sum()), int(inside.sum())) if shot is None else clustered_return_rate(returned[inside], shot[inside])
         rows.append({"low": low, "high": None if np.isinf(high) else high, **rate})
     return rows
 
 
-def summarize(episodes: list[Episode], shot_count: int | None = None, seed: int = 0) -> dict:
+def summarize(episodes: list[Episode], shot_count: int | None = None) -> dict:
     """The evaluation figures (module docstring) of finished episodes. ``shot_count``: for a
     repeated evaluation, the number of distinct shots, episode i having played shot i mod
-    ``shot_count``; its intervals are then ``shot_bootstrap_rate``'s (seeded by ``seed``), else
-    Wilson's."""
+    ``shot_count``; its intervals are then ``clustered_return_rate``'s, else Wilson's."""
     outcomes = [episode.result.outcome for episode in episodes]
     playable_index = np.array([i for i, outcome in enumerate(outcomes) if outcome is not Outcome.INVALID], dtype=int)
     playable = [episodes[i] for i in playable_index]
@@ -114,9 +126,9 @@ def summarize(episodes: list[Episode], shot_count: int | None = None, seed: int 
     return {
         "episodes": len(episodes),
         "invalid_shots": len(episodes) - len(playable),
-        "return_rate": return_rate(int(returned.sum()), len(playable)) if shot is None else shot_bootstrap_rate(returned, shot, seed),
-        "by_incoming_speed": _binned(np.linalg.norm(shots[:, 3:6], axis=1), returned, SPEED_BINS, shot, seed),
-        "by_incoming_spin": _binned(np.linalg.norm(shots[:, 6:9], axis=1), returned, SPIN_BINS, shot, seed),
+        "return_rate": return_rate(int(returned.sum()), len(playable)) if shot is None else clustered_return_rate(returned, shot),
+        "by_incoming_speed": _binned(np.linalg.norm(shots[:, 3:6], axis=1), returned, SPEED_BINS, shot),
+        "by_incoming_spin": _binned(np.linalg.norm(shots[:, 6:9], axis=1), returned, SPIN_BINS, shot),
         "outgoing_speed_m_s": _distribution([np.linalg.norm(hit.state_post[3:6]) for hit in hits]),
         "outgoing_spin_rad_s": _distribution([np.linalg.norm(hit.state_post[6:9]) for hit in hits]),
         "bounce_to_hit_s": _distribution(bounce_to_hit),
@@ -253,10 +265,10 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     "continuous" (the reference diagram, one at a time). ``make``, if given, builds the controller
     for a diagram's params instead of ``make_controller`` (e.g. a policy in memory, which
     ``controller`` then only names: ``training.export.final_evaluation``). ``repeats``: play every
-    shot that many times, with seeds ``seed``, ``seed`` + 1, ... (each its own sensors' and
-    actions' noise; the skills are the same), the figures pooling them with intervals over the
-    shots (``summarize``) and each repeat's rate in ``return_rate_by_repeat``. Raises ConfigError
-    for a bad option."""
+    shot that many times, with seeds ``seed``, ``seed`` + 1, ... (each its own sensors', robot's,
+    ball's and actions' noise; the shots and skills stay those drawn with ``seed``), the figures
+    pooling them (``summarize``; ``wall_time_s`` the playing's, as for one) and each repeat's rate
+    in ``return_rate_by_repeat``. Raises ConfigError for a bad option."""
     if episodes is not None and episodes < 1:
         raise ConfigError(f"evaluate: --episodes must be >= 1, got {episodes}")
     if repeats < 1:
@@ -285,15 +297,17 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     stepped = f", {stepping} diagram" + (f", {batch} at a time" if batch > 1 else "")
     seeds = f"seeds {seed}-{seed + repeats - 1} (each shot {repeats} times)" if repeats > 1 else f"seed {seed}"
     progress(f"evaluate: '{controller}'{noise} on {source}, {sensors} sensors, {seeds}, {skill_text}{stepped}")
-    start, episodes, by_repeat = time.perf_counter(), [], []
+    wall_time, episodes, by_repeat = 0.0, [], []
     for repeat_seed in range(seed, seed + repeats):
         if repeat_seed != seed:
             params = rally_params(ball_params, sensors, repeat_seed, stepping)
-        played = play(_controllers(build, params, batch, action_noise, repeat_seed), params, shots, serve, repeat_seed, progress, skills, batch)
+        controllers = _controllers(build, params, batch, action_noise, repeat_seed)
+        start = time.perf_counter()
+        played = play(controllers, params, shots, serve, repeat_seed, progress, skills, batch)
+        wall_time += time.perf_counter() - start
         by_repeat.append(summarize(played)["return_rate"])
         episodes += played
-    figures = {**summarize(episodes, len(shots) if repeats > 1 else None, seed), "wall_time_s": time.perf_counter() - start,
-               "stepping": stepping, "batch": batch}
+    figures = {**summarize(episodes, len(shots) if repeats > 1 else None), "wall_time_s": wall_time, "stepping": stepping, "batch": batch}
     if repeats > 1:
         figures["return_rate_by_repeat"] = by_repeat
     return {"controller": controller, "action_noise": action_noise, "data": data, "players": list(players), "sensors": sensors,
