@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ace_drake.contracts import EpisodeResult, Outcome
-from ace_drake.evaluation.evaluate import clustered_return_rate, return_rate, run_episodes, skill_figures, summarize
+from ace_drake.evaluation.evaluate import clustered_return_rate, return_rate, run_episodes, skill_figures, summarize, wilson_interval
 from ace_drake.evaluation.runner import Episode
 from ace_drake.learning.params import RewardParams
 from ace_drake.physics.propagate import ContactEvent, ContactKind
@@ -149,6 +149,7 @@ def test_repeats_of_a_shot_are_not_independent_trials():
     independent = np.random.default_rng(4).random(180) < 0.8  # each repeat its own draw
     narrower = clustered_return_rate(independent, np.tile(np.arange(60), 3))
     assert narrower["ci95"] == pytest.approx(return_rate(int(independent.sum()), 180)["ci95"], rel=0.05)
+    assert narrower["ci95"][1] - narrower["ci95"][0] < 0.8 * (once["ci95"][1] - once["ci95"][0])
     all_returned = clustered_return_rate(np.ones(15, dtype=bool), np.repeat(np.arange(3), 5))
     assert all_returned["ci95"] == pytest.approx(return_rate(3, 3)["ci95"], abs=1e-12) and all_returned["ci95"][0] < 0.5
     assert clustered_return_rate(np.zeros(0, dtype=bool), np.zeros(0, dtype=int))["rate"] is None
@@ -170,3 +171,11 @@ def test_a_repeated_evaluation_pools_its_episodes_by_shot():
     (row,) = [row for row in pooled["by_incoming_speed"] if row["played"]]
     assert {key: row[key] for key in expected} == expected  # every shot is SHOT: one bin
     assert summarize(first)["return_rate"] == return_rate(2, 3)  # one play of each shot: Wilson's
+
+
+@pytest.mark.parametrize("returned, played", [(0, 3), (2, 3), (157, 187), (187, 187), (1, 1000)])
+def test_the_wilson_interval_is_scipys(returned, played):
+    from scipy.stats import binomtest
+
+    reference = binomtest(returned, played).proportion_ci(confidence_level=0.95, method="wilson")
+    assert wilson_interval(returned / played, played) == pytest.approx((reference.low, reference.high), abs=1e-12)

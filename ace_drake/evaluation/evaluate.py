@@ -2,18 +2,18 @@
 
 Each shot (a ball state just after the opponent's hit) is played on the rally diagram with the
 controller driving the robot through the full control stack and the robot perceiving the ball
-through its sensors. The figures: the return rate with its 95% Wilson interval (SciPy), overall
+through its sensors. The figures: the return rate with its 95% Wilson interval, overall
 and binned by the shot's speed and spin (Fig. 3c-d); the distributions of the returns' outgoing
 speed and spin (Fig. 3e-f); the time from the bounce on the robot's half to the hit (Fig. 3g);
 and every episode that was not returned counted by its reason. Shots that were not playable (they
 did not bounce legally on the robot's half under the simulated physics: ``Outcome.INVALID``) are
 counted and left out of the rate.
 
-The seed (the sensors', the robot's and the ball's noise) moves a controller's rate on the same
-shots by several points (docs/robot_and_control.md). ``evaluate_controller(repeats=n)`` plays
-every shot n times, with seeds seed, seed + 1, ...; its figures pool all the episodes, and its
-intervals are Wilson's over the effective number of episodes (``clustered_return_rate``), since
-the repeats of one shot are not independent trials.
+The seed (the noise of the sensors and of the ball's perturbations) moves a controller's rate on
+the same shots by several points (docs/robot_and_control.md). ``evaluate_controller(repeats=n)``
+plays every shot n times, with seeds seed, seed + 1, ...; its figures pool all the episodes, and
+its intervals are Wilson's over the effective number of episodes (``clustered_return_rate``),
+since the repeats of one shot are not independent trials.
 
 Each episode is played with a skill [y_desired (m), w_p, w_s] (paper, *States*, *Rewards*): the
 diagram's default (the centre line, w_p = 1, w_s = 0) or one per shot. ``skill_figures`` says
@@ -28,7 +28,6 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy.stats import binomtest
 
 from ace_drake.artefacts import provenance, sha256
 from ace_drake.config import ConfigError
@@ -52,8 +51,7 @@ def return_rate(returned: int, played: int) -> dict:
     """The fraction returned with its 95% Wilson score interval (None without episodes)."""
     if played == 0:
         return {"returned": 0, "played": 0, "rate": None, "ci95": None}
-    interval = binomtest(returned, played).proportion_ci(confidence_level=0.95, method="wilson")
-    return {"returned": returned, "played": played, "rate": returned / played, "ci95": [interval.low, interval.high]}
+    return {"returned": returned, "played": played, "rate": returned / played, "ci95": list(wilson_interval(returned / played, played))}
 
 
 def _distribution(values) -> dict | None:
@@ -265,8 +263,8 @@ def evaluate_controller(controller: str, *, sensors: str = "cameras", seed: int 
     "continuous" (the reference diagram, one at a time). ``make``, if given, builds the controller
     for a diagram's params instead of ``make_controller`` (e.g. a policy in memory, which
     ``controller`` then only names: ``training.export.final_evaluation``). ``repeats``: play every
-    shot that many times, with seeds ``seed``, ``seed`` + 1, ... (each its own sensors', robot's,
-    ball's and actions' noise; the shots and skills stay those drawn with ``seed``), the figures
+    shot that many times, with seeds ``seed``, ``seed`` + 1, ... (each its own sensors', ball's
+    and actions' noise; the shots and skills stay those drawn with ``seed``), the figures
     pooling them (``summarize``; ``wall_time_s`` the playing's, as for one) and each repeat's rate
     in ``return_rate_by_repeat``. Raises ConfigError for a bad option."""
     if episodes is not None and episodes < 1:

@@ -19,7 +19,8 @@ from ace_drake.contracts import DEFAULT_CONTROLLER
 HELDOUT_DIR = RESULTS_DIR / "heldout"
 # What must agree between two held-out evaluations for their rates to be compared.
 HELDOUT_CONDITIONS = ("data_sha256", "players", "sensors", "seed", "repeats", "skills", "ball_params", "action_noise")
-CONDITION_DEFAULTS = {"repeats": 1}  # a condition an evaluation stored before it was recorded had
+# The value of a condition in a file stored before the condition was recorded: one play per shot.
+CONDITION_DEFAULTS = {"repeats": 1}
 
 
 def heldout_evaluations(directory: Path | None = None) -> dict[str, dict]:

@@ -59,7 +59,8 @@ saturate tanh, whose log-Jacobian had held the spread down, and the entropy bonu
 The cloning term's fields (``CLONING_FIELDS``) and the entropy weight ``alpha`` only weigh a
 loss, and ``actor_average``, ``std_scale`` and ``actor_lr`` do not change the networks: a
 learner's state loads into a learner whose config differs in them alone (``STAGE_FIELDS``), so
-that a later training stage may change them (a stage starts at its own ``actor_lr``: ``training.checkpoint``).
+that a later training stage may change them (a stage starts at its own ``actor_lr``:
+``training.checkpoint``).
 
 The action (``SacConfig.action``): "terminal" is the paper's, the 16 components of eq. (12) for
 the next segment; "hit_state" (this project's; docs/training.md, *Hit-state actor*) is the
