@@ -22,10 +22,11 @@ from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation import controllers
-from ace_drake.evaluation.evaluate import evaluate, evaluate_controller
+from ace_drake.evaluation.evaluate import evaluate, evaluate_controller, play, summarize
 from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
 from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.match_data import MatchDataError
+from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.shots import human_shots
 from ace_drake.training import checkpoint as checkpoint_module
 from ace_drake.training.checkpoint import CHECKPOINT, PORTABLE_CHECKPOINT, CheckpointError, play_options_moved, read_checkpoint
@@ -41,7 +42,8 @@ from ace_drake.training.export import (
     final_evaluation,
     plot_learning_curve,
 )
-from ace_drake.training.loop import Progress, TrainConfig, Trainer, load_train_config
+from ace_drake.training import loop as loop_module
+from ace_drake.training.loop import EVALUATION_BATCH, Progress, TrainConfig, Trainer, evaluation_shots, load_train_config
 from ace_drake.training.rollout import ExplorationParams, OrnsteinUhlenbeck, RolloutWorker, VectorRolloutWorker, load_episodes, save_episodes
 from ace_drake.training.stages import EARLIER_STAGE_DIR
 from ace_drake.training.workers import WorkerFailed, WorkerPool
@@ -418,6 +420,29 @@ def test_a_batched_run_collects_on_vector_workers_and_evaluates_on_the_segment_d
     assert state.evaluations and state.evaluations[-1][2]["played"] + state.evaluations[-1][2].get("invalid", 0) <= 4
 
 
+def test_a_periodic_evaluation_pools_its_repeats_over_successive_seeds(tmp_path, monkeypatch):
+    # evaluation_repeats 2: every evaluation plays its shots with the run's seed and the next one,
+    # and records the pooled figures, as the two plays summarized together.
+    config = _config(batch=2, demonstrations=0, pretrain_updates=0, ou_episodes=2, env_steps=40, evaluation_episodes=3,
+                     evaluation_repeats=2)
+    seeds = []
+    monkeypatch.setattr(loop_module, "play", lambda *args, seed, **kwargs: (seeds.append(seed), play(*args, seed=seed, **kwargs))[1])
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    state = trainer.run()
+    assert seeds and seeds == [3, 4] * (len(seeds) // 2)
+    shots, serve = evaluation_shots(config)
+    params = RallyParams(perception=PerceptionParams(positions="statistical"), stepping="segment")
+    each = [play(trainer.learner.policy(), params, shots, serve, seed=seed, batch=EVALUATION_BATCH) for seed in (3, 4)]
+    pooled = summarize(each[0] + each[1], len(shots))
+    last = state.evaluations[-1][2]  # the run's final evaluation, of the actor it ended with
+    assert last["repeats"] == 2 and last["played"] == pooled["return_rate"]["played"] > len(shots)
+    assert last["returned"] == pooled["return_rate"]["returned"] and last["ci95"] == pooled["return_rate"]["ci95"]
+    assert last["not_returned_by_reason"] == pooled["not_returned_by_reason"]
+    assert "each 2 times" in evaluation_description(config)
+    with pytest.raises(ConfigError, match="evaluation_repeats must be >= 1"):
+        _config(evaluation_repeats=0)
+
+
 def test_a_batched_run_demonstrates_clones_and_learns_with_dagger_labels(tmp_path):
     # The returner demonstrates on a vector worker of 2 environments, the actor is cloned, then it
     # plays while the returner labels (DAgger): every phase batched, end to end.
@@ -630,15 +655,15 @@ def test_a_failing_evaluation_is_skipped_not_the_run(tmp_path, monkeypatch):
     evaluates again; beyond max_worker_failures the run stops with it."""
     from ace_drake.training import loop
 
-    evaluate, calls = loop.evaluate, []
+    play, calls = loop.play, []
 
     def failing_first(*args, **kwargs):
         calls.append(1)
         if len(calls) == 1:
             raise ValueError("HitPredictor.predict: the estimate (or the predicted ball) contains NaN or inf")
-        return evaluate(*args, **kwargs)
+        return play(*args, **kwargs)
 
-    monkeypatch.setattr(loop, "evaluate", failing_first)
+    monkeypatch.setattr(loop, "play", failing_first)
     lines = []
     config = _config(env_steps=50, pretrain_updates=0, evaluate_every=20)
     trainer = Trainer(config, tmp_path / "run", progress=lines.append)
@@ -660,7 +685,7 @@ def test_a_failing_evaluation_is_skipped_not_the_run(tmp_path, monkeypatch):
     def bad_input(*args, **kwargs):  # e.g. a held-out player missing from the match data: every evaluation would fail
         raise MatchDataError("no shot_p2 shots of players ['Elite Q']")
 
-    monkeypatch.setattr(loop, "evaluate", bad_input)
+    monkeypatch.setattr(loop, "play", bad_input)
     with pytest.raises(MatchDataError, match="Elite Q"):
         Trainer(config, tmp_path / "bad_input", progress=lambda line: None).run()
 

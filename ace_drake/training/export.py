@@ -143,10 +143,11 @@ def chosen_policy(trainer: Trainer, which: str):
 
 def evaluation_description(config: TrainConfig) -> str:
     """What the periodic evaluation plays, in words (for the learning curve's legend)."""
+    times = f", each {config.evaluation_repeats} times" if config.evaluation_repeats > 1 else ""
     if not config.evaluation_data:
-        return f"{config.evaluation_episodes} synthetic shots"
+        return f"{config.evaluation_episodes} synthetic shots{times}"
     of = f" of {', '.join(config.evaluation_players)}" if config.evaluation_players else ""
-    return f"first {config.evaluation_episodes} human shots{of}"
+    return f"first {config.evaluation_episodes} human shots{of}{times}"
 
 
 def _draw_evaluations(axes, points: list, color: str, label: str) -> None:

@@ -40,7 +40,8 @@ so a killed run loses only the work since then; ``train`` on the same directory 
 are reseeded from the run's seed, the number of resumptions and the number of failed tasks, so a
 resumed run is reproducible but not identical to an uninterrupted one). Every
 ``evaluate_every`` steps the deterministic actor is evaluated in the rally diagram
-(``evaluation.evaluate.evaluate``) on ``evaluation_episodes`` shots; the best evaluated actor is
+(``evaluation.evaluate.play``) on ``evaluation_episodes`` shots, each ``evaluation_repeats``
+times with successive seeds; the best evaluated actor is
 kept (and, with ``heldout_players``, also on all of those players' shots, for the curve only).
 Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to the ``progress`` callable.
 ``export.export`` writes a policy artefact (``models/policies/<name>.pt``), its sidecar JSON and
@@ -65,7 +66,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 from ace_drake.config import MODELS_DIR, ConfigError, InputError, from_dict, load_yaml
 from ace_drake.control.params import RallyParams, ReturnerParams
-from ace_drake.evaluation.evaluate import evaluate
+from ace_drake.evaluation.evaluate import play, summarize
 from ace_drake.learning.mirror import Mirror
 from ace_drake.learning.replay import DemonstrationBuffer, EventReplay, ReplayConfig
 from ace_drake.learning.sac import STAGE_FIELDS, PlayOptions, SacConfig, SacLearner, learner_config_differences
@@ -130,6 +131,10 @@ class TrainConfig:
     checkpoint_every: int = 10_000
     evaluate_every: int = 25_000
     evaluation_episodes: int = 100
+    # Seeds each periodic evaluation plays every shot with (the run's seed and the next ones): the
+    # sensors' and the ball's noise spread one actor's rate over seeds by ~4 points, as much as the
+    # actors it chooses between differ; the figures pool the repeats (``evaluate.summarize``).
+    evaluation_repeats: int = 1
     evaluation_data: str = ""  # a match-data CSV (its shot_p2 shots); "" the synthetic distribution
     evaluation_players: tuple[str, ...] = ()  # with evaluation_data: these players' shots only; () all
     evaluation_sensors: str = "statistical"  # the rally diagram's position sensor for evaluations
@@ -164,7 +169,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         for name in ("env_steps", "workers", "episodes_per_task", "update_chunk", "checkpoint_every",
-                     "evaluate_every", "evaluation_episodes", "torch_threads", "demonstration_capacity"):
+                     "evaluate_every", "evaluation_episodes", "evaluation_repeats", "torch_threads", "demonstration_capacity"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch", "bc_fade_steps",
@@ -551,13 +556,15 @@ class Trainer(Checkpointing):
         shots, serve = evaluation_shots(c)
         params = RallyParams(perception=PerceptionParams(positions=c.evaluation_sensors), stepping="segment" if c.batch else "continuous")
         start = time.perf_counter()
-        figures = evaluate(self.learner.policy(), params, shots, serve, seed=c.seed, batch=EVALUATION_BATCH if c.batch else 1)
+        figures = self._play_repeats(params, shots, serve)
         rate = figures["return_rate"]
         summary = {"rate": rate["rate"], "ci95": rate["ci95"], "played": rate["played"], "returned": rate["returned"],
                    "not_returned_by_reason": figures["not_returned_by_reason"]}
+        if c.evaluation_repeats > 1:
+            summary["repeats"] = c.evaluation_repeats
         if c.heldout_players:
             shots, serve = human_shots(c.evaluation_data, c.heldout_players)
-            held = evaluate(self.learner.policy(), params, shots, serve, seed=c.seed, batch=EVALUATION_BATCH if c.batch else 1)["return_rate"]
+            held = self._play_repeats(params, shots, serve)["return_rate"]
             summary["heldout"] = {"players": list(c.heldout_players), "rate": held["rate"], "ci95": held["ci95"],
                                   "played": held["played"], "returned": held["returned"]}
             if held["rate"] is not None:
@@ -573,6 +580,15 @@ class Trainer(Checkpointing):
                 s.best_evaluation = len(s.evaluations) - 1
         self.log(f"train: evaluation at {s.env_steps} steps: returned {rate['returned']} of {rate['played']} "
                  f"({(rate['rate'] or 0):.1%}), {time.perf_counter() - start:.0f} s")
+
+    def _play_repeats(self, params: RallyParams, shots: np.ndarray, serve: np.ndarray) -> dict:
+        """The deterministic actor's figures (``evaluate.summarize``) on ``shots``, each played
+        ``evaluation_repeats`` times with the seeds from the run's seed on (pooled, with the
+        repeats' clustered interval when there are several)."""
+        c = self.config
+        episodes = [episode for seed in range(c.seed, c.seed + c.evaluation_repeats)
+                    for episode in play(self.learner.policy(), params, shots, serve, seed=seed, batch=EVALUATION_BATCH if c.batch else 1)]
+        return summarize(episodes, len(shots) if c.evaluation_repeats > 1 else None)
 
     def _elapsed(self) -> float:
         return time.perf_counter() - self._started
