@@ -209,3 +209,28 @@ def test_a_short_run_on_the_batched_diagram_lowers_the_critic_loss(distribution)
         learner.update(replay.sample(config.batch_size))
     after = critic_loss()
     assert len(replay) > 200 and after < 0.5 * before, (len(replay), before, after)
+
+
+def test_a_returns_flight_is_decided_as_the_reference_propagator_decides_it(distribution, monkeypatch):
+    """After the hit the environment flies the ball on with the compiled one-ball propagator
+    (``simulate_ball``): the returner's episodes end with the same outcomes, landings and rewards
+    as with ``simulate``, the NumPy reference it equals bit for bit."""
+    from ace_drake.physics import propagate
+    from ace_drake.training import vector_env
+    from ace_drake.training.rollout import VectorRolloutWorker
+
+    def collect():
+        return VectorRolloutWorker(2, PARAMS, distribution=distribution, seed=6).collect(4, "demonstrator")
+
+    compiled = collect()
+    monkeypatch.setattr(vector_env, "simulate_ball", lambda *args, **kwargs: propagate.simulate(*args, **kwargs, record=False))
+    reference = collect()
+    assert len(compiled) == len(reference) >= 4
+    assert sum(e.summary.result.outcome.value == "returned" for e in compiled) >= 1  # some flights were flown on
+    for mine, theirs in zip(compiled, reference):
+        a, b = mine.summary.result, theirs.summary.result
+        assert (a.outcome, a.reason) == (b.outcome, b.reason) and (a.landing is None) == (b.landing is None)
+        if a.landing is not None:
+            assert a.landing.kind == b.landing.kind and a.landing.time == b.landing.time
+            np.testing.assert_array_equal(a.landing.state_pre, b.landing.state_pre)
+        np.testing.assert_array_equal(mine.transitions["reward"], theirs.transitions["reward"])

@@ -34,7 +34,7 @@ from ace_drake.contracts import EpisodeResult, Outcome
 from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.diagrams import build_segment_rally_diagram, make_segment_simulator, start_segment_episodes
 from ace_drake.learning.rewards import terminal_reward
-from ace_drake.physics.propagate import ContactKind, simulate
+from ace_drake.physics.propagate import ContactKind, simulate_ball
 from ace_drake.play.episode import classify, timed_out
 from ace_drake.play.shots import make_distribution
 from ace_drake.training.env import UNHIT_REASONS, RallyEnvParams, draw_robot_start, end_condition, hold_action, pass_distance
@@ -232,8 +232,10 @@ class RallyVectorEnv(gymnasium.vector.VectorEnv):
         result = classify(events, episode.serve)
         remaining = result.hit.time + self.params.post_hit_time_limit - time
         if not result.done and remaining > 0.0:
-            flight = simulate(ball, self.params.rally.physics, remaining, dt=self.timing.period,
-                              stop_on=(ContactKind.TABLE, ContactKind.FLOOR), record=False)
+            # One ball, unperturbed: the compiled propagator, ``simulate``'s steps and contacts bit for
+            # bit (NumPy per 1 ms step made this ~45% of a rollout worker's time).
+            flight = simulate_ball(ball, self.params.rally.physics, remaining, dt=self.timing.period,
+                                   stop_on=(ContactKind.TABLE, ContactKind.FLOOR))
             later = tuple(dataclasses.replace(event, time=event.time + time) for event in flight.events[0])
             result = classify(tuple(events) + later, episode.serve)
         return timed_out(result)
