@@ -99,6 +99,19 @@ def test_same_seed_same_shots(synthetic, small_synthetic):
     np.testing.assert_array_equal(small_synthetic.serves, shots.synthetic_distribution(seed=3, candidates=200).serves)
 
 
+def test_shots_are_validated_ball_by_ball_as_the_batched_reference_validates_them(synthetic, monkeypatch):
+    # _contacts_to_next_bounce flies each candidate with the compiled one-ball propagator; the
+    # NumPy reference flying the whole batch at once gives the same contacts, so the same shots.
+    stop_on = (ContactKind.TABLE, ContactKind.FLOOR)
+    compiled = synthetic.draw(np.random.default_rng(21), 300)
+    monkeypatch.setattr(shots, "_contacts_to_next_bounce",
+                        lambda states, physics: simulate(states, physics, shots.FLIGHT_DURATION, stop_on=stop_on, record=False).events)
+    reference = synthetic.draw(np.random.default_rng(21), 300)
+    np.testing.assert_array_equal(compiled.states, reference.states)
+    np.testing.assert_array_equal(compiled.serve, reference.serve)
+    assert compiled.acceptance_rate == reference.acceptance_rate < 1.0  # some candidates were rejected
+
+
 def test_invalid_synthetic_members_are_excluded(small_synthetic):
     assert 10 < len(small_synthetic.serves) < 200 and 10 < len(small_synthetic.returns) < 200
     assert shots.valid_shots(small_synthetic.serves, serve=True).all()

@@ -11,7 +11,7 @@ human, z up; the robot plays from x < 0). Each KDE is ``scipy.stats.gaussian_kde
 values (its kernel covariance is the data's covariance times the bandwidth factor squared, so the
 mixed units need no scaling).
 
-Every drawn state is simulated with the project's ball model (``physics.propagate.simulate``,
+Every drawn state is simulated with the project's ball model (``physics.propagate.simulate_ball``,
 deterministic, no racket) and kept only if it is a shot the robot has to play: it starts in free
 flight on the human's side (x > 0), and the episode classifier (``play.episode.classify``, the
 ITTF rules the rally umpire applies) finds its bounce on the robot's half: a return's first table
@@ -36,7 +36,7 @@ from ace_drake.config import InputError
 from ace_drake.match_data import MatchDataError, load_match_events
 from ace_drake.physics.flight import make_state
 from ace_drake.physics.params import BallPhysicsParams
-from ace_drake.physics.propagate import DEFAULT_KINDS, ContactEvent, ContactKind, contact_gap, simulate
+from ace_drake.physics.propagate import DEFAULT_KINDS, ContactEvent, ContactKind, contact_gap, simulate_ball
 from ace_drake.play.episode import classify
 from ace_drake.play.params import ShotParams
 
@@ -103,8 +103,10 @@ def valid_shots(states: np.ndarray, serve: bool, physics: BallPhysicsParams | No
 def _contacts_to_next_bounce(states: np.ndarray, physics: BallPhysicsParams) -> list[list[ContactEvent]]:
     """Each (N, 9) ball's contacts up to its first table or floor contact (net touches on the way),
     within FLIGHT_DURATION (s); stopping there keeps the simulation short."""
+    # Ball by ball with the compiled propagator: ``simulate``'s contacts bit for bit, ~4 x faster
+    # than its NumPy loop over the batch (drawing shots took ~28% of a rollout worker's time).
     stop_on = (ContactKind.TABLE, ContactKind.FLOOR)
-    return simulate(states, physics, FLIGHT_DURATION, stop_on=stop_on, record=False).events
+    return [simulate_ball(state, physics, FLIGHT_DURATION, stop_on=stop_on).events[0] for state in states]
 
 
 class ShotDistribution:
