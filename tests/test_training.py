@@ -439,6 +439,12 @@ def test_a_periodic_evaluation_pools_its_repeats_over_successive_seeds(tmp_path,
     assert last["returned"] == pooled["return_rate"]["returned"] and last["ci95"] == pooled["return_rate"]["ci95"]
     assert last["not_returned_by_reason"] == pooled["not_returned_by_reason"]
     assert "each 2 times" in evaluation_description(config)
+    # One repeat is the one play evaluate() makes, figure for figure.
+    monkeypatch.undo()
+    once = Trainer(dataclasses.replace(config, evaluation_repeats=1), tmp_path / "once", progress=lambda line: None)
+    figures = once._play_repeats(params, shots, serve)
+    reference = evaluate(once.learner.policy(), params, shots, serve, seed=3, batch=EVALUATION_BATCH)
+    assert all(figures[key] == reference[key] for key in ("return_rate", "not_returned_by_reason", "by_incoming_speed", "episodes"))
     with pytest.raises(ConfigError, match="evaluation_repeats must be >= 1"):
         _config(evaluation_repeats=0)
 
@@ -1269,5 +1275,8 @@ def test_each_evaluation_also_plays_the_heldout_players_and_the_curve_draws_them
     entry = {"rate": 0.5, "ci95": [0.3, 0.7]}
     drawn = Progress(evaluations=[(100, 1, {**entry, "heldout": {**entry, "players": ["Elite D"]}}), (200, 2, entry)])
     assert [p[0] for p in heldout_series(drawn)[0]] == [100] and "Elite D" in heldout_series(drawn)[2]
+    assert "times" not in heldout_series(drawn)[2]
+    repeated = Progress(evaluations=[(100, 1, {**entry, "heldout": {**entry, "players": ["Elite D"], "repeats": 3}})])
+    assert heldout_series(repeated)[2].endswith("all their shots, each 3 times")
     plot_learning_curve(drawn, tmp_path / "curve.png", "run", "x", step_seconds=0.032)
     assert (tmp_path / "curve.png").stat().st_size > 1000

@@ -5,7 +5,9 @@ contact inside a step to 1e-10 s (Illinois root finding on the RK4 solution itse
 impact map there. It is the one propagator used by validation, fitting, prediction and the demos;
 the ``BallPlant`` LeafSystem uses the same maps under Drake's integrator and witness functions.
 ``simulate_ball`` is ``simulate`` of one unperturbed ball compiled (numba), equal to it bit for bit:
-for callers that propagate one ball many times per simulated second (the hit prediction). Both
+for callers that propagate one ball many times per simulated second (the hit prediction, the
+training environments' return flights and shot validation: one compiled call per ball is ~4 x
+faster than NumPy over a batch of ~100 at 1 ms steps). Both
 apply the contact gaps and impact maps of ``contact``, whose one-ball kernels are their only
 definition (``simulate`` through the batched functions, ``simulate_ball`` directly).
 """
@@ -350,7 +352,9 @@ def simulate_ball(
         x, float(duration), float(dt), np.array([int(k) for k in kinds], dtype=np.int64), np.array([k in stop_on for k in kinds], dtype=np.bool_),
         contact_constants(params), *flight_constants(params.aero),
     )
-    events = [ContactEvent(ContactKind(int(event_kinds[i])), float(event_times[i]), event_pre[i], event_post[i]) for i in range(event_kinds.size)]
+    # copies, as simulate's: a view would keep the compiled loop's whole event buffer alive
+    events = [ContactEvent(ContactKind(int(event_kinds[i])), float(event_times[i]), event_pre[i].copy(), event_post[i].copy())
+              for i in range(event_kinds.size)]
     return Trajectory(times=times, states=states[:, None, :], final_state=states[-1:].copy(), events=[events],
                       stop_events=[events[stop] if stop >= 0 else None])
 

@@ -42,7 +42,8 @@ resumed run is reproducible but not identical to an uninterrupted one). Every
 ``evaluate_every`` steps the deterministic actor is evaluated in the rally diagram
 (``evaluation.evaluate.play``) on ``evaluation_episodes`` shots, each ``evaluation_repeats``
 times with successive seeds; the best evaluated actor is
-kept (and, with ``heldout_players``, also on all of those players' shots, for the curve only).
+kept (and, with ``heldout_players``, also on all of those players' shots, as many times, for the
+curve only).
 Logs go to TensorBoard (``run_dir/tensorboard``) and progress lines to the ``progress`` callable.
 ``export.export`` writes a policy artefact (``models/policies/<name>.pt``), its sidecar JSON and
 the learning curve PNG.
@@ -567,6 +568,8 @@ class Trainer(Checkpointing):
             held = self._play_repeats(params, shots, serve)["return_rate"]
             summary["heldout"] = {"players": list(c.heldout_players), "rate": held["rate"], "ci95": held["ci95"],
                                   "played": held["played"], "returned": held["returned"]}
+            if c.evaluation_repeats > 1:
+                summary["heldout"]["repeats"] = c.evaluation_repeats
             if held["rate"] is not None:
                 self._writer.add_scalar("evaluation/heldout_return_rate", held["rate"], s.env_steps)
             self.log(f"train: evaluation at {s.env_steps} steps on the held-out players ({', '.join(c.heldout_players)}): "

@@ -16,7 +16,7 @@ from ``default_rng([seed, index, 0])``), so a batch gives, environment by enviro
 episodes of single-environment runs with the same seeds.
 
 After a hit the episode ends in the same step, as in ``RallyEnv``: the return is decided by
-flying the ball on (``physics.propagate.simulate``, the same flight and impact maps) to its first
+flying the ball on (``physics.propagate.simulate_ball``, the same flight and impact maps) to its first
 table or floor contact or ``post_hit_time_limit``. (The diagram would also let the robot touch the
 ball again on the way; a double hit after a return is not looked for.)
 """
