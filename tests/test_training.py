@@ -1278,5 +1278,7 @@ def test_each_evaluation_also_plays_the_heldout_players_and_the_curve_draws_them
     assert "times" not in heldout_series(drawn)[2]
     repeated = Progress(evaluations=[(100, 1, {**entry, "heldout": {**entry, "players": ["Elite D"], "repeats": 3}})])
     assert heldout_series(repeated)[2].endswith("all their shots, each 3 times")
+    staged = Progress(evaluations=drawn.evaluations[:1] + repeated.evaluations)  # one seed in stage 2, three in stage 3
+    assert heldout_series(staged)[2].endswith("all their shots, each 1 or 3 times")
     plot_learning_curve(drawn, tmp_path / "curve.png", "run", "x", step_seconds=0.032)
     assert (tmp_path / "curve.png").stat().st_size > 1000

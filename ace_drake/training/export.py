@@ -177,7 +177,9 @@ def heldout_series(state: Progress) -> tuple[list, str, str]:
     [(env_steps, figures)], colour, label); no points when the run has none."""
     points = [(e[0], e[2]["heldout"]) for e in state.evaluations if e[2].get("heldout", {}).get("rate") is not None]
     players = ", ".join(points[0][1]["players"]) if points else ""
-    times = f", each {points[-1][1]['repeats']} times" if points and points[-1][1].get("repeats", 1) > 1 else ""
+    # a later stage may play them more times than its earlier stages did: name every count
+    repeats = sorted({figures.get("repeats", 1) for _, figures in points})
+    times = f", each {' or '.join(map(str, repeats))} times" if repeats and repeats != [1] else ""
     return points, "C2", f"held-out players ({players}), all their shots{times}"
 
 
