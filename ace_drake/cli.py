@@ -408,7 +408,7 @@ def cmd_train(args) -> int:
     """A training run (``training.export.train_and_export``): resumes from the run directory's
     checkpoint, trains, exports the policy with its sidecar and learning curve."""
     summary = work("train")(args.config, args.run_dir, args.export_dir, args.export, args.evaluate_data, args.export_only, progress=log,
-                            overwrite=args.overwrite, earlier_stage=args.earlier_stage)
+                            overwrite=args.overwrite, earlier_stage=args.earlier_stage, resume_from=args.resume_from)
     evaluation = summary["final_evaluation"]
     if args.json:
         emit_json(summary)
@@ -546,6 +546,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--earlier-stage", metavar="CHECKPOINT",
                        help="a checkpoint of the config's after: stage (e.g. its checkpoint.portable.pt) to start from instead of running "
                             "that stage in RUN_DIR/after")
+    train.add_argument("--resume-from", metavar="CHECKPOINT",
+                       help="a checkpoint of this run written elsewhere (e.g. its checkpoint.portable.pt, carried to a machine without "
+                            "RUN_DIR) to resume from, for a RUN_DIR without one; a portable one's tables fill anew")
     train.add_argument("--json", action="store_true")
     train.set_defaults(run=cmd_train)
 

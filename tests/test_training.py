@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -29,7 +30,8 @@ from ace_drake.match_data import MatchDataError
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.play.shots import human_shots
 from ace_drake.training import checkpoint as checkpoint_module
-from ace_drake.training.checkpoint import CHECKPOINT, PORTABLE_CHECKPOINT, CheckpointError, play_options_moved, read_checkpoint
+from ace_drake.training.checkpoint import (CHECKPOINT, PORTABLE_CHECKPOINT, CheckpointError, config_differences, play_options_moved,
+                                          read_checkpoint)
 from ace_drake.training.env import RallyEnvParams, training_rally_params
 from ace_drake.training.export import (
     chosen_actor,
@@ -200,9 +202,8 @@ def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
 def test_each_kept_runs_checkpoints_are_of_its_configs_stages(name):
     """models/runs/<name>/[after/...]/checkpoint.portable.pt: each kept portable checkpoint is a
     finished one of the stage of models/train_<name>.yaml at that depth, at that stage's length (as
-    ``train --earlier-stage`` takes it), and every earlier stage has one."""
-    from ace_drake.training.checkpoint import config_differences
-
+    ``train --earlier-stage`` takes it), and every earlier stage has one; a run in training
+    (IN_TRAINING) keeps its latest, in its learn phase, which ``train --resume-from`` takes."""
     _needs_match_data()
     stage, directory, kept = load_train_config(MODELS_DIR / f"train_{name}.yaml"), MODELS_DIR / "runs" / name, 0
     while stage is not None:
@@ -210,7 +211,11 @@ def test_each_kept_runs_checkpoints_are_of_its_configs_stages(name):
         if sidecar.is_file():
             record = json.loads(sidecar.read_text())
             assert config_differences(record["config"], stage) == [], directory
-            assert record["phase"] == "done" and record["config"]["env_steps"] == stage.env_steps <= record["env_steps"], directory
+            finished = record["phase"] == "done" and record["config"]["env_steps"] == stage.env_steps <= record["env_steps"]
+            in_training = (name in IN_TRAINING and directory == MODELS_DIR / "runs" / name and record["phase"] == "learn"
+                           and record["env_steps"] < stage.env_steps)
+            assert finished or in_training, directory
+            assert record["artefact_sha256"] == hashlib.sha256((directory / PORTABLE_CHECKPOINT).read_bytes()).hexdigest(), directory
             kept += 1
         else:
             assert directory == MODELS_DIR / "runs" / name, f"an earlier stage's checkpoint is missing in {directory}"
@@ -225,9 +230,9 @@ def _needs_match_data() -> None:
         pytest.skip(f"the match data is not at {data} (run from the project root, beside ../shared)")
 
 
-# Runs in training: their config is kept so that a later session resumes them, and their policy
-# ships when the run ends.
-IN_TRAINING = ()
+# Runs in training: their config is kept, and in models/runs/<name>/ their latest portable
+# checkpoint, so that a later session resumes them on any machine (train --resume-from).
+IN_TRAINING = ("rally_paper_10m",)  # the paper-action run continued to 10 million steps (issue 30's curve)
 
 
 def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
@@ -787,6 +792,10 @@ def test_train_command_trains_exports_and_exports_only(tmp_path, capsys):
     assert main(args + ["--export-only", "--overwrite"]) == 0  # resumes nothing, trains nothing; replaces the export
     assert "exported" in capsys.readouterr().out
     assert main(["train", str(config), "--run-dir", str(tmp_path / "empty"), "--export-only"]) == 2
+    # carried to another run directory (machine), it resumes from the checkpoint given
+    moved = ["train", str(config), "--run-dir", str(tmp_path / "moved"), "--export-dir", str(tmp_path / "moved_policies")]
+    assert main(moved + ["--resume-from", str(tmp_path / "run" / "checkpoint.pt"), "--export-only", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["env_steps"] == printed["env_steps"] and (tmp_path / "moved" / "checkpoint.pt").is_file()
 
 
 def test_a_portable_checkpoint_carries_the_learner_without_the_tables_and_a_new_stage_refills_them(tmp_path):
@@ -809,6 +818,56 @@ def test_a_portable_checkpoint_carries_the_learner_without_the_tables_and_a_new_
         torch.testing.assert_close(value, first.learner.actor.state_dict()[name])
     state = second.run()
     assert state.phase == "done" and len(second.demonstrations) > 0 and second.learner.updates > first.learner.updates
+
+
+def test_a_run_resumes_from_its_checkpoint_carried_to_another_machine(tmp_path):
+    """``train --resume-from``: a run's own checkpoint from another directory, as on a machine
+    without its run directory; a portable one resumes with its tables filling anew, in the learn phase only."""
+    config = _config(env_steps=30, learn_mode="dagger", dagger_fraction=0.25)
+    first = Trainer(config, tmp_path / "elsewhere", progress=lambda line: None)
+    first.run()
+    portable, whole = tmp_path / "elsewhere" / PORTABLE_CHECKPOINT, tmp_path / "elsewhere" / CHECKPOINT
+    longer = dataclasses.replace(config, env_steps=first.state.env_steps + 100)  # its length may change, as on any resume
+    lines = []
+    second = Trainer(longer, tmp_path / "run", progress=lines.append, resume_from=portable)
+    assert len(second.replay) == 0 and len(second.demonstrations) == 0 and "fill anew" in lines[-1]
+    assert (second.state.env_steps, second.state.episodes, second.learner.updates) == (
+        first.state.env_steps, first.state.episodes, first.learner.updates)
+    assert second.state.resumptions == first.state.resumptions + 1 and second.state.tables_refilled_at == [first.state.env_steps]
+    assert second.state.evaluations == first.state.evaluations and second.state.phase == "learn"  # extended: learns on
+    for name, value in first.learner.state_dict()["actor"].items():
+        torch.testing.assert_close(second.learner.state_dict()["actor"][name], value)
+    assert (tmp_path / "run" / CHECKPOINT).is_file()  # written at once: it resumes from its directory from now on
+    rows_at_update = []
+    update = second.learner.update
+    second.learner.update = lambda *args, **kwargs: (rows_at_update.append(len(second.demonstrations)), update(*args, **kwargs))[1]
+    state = second.run()
+    assert state.phase == "done" and state.env_steps >= longer.env_steps and len(second.demonstrations) > 0
+    assert rows_at_update and min(rows_at_update) > 0  # no update before the cloning term's rows came back
+    again = Trainer(longer, tmp_path / "run", progress=lambda line: None)
+    assert again.state.phase == "done" and again.state.tables_refilled_at == [first.state.env_steps]
+    # The whole checkpoint carries its tables.
+    carried = Trainer(config, tmp_path / "whole", progress=lambda line: None, resume_from=whole)
+    assert len(carried.replay) == len(first.replay) > 0 and carried.state.tables_refilled_at == []
+    # Refused: a run directory with a checkpoint of its own, another config, both flags, a portable
+    # checkpoint before the learn phase or with a cloning term and no labels to come.
+    with pytest.raises(ConfigError, match="holds the run's checkpoint"):
+        Trainer(longer, tmp_path / "run", progress=lambda line: None, resume_from=portable)
+    with pytest.raises(ConfigError, match="another config.*seed"):
+        Trainer(dataclasses.replace(config, seed=9), tmp_path / "other", progress=lambda line: None, resume_from=portable)
+    with pytest.raises(ConfigError, match="not both"):
+        Trainer(dataclasses.replace(config, after=_config(env_steps=30)), tmp_path / "both", progress=lambda line: None,
+                earlier_stage=portable, resume_from=portable)
+    unfinished = Trainer(_config(env_steps=30, seed=7), tmp_path / "unfinished", progress=lambda line: None)
+    unfinished.checkpoint()
+    with pytest.raises(ConfigError, match="demonstrations phase"):
+        Trainer(_config(env_steps=30, seed=7), tmp_path / "early", progress=lambda line: None,
+                resume_from=tmp_path / "unfinished" / PORTABLE_CHECKPOINT)
+    Trainer(_config(env_steps=30, seed=8), tmp_path / "policy", progress=lambda line: None).run()
+    with pytest.raises(ConfigError, match="learn_mode 'policy'"):
+        Trainer(_config(env_steps=30, seed=8), tmp_path / "refused", progress=lambda line: None,
+                resume_from=tmp_path / "policy" / PORTABLE_CHECKPOINT)
+    assert not any((tmp_path / name / CHECKPOINT).exists() for name in ("other", "both", "early", "refused"))
 
 
 def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path, monkeypatch):
@@ -1127,7 +1186,12 @@ def test_a_checkpoint_write_keeps_the_previous_one(tmp_path):
     assert read_checkpoint(tmp_path / "run" / "checkpoint.prev.pt")["progress"]["env_steps"] == 0
     assert read_checkpoint(tmp_path / "run" / PORTABLE_CHECKPOINT)["progress"]["env_steps"] == 7  # beside the latest
     assert sorted(p.name for p in (tmp_path / "run").glob("checkpoint*")) == [
-        "checkpoint.portable.pt", "checkpoint.prev.pt", "checkpoint.pt"]  # no .tmp left
+        "checkpoint.portable.json", "checkpoint.portable.pt", "checkpoint.prev.pt", "checkpoint.pt"]  # no .tmp left
+    # The portable checkpoint's sidecar says what the file is, for a run carried elsewhere.
+    sidecar = json.loads((tmp_path / "run" / "checkpoint.portable.json").read_text())
+    assert sidecar["artefact_sha256"] == hashlib.sha256((tmp_path / "run" / PORTABLE_CHECKPOINT).read_bytes()).hexdigest()
+    assert (sidecar["env_steps"], sidecar["phase"], sidecar["seed"]) == (7, "demonstrations", dut.config.seed)
+    assert config_differences(sidecar["config"], dut.config) == [] and sidecar["robot"] == dut.robot_record()
 
 
 @pytest.mark.parametrize("damage", ["truncated", "empty"])

@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from ace_drake.artefacts import write_sidecar
 from ace_drake.config import ConfigError, from_dict, to_dict
 from ace_drake.learning.replay import load_weights_only
 from ace_drake.learning.sac import split_play_options
@@ -110,6 +111,9 @@ class Progress:
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
+    # env_steps of each resumption from a portable checkpoint (Checkpointing._load): the tables
+    # and labelled rows were empty from there and filled anew
+    tables_refilled_at: list = dataclasses.field(default_factory=list)
 
 
 def _without_changeable(config: dict) -> dict:
@@ -199,26 +203,73 @@ class Checkpointing:
         portable = self.run_dir / PORTABLE_CHECKPOINT
         _write({**payload, "replay": None, "demonstrations": None}, portable.with_name(portable.name + ".tmp"))
         os.replace(portable.with_name(portable.name + ".tmp"), portable)
+        # its sidecar, so that the two files carried elsewhere say what they are
+        write_sidecar(portable, seed=self.config.seed, phase=self.state.phase, **self.run_record(),
+                      config=payload["config"], robot=payload["robot"])
         _sync_directory(self.run_dir)
 
+    def run_record(self) -> dict:
+        """The run as it stands, for a sidecar (the portable checkpoint's, the exported policy's):
+        env_steps, episodes, updates, wall_time_s (s of training), the periodic evaluations, the
+        rollout tasks and evaluations that failed, and the steps at which its tables filled anew."""
+        s = self.state
+        return dict(
+            env_steps=s.env_steps,
+            episodes=s.episodes,
+            updates=self.learner.updates,
+            wall_time_s=round(s.wall_time, 1),
+            evaluations=[{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
+            # the stage's rollout tasks that failed (their workers replaced, with other seeds: loop.Trainer._wait)
+            worker_failures=[{"env_steps": f[0], "worker": f[1], "error": f[2]} for f in s.worker_failures],
+            evaluation_failures=[{"env_steps": f[0], "error": f[1]} for f in s.evaluation_failures],  # skipped evaluations
+            tables_refilled_at=s.tables_refilled_at,  # resumptions from a portable checkpoint: the tables filled anew there
+        )
+
     def _load(self, path: Path, payload: dict) -> None:
+        """Resumes the run from its checkpoint ``payload`` (at ``path``): the run directory's, or
+        one carried from another machine (``resume_from``). A ``PORTABLE_CHECKPOINT`` resumes with
+        empty tables that fill anew (recorded in ``Progress.tables_refilled_at``); it is refused
+        before the learn phase (the cloning updates would miss the demonstrations collected) and
+        where the learn phase's cloning term would have no rows (``_refuse_portable``)."""
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
         differing = config_differences(payload["config"], self.config)
         if differing:
             raise ConfigError(f"train: {path} was written with another config (differs in {differing}); use a new run directory")
         self._check_robot(path, payload)
+        portable = payload["replay"] is None
+        phase = payload["progress"]["phase"]
+        if portable and phase not in ("learn", "done"):
+            raise ConfigError(f"train: {path} is a portable checkpoint in the {phase} phase: the cloning updates would miss the "
+                              "demonstrations it collected (its tables were not kept); resume from the whole checkpoint "
+                              f"({CHECKPOINT}) or start the run afresh")
+        if portable:
+            self._refuse_portable(path)
         saved_steps = payload["config"]["env_steps"]
         resized = saved_steps != self.config.env_steps
         self.learner.load_state_dict(payload["learner"])
-        self.replay.load_state_dict(payload["replay"])
-        self.demonstrations.load_state_dict(payload["demonstrations"])
+        if not portable:
+            self.replay.load_state_dict(payload["replay"])
+            self.demonstrations.load_state_dict(payload["demonstrations"])
         self.state = Progress(**payload["progress"])
         self.state.resumptions += 1
+        if portable:
+            self.state.tables_refilled_at.append(self.state.env_steps)
         if resized:
             self._resize(saved_steps, self.config.env_steps)
         self._recent.extend(payload["recent"])
-        self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates")
+        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else ""
+        self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates{tables}")
+
+    def _refuse_portable(self, path: Path) -> None:
+        """Raises ConfigError if the run's learn phase, started or resumed from the portable
+        checkpoint at ``path`` (no labelled rows), would have a cloning term and no labels to come."""
+        c = self.config
+        cloning = max(c.sac.bc_weight if c.bc_weight_start is None else c.bc_weight_start, c.bc_weight_final) > 0
+        if c.learn_mode == "policy" and cloning:
+            raise ConfigError(f"train: {path} is a portable checkpoint (no labelled rows), and in the learn phase with learn_mode "
+                              "'policy' the cloning term would have none: start with initialize_phase: demonstrations (and "
+                              "demonstrations to collect) or learn_mode: dagger")
 
     def robot_record(self) -> dict:
         """The run's robot (``robot.params.scenario_record`` of its rally scenario)."""
@@ -260,11 +311,8 @@ class Checkpointing:
         self._check_robot(path, payload)
         c = self.config
         portable = payload["replay"] is None
-        cloning = max(c.sac.bc_weight if c.bc_weight_start is None else c.bc_weight_start, c.bc_weight_final) > 0
-        if portable and c.initialize_phase == "learn" and c.learn_mode == "policy" and cloning:
-            raise ConfigError(f"train: {path} is a portable checkpoint (no labelled rows), and in the learn phase with learn_mode "
-                              "'policy' the cloning term would have none: start with initialize_phase: demonstrations (and "
-                              "demonstrations to collect) or learn_mode: dagger")
+        if portable and c.initialize_phase == "learn":
+            self._refuse_portable(path)
         self.learner.load_state_dict(payload["learner"])
         self.learner.set_actor_lr(c.sac.actor_lr)  # then the schedule (actor_lr_final), if any
         if not portable:

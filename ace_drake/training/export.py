@@ -24,9 +24,9 @@ from ace_drake.training.loop import TrainConfig, Trainer, load_train_config
 
 def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict | None = None) -> dict:
     """Writes ``<name>.pt`` (``sac.save_policy``), ``<name>.json`` (its sidecar, by
-    ``artefacts.write_sidecar``: command, date, seed, steps, updates, wall time in s, the periodic
-    evaluations and ``evaluation``, e.g. the human-shot figures of ``final_evaluation``, the
-    rollout tasks and evaluations that failed, the config, the robot it was trained for) and
+    ``artefacts.write_sidecar``: command, date, seed, the run as it stands (``run_record``: steps,
+    updates, wall time in s, the periodic evaluations, failures) and ``evaluation``, e.g. the
+    human-shot figures of ``final_evaluation``, the config, the robot it was trained for) and
     ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best" (the best
     evaluated actor) or "final". Returns the sidecar."""
 
@@ -42,14 +42,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         name=c.name,
         actor="best evaluated" if which == "best" and s.best_actor is not None else "final",
         actor_at=None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
-        env_steps=s.env_steps,
-        episodes=s.episodes,
-        updates=trainer.learner.updates,
-        wall_time_s=round(s.wall_time, 1),
-        evaluations=[{"env_steps": e[0], "updates": e[1], **e[2]} for e in s.evaluations],
-        # the stage's rollout tasks that failed (their workers replaced, with other seeds: loop.Trainer._wait)
-        worker_failures=[{"env_steps": f[0], "worker": f[1], "error": f[2]} for f in s.worker_failures],
-        evaluation_failures=[{"env_steps": f[0], "error": f[1]} for f in s.evaluation_failures],  # skipped evaluations
+        **trainer.run_record(),
         final_evaluation=evaluation,
         config=to_dict(c),
         robot=trainer.robot_record(),  # the robot it was trained for (robot.params.scenario_record)
@@ -88,7 +81,7 @@ def final_evaluation(trainer: Trainer, which: str, data, progress: Callable[[str
 
 def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policies", which: str = "best",
                      evaluate_data=None, export_only: bool = False, progress: Callable[[str], None] = print,
-                     overwrite: bool = False, earlier_stage=None) -> dict:
+                     overwrite: bool = False, earlier_stage=None, resume_from=None) -> dict:
     """``ace-drake train``: the run of the config YAML ``config_path`` in ``run_dir`` (default
     out/train/<name>; resumed from its checkpoint if it has one; with ``export_only`` not trained
     further), then ``export`` into ``export_dir`` with, given the match-data CSV
@@ -98,17 +91,18 @@ def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policie
     with ``export_only`` for a run directory without a checkpoint, and, before anything is trained
     or written, when ``export_dir`` already holds a policy of the config's name (a shipped one,
     say) unless ``overwrite``. ``earlier_stage``: a checkpoint of the config's ``after:`` stage to
-    start from instead of running it (``Trainer``)."""
+    start from instead of running it; ``resume_from``: a checkpoint of this run to resume from in
+    an empty ``run_dir`` (both ``Trainer``'s)."""
     config = load_train_config(config_path)
     run_dir = Path(run_dir or MODELS_DIR.parent / "out" / "train" / config.name)
     progress(f"train: {config_path} -> {run_dir} (seed {config.seed}, {config.workers} {config.backend} worker(s), {config.env_steps} steps)")
-    if export_only and not any((run_dir / name).is_file() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
+    if export_only and resume_from is None and not any((run_dir / name).is_file() for name in (CHECKPOINT, PREVIOUS_CHECKPOINT)):
         raise ConfigError(f"train --export-only: no checkpoint in {run_dir}")
     existing = [path for path in (Path(export_dir) / f"{config.name}{suffix}" for suffix in (".pt", ".json", "_curve.png")) if path.exists()]
     if existing and not overwrite:
         raise ConfigError(f"train: {existing[0]} exists (a policy named {config.name!r}, e.g. a shipped one); give --overwrite to "
                           "replace it, or another --export-dir or config name")
-    trainer = Trainer(config, run_dir, progress=progress, earlier_stage=earlier_stage)
+    trainer = Trainer(config, run_dir, progress=progress, earlier_stage=earlier_stage, resume_from=resume_from)
     if export_only:
         progress(f"train: exporting the run as it stands ({trainer.state.env_steps} steps, phase {trainer.state.phase}), no training")
     else:

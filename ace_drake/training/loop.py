@@ -74,7 +74,7 @@ from ace_drake.learning.sac import STAGE_FIELDS, PlayOptions, SacConfig, SacLear
 from ace_drake.perception.params import PerceptionParams
 from ace_drake.robot.model import RobotModel, load_scenario
 from ace_drake.play.shots import human_shots, make_distribution
-from ace_drake.training.checkpoint import Checkpointing, Progress, latest_checkpoint, schedule_progress
+from ace_drake.training.checkpoint import Checkpointing, Progress, latest_checkpoint, read_checkpoint, schedule_progress
 from ace_drake.training.env import RallyEnvParams
 from ace_drake.training.rollout import Episode, ExplorationParams, load_episodes
 from ace_drake.training.stages import earlier_stage_checkpoint, earlier_stage_from, with_earlier_stages
@@ -251,12 +251,18 @@ class Trainer(Checkpointing):
     from the checkpoint if there is one) and returns the final Progress. Saving, loading and
     resuming are ``checkpoint.Checkpointing``'s."""
 
-    def __init__(self, config: TrainConfig, run_dir, progress=print, earlier_stage=None):
+    def __init__(self, config: TrainConfig, run_dir, progress=print, earlier_stage=None, resume_from=None):
         """``earlier_stage``: for a config with ``after``, a checkpoint of that earlier stage to
         start from instead of running it in ``run_dir/after`` (e.g. its portable checkpoint, carried
-        to a machine without that directory; ``stages.earlier_stage_from``)."""
+        to a machine without that directory; ``stages.earlier_stage_from``). ``resume_from``: a
+        checkpoint of this very run written elsewhere (e.g. its portable checkpoint, carried to a
+        machine without ``run_dir``) to resume from, for a ``run_dir`` that holds none; a portable
+        one resumes with its tables filling anew (``Checkpointing._load``). Either writes the run's
+        own checkpoint at once, so that it resumes from ``run_dir`` without them."""
         if earlier_stage is not None and config.after is None:
             raise ConfigError(f"train: an earlier stage's checkpoint ({earlier_stage}) was given, but the config has no after: stage")
+        if earlier_stage is not None and resume_from is not None:
+            raise ConfigError("train: give an earlier stage's checkpoint or one of this run to resume from, not both")
         self.config = config
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -281,8 +287,14 @@ class Trainer(Checkpointing):
         self._started = time.perf_counter()
         self._last_log = self._started
         latest = latest_checkpoint(self.run_dir)
+        if latest is not None and resume_from is not None:
+            raise ConfigError(f"train: {self.run_dir} holds the run's checkpoint ({latest[0]}): resume from it without "
+                              f"a checkpoint to resume from ({resume_from}), or give another run directory")
         if latest is not None:
             self._load(*latest)
+        elif resume_from is not None:
+            self._load(Path(resume_from), read_checkpoint(resume_from))
+            self.checkpoint()  # from now on the run resumes from its own directory
         elif config.initialize_from:
             self._initialize_from(Path(config.initialize_from))
         elif config.after is not None:
