@@ -450,6 +450,13 @@ def test_simulate_rejects_bad_input():
         simulate(np.full(9, np.nan), PARAMS, 1.0)
     with pytest.raises(ValueError, match="dt"):
         simulate(np.zeros(9), PARAMS, 1.0, dt=0.0)
+    # the compiled one-ball simulation too: a wrong shape names the shape, a NaN the numbers
+    with pytest.raises(ValueError, match=r"shape \(8,\)"):
+        simulate_ball(np.zeros(8), PARAMS, 1.0)
+    with pytest.raises(ValueError, match="got \\[nan"):
+        simulate_ball(np.full(9, np.nan), PARAMS, 1.0)
+    with pytest.raises(ValueError, match="dt"):
+        simulate_ball(np.zeros(9), PARAMS, 1.0, dt=0.0)
 
 
 def test_compiled_one_ball_simulation_equals_simulate_bit_for_bit():

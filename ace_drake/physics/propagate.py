@@ -344,8 +344,10 @@ def simulate_ball(
     if duration < 0:
         raise ValueError(f"simulate_ball: duration must be >= 0, got {duration}")
     x = np.array(initial_state, dtype=float).reshape(-1)
-    if x.shape != (9,) or not np.all(np.isfinite(x)):
-        raise ValueError(f"simulate_ball: initial_state must be 9 finite numbers, got {np.shape(initial_state)}")
+    if x.shape != (9,):
+        raise ValueError(f"simulate_ball: initial_state must be 9 finite numbers, got shape {np.shape(initial_state)}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"simulate_ball: initial_state must be 9 finite numbers, got {x.tolist()}")
     kinds = tuple(ContactKind(k) for k in kinds)
     stop_on = frozenset(ContactKind(k) for k in stop_on)
     times, states, event_kinds, event_times, event_pre, event_post, stop = simulate_ball_arrays(
