@@ -539,7 +539,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("config", help="training config YAML (training.loop.TrainConfig; e.g. models/train_rally_hit_state_braking.yaml)")
     train.add_argument("--run-dir", help="checkpoints and TensorBoard logs (default out/train/<name>); an existing one resumes")
     train.add_argument("--export-dir", default=str(MODELS_DIR / "policies"), help="where the policy, sidecar and curve go (default: %(default)s)")
-    train.add_argument("--export", choices=("best", "final"), default="best", help="the best evaluated actor or the final one")
+    train.add_argument("--export", choices=("best", "final", "actor"), default="best",
+                       help="the best evaluated actor, the final one (its average, where the run keeps one), or the final actor itself")
     train.add_argument("--evaluate-data", help="match-data CSV: evaluate the exported policy on its human shots (cameras) into the sidecar")
     train.add_argument("--export-only", action="store_true", help="export the run's checkpoint as it stands (e.g. a run stopped early) without training")
     train.add_argument("--overwrite", action="store_true", help="replace a policy of the same name in --export-dir (refused otherwise)")

@@ -45,7 +45,7 @@ from ace_drake.training.export import (
     plot_learning_curve,
 )
 from ace_drake.training import loop as loop_module
-from ace_drake.training.loop import EVALUATION_BATCH, Progress, TrainConfig, Trainer, evaluation_shots, load_train_config
+from ace_drake.training.loop import EVALUATION_BATCH, Progress, TrainConfig, Trainer, evaluation_shots, load_train_config, refill_pause
 from ace_drake.training.rollout import ExplorationParams, OrnsteinUhlenbeck, RolloutWorker, VectorRolloutWorker, load_episodes, save_episodes
 from ace_drake.training.stages import EARLIER_STAGE_DIR
 from ace_drake.training.workers import WorkerFailed, WorkerPool
@@ -192,7 +192,8 @@ def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
     config = json.loads(json.dumps(to_dict(load_train_config(MODELS_DIR / f"train_{name}.yaml"))))
     config = {key: value for key, value in config.items() if key not in NOT_THE_RUN}
     recorded = _recorded_config(sidecar)
-    if "--export-only" in sidecar["command"]:  # stopped by hand and exported: the run ran to its recorded steps
+    if "--export-only" in sidecar["command"] and recorded["env_steps"] != sidecar["env_steps"]:
+        # stopped by hand and exported: the run ran to its recorded steps
         assert config.pop("env_steps") == sidecar["env_steps"] and recorded.pop("env_steps") > sidecar["env_steps"]
     assert config == recorded
     assert (MODELS_DIR / "policies" / f"{name}.pt").is_file()
@@ -846,6 +847,8 @@ def test_a_run_resumes_from_its_checkpoint_carried_to_another_machine(tmp_path):
     assert rows_at_update and min(rows_at_update) > 0  # no update before the cloning term's rows came back
     again = Trainer(longer, tmp_path / "run", progress=lambda line: None)
     assert again.state.phase == "done" and again.state.tables_refilled_at == [first.state.env_steps]
+    # A finished run resumed elsewhere as it stands (to be exported, say) learns nothing: no refill recorded.
+    assert Trainer(config, tmp_path / "finished", progress=lambda line: None, resume_from=portable).state.tables_refilled_at == []
     # The whole checkpoint carries its tables.
     carried = Trainer(config, tmp_path / "whole", progress=lambda line: None, resume_from=whole)
     assert len(carried.replay) == len(first.replay) > 0 and carried.state.tables_refilled_at == []
@@ -870,6 +873,35 @@ def test_a_run_resumes_from_its_checkpoint_carried_to_another_machine(tmp_path):
     assert not any((tmp_path / name / CHECKPOINT).exists() for name in ("other", "both", "early", "refused"))
 
 
+def test_refill_pause_is_the_union_of_the_waits_within_the_learn_phase():
+    assert refill_pause([], 100, 0, 1_000) == 0
+    assert refill_pause([200], 100, 0, 250) == 50 and refill_pause([200], 100, 0, 1_000) == 100
+    assert refill_pause([200, 250], 100, 0, 1_000) == 150  # overlapping waits count once
+    assert refill_pause([200, 600], 100, 0, 650) == 150
+    assert refill_pause([50], 100, 100, 1_000) == 50  # only the part within the learn phase
+
+
+def test_a_run_from_a_portable_checkpoint_waits_for_its_tables_to_refill_then_learns_at_its_rate(tmp_path):
+    """``refill_steps``: after a start from a portable checkpoint the learner collects that many
+    steps before it updates (its tables fill anew), and its update budget counts from there (no burst)."""
+    earlier = _config(env_steps=30, learn_mode="dagger")
+    Trainer(earlier, tmp_path / "elsewhere", progress=lambda line: None).run()
+    config = _config(seed=4, env_steps=400, learn_mode="dagger", refill_steps=150, updates_per_step=0.2,
+                     after=dataclasses.replace(earlier, refill_steps=0))
+    lines = []
+    trainer = Trainer(config, tmp_path / "run", progress=lines.append, earlier_stage=tmp_path / "elsewhere" / PORTABLE_CHECKPOINT)
+    start, updates = trainer.state.env_steps, trainer.learner.updates
+    assert trainer.state.tables_refilled_at == [start] and "waiting 150 steps" in " ".join(lines)
+    seen = []
+    update = trainer.learner.update
+    trainer.learner.update = lambda *args, **kwargs: (seen.append((trainer.state.env_steps, trainer.learner.updates)), update(*args, **kwargs))[1]
+    trainer.run()
+    assert seen and min(steps for steps, _ in seen) >= start + 150  # no update while the tables refill
+    # then at the run's rate from there: never more updates than 0.2 per step collected since the wait
+    assert all(done - updates <= 0.2 * (steps - start - 150) + config.update_chunk for steps, done in seen)
+    assert trainer.learner.updates - updates >= 0.2 * (trainer.state.env_steps - start - 150) - 2 * config.update_chunk
+
+
 def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path, monkeypatch):
     config = _config(env_steps=30, sac=dataclasses.replace(SMALL, bc_weight=1.0, actor_average=0.1))
     trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
@@ -891,6 +923,15 @@ def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path
     export(trainer, tmp_path / "policies", "final")
     obs = torch.zeros(2, trainer.learner.observation_size)
     torch.testing.assert_close(load_policy(tmp_path / "policies" / "tiny.pt")(obs), trainer.learner.policy()(obs))
+    # "actor": the actor itself, which no periodic evaluation played (they play the average).
+    actor, evaluated = chosen_actor(trainer, "actor")
+    assert evaluated is None and all(torch.equal(value, trainer.learner.actor.state_dict()[name]) for name, value in actor.items())
+    sidecar = export(trainer, tmp_path / "itself", "actor")
+    assert sidecar["actor"].startswith("final, the actor itself") and sidecar["actor_at"] is None
+    torch.testing.assert_close(load_policy(tmp_path / "itself" / "tiny.pt")(obs), trainer.learner.policy(trainer.learner.actor.state_dict())(obs))
+    assert not torch.allclose(load_policy(tmp_path / "itself" / "tiny.pt")(obs), trainer.learner.policy()(obs))
+    with pytest.raises(ValueError, match="which must be one of"):
+        chosen_actor(trainer, "average")
 
 
 def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhere(tmp_path, capsys):

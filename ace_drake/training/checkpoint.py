@@ -111,8 +111,8 @@ class Progress:
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
-    # env_steps of each resumption from a portable checkpoint (Checkpointing._load): the tables
-    # and labelled rows were empty from there and filled anew
+    # env_steps of each start or resumption from a portable checkpoint (Checkpointing._load,
+    # _initialize_from): the tables and labelled rows were empty from there and filled anew
     tables_refilled_at: list = dataclasses.field(default_factory=list)
 
 
@@ -222,7 +222,7 @@ class Checkpointing:
             # the stage's rollout tasks that failed (their workers replaced, with other seeds: loop.Trainer._wait)
             worker_failures=[{"env_steps": f[0], "worker": f[1], "error": f[2]} for f in s.worker_failures],
             evaluation_failures=[{"env_steps": f[0], "error": f[1]} for f in s.evaluation_failures],  # skipped evaluations
-            tables_refilled_at=s.tables_refilled_at,  # resumptions from a portable checkpoint: the tables filled anew there
+            tables_refilled_at=s.tables_refilled_at,  # starts or resumptions from a portable checkpoint: the tables filled anew there
         )
 
     def _load(self, path: Path, payload: dict) -> None:
@@ -253,13 +253,18 @@ class Checkpointing:
             self.demonstrations.load_state_dict(payload["demonstrations"])
         self.state = Progress(**payload["progress"])
         self.state.resumptions += 1
-        if portable:
-            self.state.tables_refilled_at.append(self.state.env_steps)
         if resized:
             self._resize(saved_steps, self.config.env_steps)
+        if portable and self.state.phase != "done":  # (a finished run resumed only to be exported learns nothing more)
+            self.state.tables_refilled_at.append(self.state.env_steps)
         self._recent.extend(payload["recent"])
-        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else ""
+        tables = "; its tables were not kept (a portable checkpoint): they fill anew" + self._refill_note() if portable else ""
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates{tables}")
+
+    def _refill_note(self) -> str:
+        """The log's words for the learner's wait while its tables refill (``refill_steps``)."""
+        steps = self.config.refill_steps
+        return f", the learner waiting {steps} steps before it updates" if steps else ""
 
     def _refuse_portable(self, path: Path) -> None:
         """Raises ConfigError if the run's learn phase, started or resumed from the portable
@@ -324,10 +329,11 @@ class Checkpointing:
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
         # counted per run (max_worker_failures); the earlier run's stay in its logs
         s.worker_failures, s.evaluation_failures = [], []
+        s.tables_refilled_at = [s.env_steps] if portable else []  # this run's tables start empty (refill_steps)
         s.learn_tasks = 0  # the stage's labelling pattern starts with a labelled task
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
-        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else ""
+        tables = "; its tables were not kept (a portable checkpoint): they fill anew" + self._refill_note() if portable else ""
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase{tables}")
 
     def _save_config(self) -> None:

@@ -28,7 +28,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     updates, wall time in s, the periodic evaluations, failures) and ``evaluation``, e.g. the
     human-shot figures of ``final_evaluation``, the config, the robot it was trained for) and
     ``<name>_curve.png`` (learning curve) into ``policies_dir``; ``which``: "best" (the best
-    evaluated actor) or "final". Returns the sidecar."""
+    evaluated actor), "final" or "actor" (``chosen_actor``). Returns the sidecar."""
 
     s, c = trainer.state, trainer.config
     actor, chosen = chosen_actor(trainer, which)
@@ -40,7 +40,7 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         policy_path,
         seed=c.seed,
         name=c.name,
-        actor="best evaluated" if which == "best" and s.best_actor is not None else "final",
+        actor=ACTOR_LABELS["final" if which == "best" and s.best_actor is None else which],
         actor_at=None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
         **trainer.run_record(),
         final_evaluation=evaluation,
@@ -114,13 +114,22 @@ def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policie
             "final_evaluation": evaluation}
 
 
+# What each choice of ``chosen_actor`` exports, in the sidecar's words.
+ACTOR_LABELS = {"best": "best evaluated", "final": "final", "actor": "final, the actor itself (not its average)"}
+
+
 def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
     """The actor ``export`` writes: its state dict ("best": the best evaluated one, else the
-    final; "final": the learner's policy actor, the averaged one if it keeps one) and its evaluation entry (env_steps, updates, figures), None
-    when that actor was not evaluated."""
-    if which not in ("best", "final"):
-        raise ValueError(f"export: which must be 'best' or 'final', got {which!r}")
+    final; "final": the learner's policy actor, the averaged one if it keeps one; "actor": the
+    actor itself as it stands, which the episodes play, even where an average is kept) and its
+    evaluation entry (env_steps, updates, figures), None when that actor was not evaluated (the
+    periodic evaluations of a run that averages are its average's)."""
+    if which not in ACTOR_LABELS:
+        raise ValueError(f"export: which must be one of {', '.join(map(repr, ACTOR_LABELS))}, got {which!r}")
     s = trainer.state
+    if which == "actor":
+        evaluated = trainer.learner.averaged_actor is None and s.evaluations and s.evaluations[-1][0] == s.env_steps
+        return trainer.learner.actor.state_dict(), s.evaluations[-1] if evaluated else None
     if which == "best" and s.best_actor is not None:
         if s.best_evaluation >= 0:
             return s.best_actor, s.evaluations[s.best_evaluation]

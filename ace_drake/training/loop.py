@@ -128,6 +128,11 @@ class TrainConfig:
     # collection ~8 x slower; a share keeps the cloning rows coming from the actor's current states.
     dagger_fraction: float = 1.0
     updates_per_step: float = 0.25  # the learner's update-to-data ratio (not public)
+    # Steps the learner waits, collecting, after its tables start empty in the learn phase (a run
+    # started or resumed from a portable checkpoint, Progress.tables_refilled_at) before it updates
+    # again, as SAC waits before its first update; the update budget counts from there, so that no
+    # burst follows. 0: it updates from the first batch (and, with DAgger, the first labelled rows).
+    refill_steps: int = 0
     update_chunk: int = 50  # updates between looks at the workers and weight publications
     checkpoint_every: int = 10_000
     evaluate_every: int = 25_000
@@ -174,7 +179,7 @@ class TrainConfig:
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("demonstrations", "ou_episodes", "pretrain_updates", "pretrain_evaluate_every", "batch", "bc_fade_steps",
-                     "max_worker_failures"):
+                     "max_worker_failures", "refill_steps"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("pretrain_bc_weight", "bc_weight_final", "updates_per_step"):
@@ -229,6 +234,19 @@ class TrainConfig:
     def task_episodes(self) -> int:
         """Episodes per worker task: ``episodes_per_task``, times B with batched workers."""
         return self.episodes_per_task * max(self.batch, 1)
+
+
+def refill_pause(refilled_at, refill_steps: int, start: int, now: int) -> int:
+    """Steps of the learn phase (from ``start`` to ``now``) during which the learner waited for
+    its tables to refill (``TrainConfig.refill_steps`` after each step in ``refilled_at``): the
+    length of the union of those intervals within [start, now]."""
+    paused, reached = 0, start
+    for at in sorted(refilled_at):
+        begin, end = max(at, reached), min(at + refill_steps, now)
+        if end > begin:
+            paused += end - begin
+        reached = max(reached, end)
+    return paused
 
 
 def load_train_config(path) -> TrainConfig:
@@ -443,8 +461,10 @@ class Trainer(Checkpointing):
             # With labels to come (DAgger) but none yet (a stage started from a portable checkpoint), SAC
             # without its cloning term would move the actor off what it was cloned to: wait for them.
             labels_due = c.learn_mode == "dagger" and len(self.demonstrations) == 0 and self.bc_weight() > 0
-            if (len(self.replay) >= c.sac.batch_size and not labels_due
-                    and self.learner.updates - updates_start < c.updates_per_step * learned):
+            paused = refill_pause(self.state.tables_refilled_at, c.refill_steps, learn_start, self.state.env_steps)
+            refilling = any(at <= self.state.env_steps < at + c.refill_steps for at in self.state.tables_refilled_at)
+            if (len(self.replay) >= c.sac.batch_size and not labels_due and not refilling
+                    and self.learner.updates - updates_start < c.updates_per_step * (learned - paused)):
                 progress = schedule_progress(self.state, c.env_steps)
                 if c.actor_lr_final is not None:
                     self.learner.set_actor_lr(c.sac.actor_lr + progress * (c.actor_lr_final - c.sac.actor_lr))
