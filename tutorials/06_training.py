@@ -10,7 +10,8 @@ Actor-Critic (Methods *Algorithm*); this tutorial runs the same machinery as
      twin critics on the privileged ground truth, and one update's losses;
   3. a training run: returner demonstrations, Ornstein-Uhlenbeck exploration, a cloning phase and
      asynchronous SAC with Ray workers (``--backend local`` runs everything in this process),
-     checkpointed in ``--out``; run the tutorial again and it resumes from the checkpoint;
+     checkpointed in ``--out``; run the tutorial again and it resumes from the checkpoint; the
+     same run resumed from its checkpoint carried to another directory, as on another machine;
   4. evaluation and export: the trained actor in the rally diagram, the policy artefact, its
      sidecar and the learning curve;
   5. the hit-state action (this project's; docs/training.md, *Hit-state actor*): an actor that
@@ -38,9 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ace_drake.config import ConfigError
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy
 from ace_drake.training.export import export
+from ace_drake.training.checkpoint import CHECKPOINT, PORTABLE_CHECKPOINT
 from ace_drake.training.loop import TrainConfig, Trainer
 from ace_drake.training.rollout import RolloutWorker
 
@@ -99,6 +102,18 @@ def main() -> None:
     trainer = Trainer(config, args.out / "run", progress=lambda line: print("   " + line))
     state = trainer.run()
     print(f"   {state.env_steps} steps, {state.episodes} episodes, {trainer.learner.updates} updates, {state.wall_time:.0f} s")
+    # A run moved to a machine without its run directory resumes from its checkpoint carried there
+    # (ace-drake train --resume-from): the whole one with its tables; the portable one (networks,
+    # optimisers, counters, no tables: ~7 MB where the paper run's whole one is ~2.4 GB) only where
+    # the cloning term's rows come again (learn_mode: dagger), which this small run's do not.
+    moved_dir = args.out / "moved"
+    if not (moved_dir / CHECKPOINT).is_file():  # (run again, the tutorial resumes there too)
+        moved = Trainer(config, moved_dir, progress=lambda line: None, resume_from=args.out / "run" / CHECKPOINT)
+        print(f"   carried to {moved_dir}: resumed at {moved.state.env_steps} steps with {len(moved.replay)} replay rows")
+    try:
+        Trainer(config, args.out / "moved_portable", progress=lambda line: None, resume_from=args.out / "run" / PORTABLE_CHECKPOINT)
+    except ConfigError as error:
+        print(f"   its portable checkpoint is refused here: it is a {str(error).split(' is a ', 1)[-1]}")
 
     # ------------------------------------------------------------------ 4. evaluation and export
     print("4. evaluation in the rally diagram and export")
