@@ -16,6 +16,7 @@ import datetime
 import hashlib
 import json
 import math
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -77,9 +78,13 @@ def dumps(payload, indent: int | None = 2) -> str:
 
 def write_json(path, payload) -> dict:
     """Writes ``payload`` to ``path`` (``dumps``, a final newline) and returns what was written,
-    read back (plain JSON data)."""
+    read back (plain JSON data). The file is written beside it first and renamed over it, so that
+    a crash leaves the old file or the new one, never a part."""
     text = dumps(payload)
-    Path(path).write_text(text + "\n")
+    path = Path(path)
+    partial = path.with_name(path.name + ".tmp")
+    partial.write_text(text + "\n")
+    os.replace(partial, path)
     return json.loads(text)
 
 

@@ -203,8 +203,9 @@ def test_each_kept_policys_config_is_the_run_its_sidecar_records(name):
 def test_each_kept_runs_checkpoints_are_of_its_configs_stages(name):
     """models/runs/<name>/[after/...]/checkpoint.portable.pt: each kept portable checkpoint is a
     finished one of the stage of models/train_<name>.yaml at that depth, at that stage's length (as
-    ``train --earlier-stage`` takes it), and every earlier stage has one; a run in training
-    (IN_TRAINING) keeps its latest, in its learn phase, which ``train --resume-from`` takes."""
+    ``train --earlier-stage`` takes it), and every earlier stage has one (an earlier stage of
+    another name in models/runs/<its name>/); a run in training (IN_TRAINING) keeps its latest, in
+    its learn phase, which ``train --resume-from`` takes."""
     _needs_match_data()
     stage, directory, kept = load_train_config(MODELS_DIR / f"train_{name}.yaml"), MODELS_DIR / "runs" / name, 0
     while stage is not None:
@@ -219,8 +220,10 @@ def test_each_kept_runs_checkpoints_are_of_its_configs_stages(name):
             assert record["artefact_sha256"] == hashlib.sha256((directory / PORTABLE_CHECKPOINT).read_bytes()).hexdigest(), directory
             kept += 1
         else:
-            assert directory == MODELS_DIR / "runs" / name, f"an earlier stage's checkpoint is missing in {directory}"
-        stage, directory = stage.after, directory / "after"
+            assert directory == MODELS_DIR / "runs" / name and name not in IN_TRAINING, f"a stage's checkpoint is missing in {directory}"
+        after = stage.after
+        directory = directory / "after" if after is None or after.name == stage.name else MODELS_DIR / "runs" / after.name
+        stage = after
     assert kept >= 1
 
 
@@ -847,8 +850,12 @@ def test_a_run_resumes_from_its_checkpoint_carried_to_another_machine(tmp_path):
     assert rows_at_update and min(rows_at_update) > 0  # no update before the cloning term's rows came back
     again = Trainer(longer, tmp_path / "run", progress=lambda line: None)
     assert again.state.phase == "done" and again.state.tables_refilled_at == [first.state.env_steps]
-    # A finished run resumed elsewhere as it stands (to be exported, say) learns nothing: no refill recorded.
+    # A finished run resumed elsewhere as it stands (to be exported, say) learns nothing: no refill
+    # recorded. Its own checkpoint, written at once, has empty tables: extended later, it refills then.
     assert Trainer(config, tmp_path / "finished", progress=lambda line: None, resume_from=portable).state.tables_refilled_at == []
+    lines = []
+    extended = Trainer(longer, tmp_path / "finished", progress=lines.append)
+    assert extended.state.tables_refilled_at == [first.state.env_steps] and "tables are empty" in lines[-1]
     # The whole checkpoint carries its tables.
     carried = Trainer(config, tmp_path / "whole", progress=lambda line: None, resume_from=whole)
     assert len(carried.replay) == len(first.replay) > 0 and carried.state.tables_refilled_at == []
@@ -867,10 +874,15 @@ def test_a_run_resumes_from_its_checkpoint_carried_to_another_machine(tmp_path):
         Trainer(_config(env_steps=30, seed=7), tmp_path / "early", progress=lambda line: None,
                 resume_from=tmp_path / "unfinished" / PORTABLE_CHECKPOINT)
     Trainer(_config(env_steps=30, seed=8), tmp_path / "policy", progress=lambda line: None).run()
-    with pytest.raises(ConfigError, match="learn_mode 'policy'"):
-        Trainer(_config(env_steps=30, seed=8), tmp_path / "refused", progress=lambda line: None,
+    with pytest.raises(ConfigError, match="carries no tables.*learn_mode 'policy'"):
+        Trainer(_config(env_steps=60, seed=8), tmp_path / "refused", progress=lambda line: None,
                 resume_from=tmp_path / "policy" / PORTABLE_CHECKPOINT)
     assert not any((tmp_path / name / CHECKPOINT).exists() for name in ("other", "both", "early", "refused"))
+    # (nor learns on later from the empty checkpoint of its export elsewhere)
+    Trainer(_config(env_steps=30, seed=8), tmp_path / "exported", progress=lambda line: None,
+            resume_from=tmp_path / "policy" / PORTABLE_CHECKPOINT)
+    with pytest.raises(ConfigError, match="carries no tables"):
+        Trainer(_config(env_steps=60, seed=8), tmp_path / "exported", progress=lambda line: None)
 
 
 def test_refill_pause_is_the_union_of_the_waits_within_the_learn_phase():

@@ -148,8 +148,9 @@ def test_tutorial_06_training_runs_end_to_end_and_exports(tmp_path):
     for name in ("tutorial.pt", "tutorial.json", "tutorial_curve.png"):
         assert (tmp_path / "policies" / name).is_file()
     assert (tmp_path / "run" / "checkpoint.pt").is_file()
-    carried = re.search(r"resumed at (\d+) steps with ([1-9]\d*) replay rows", run.stdout)
-    assert carried and int(carried[1]) >= 150 and "portable checkpoint is refused here" in run.stdout
+    carried = re.search(r"checkpoint.pt carried to .*: resumed at (\d+) steps with ([1-9]\d*) replay rows", run.stdout)
+    assert carried and int(carried[1]) >= 150 and re.search(r"portable.pt carried to .*: resumed at \d+ steps with 0 replay rows", run.stdout)
+    assert "extended, the portable one is refused" in run.stdout
 
 
 def test_tutorial_07_match_judges_plays_a_game_and_writes_its_files(tmp_path):

@@ -103,17 +103,19 @@ def main() -> None:
     state = trainer.run()
     print(f"   {state.env_steps} steps, {state.episodes} episodes, {trainer.learner.updates} updates, {state.wall_time:.0f} s")
     # A run moved to a machine without its run directory resumes from its checkpoint carried there
-    # (ace-drake train --resume-from): the whole one with its tables; the portable one (networks,
-    # optimisers, counters, no tables: ~7 MB where the paper run's whole one is ~2.4 GB) only where
-    # the cloning term's rows come again (learn_mode: dagger), which this small run's do not.
-    moved_dir = args.out / "moved"
-    if not (moved_dir / CHECKPOINT).is_file():  # (run again, the tutorial resumes there too)
-        moved = Trainer(config, moved_dir, progress=lambda line: None, resume_from=args.out / "run" / CHECKPOINT)
-        print(f"   carried to {moved_dir}: resumed at {moved.state.env_steps} steps with {len(moved.replay)} replay rows")
+    # (ace-drake train --resume-from): the whole one with its tables, the portable one (networks,
+    # optimisers, counters, no tables: ~7 MB where the paper run's whole one is ~2.4 GB) with its
+    # tables filling anew. To learn on from a portable one, a run whose actor loss has a cloning
+    # term needs labels to come (learn_mode: dagger); this small run's would not come, and extended
+    # (env_steps) it is refused.
+    for name, carried in (("moved", CHECKPOINT), ("moved_portable", PORTABLE_CHECKPOINT)):
+        if not (args.out / name / CHECKPOINT).is_file():  # (run again, the tutorial resumes there too)
+            moved = Trainer(config, args.out / name, progress=lambda line: None, resume_from=args.out / "run" / carried)
+            print(f"   {carried} carried to {args.out / name}: resumed at {moved.state.env_steps} steps with {len(moved.replay)} replay rows")
     try:
-        Trainer(config, args.out / "moved_portable", progress=lambda line: None, resume_from=args.out / "run" / PORTABLE_CHECKPOINT)
+        Trainer(dataclasses.replace(config, env_steps=2 * args.steps), args.out / "moved_portable", progress=lambda line: None)
     except ConfigError as error:
-        print(f"   its portable checkpoint is refused here: it is a {str(error).split(' is a ', 1)[-1]}")
+        print(f"   extended, the portable one is refused: {str(error).split('), and ', 1)[-1]}")
 
     # ------------------------------------------------------------------ 4. evaluation and export
     print("4. evaluation in the rally diagram and export")

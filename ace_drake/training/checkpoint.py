@@ -228,9 +228,11 @@ class Checkpointing:
     def _load(self, path: Path, payload: dict) -> None:
         """Resumes the run from its checkpoint ``payload`` (at ``path``): the run directory's, or
         one carried from another machine (``resume_from``). A ``PORTABLE_CHECKPOINT`` resumes with
-        empty tables that fill anew (recorded in ``Progress.tables_refilled_at``); it is refused
-        before the learn phase (the cloning updates would miss the demonstrations collected) and
-        where the learn phase's cloning term would have no rows (``_refuse_portable``)."""
+        empty tables that fill anew; it is refused before the learn phase (the cloning updates
+        would miss the demonstrations collected). A run that goes on learning with empty tables (a
+        portable checkpoint's, or a whole one's written since from one: a finished run resumed
+        from its portable checkpoint, then extended) is refused where its cloning term would have
+        no rows (``_refuse_portable``), and recorded in ``Progress.tables_refilled_at``."""
         # Read back through the config classes, so that a field added since the checkpoint was
         # written compares at its default (a new field's default keeps the old behaviour).
         differing = config_differences(payload["config"], self.config)
@@ -243,8 +245,6 @@ class Checkpointing:
             raise ConfigError(f"train: {path} is a portable checkpoint in the {phase} phase: the cloning updates would miss the "
                               "demonstrations it collected (its tables were not kept); resume from the whole checkpoint "
                               f"({CHECKPOINT}) or start the run afresh")
-        if portable:
-            self._refuse_portable(path)
         saved_steps = payload["config"]["env_steps"]
         resized = saved_steps != self.config.env_steps
         self.learner.load_state_dict(payload["learner"])
@@ -255,10 +255,16 @@ class Checkpointing:
         self.state.resumptions += 1
         if resized:
             self._resize(saved_steps, self.config.env_steps)
-        if portable and self.state.phase != "done":  # (a finished run resumed only to be exported learns nothing more)
-            self.state.tables_refilled_at.append(self.state.env_steps)
+        # (a finished run resumed only to be exported learns nothing more: no refusal, no refill)
+        empty = self.state.phase == "learn" and len(self.replay) == 0 and len(self.demonstrations) == 0
+        if empty:
+            self._refuse_portable(path)
+            if self.state.tables_refilled_at[-1:] != [self.state.env_steps]:
+                self.state.tables_refilled_at.append(self.state.env_steps)
         self._recent.extend(payload["recent"])
-        tables = "; its tables were not kept (a portable checkpoint): they fill anew" + self._refill_note() if portable else ""
+        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else (
+            "; its tables are empty: they fill anew" if empty else "")
+        tables += self._refill_note() if empty else ""
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates{tables}")
 
     def _refill_note(self) -> str:
@@ -267,12 +273,13 @@ class Checkpointing:
         return f", the learner waiting {steps} steps before it updates" if steps else ""
 
     def _refuse_portable(self, path: Path) -> None:
-        """Raises ConfigError if the run's learn phase, started or resumed from the portable
-        checkpoint at ``path`` (no labelled rows), would have a cloning term and no labels to come."""
+        """Raises ConfigError if the run's learn phase, started or resumed from the checkpoint at
+        ``path`` with empty tables (a portable one, or one written from it), would have a cloning
+        term and no labels to come."""
         c = self.config
         cloning = max(c.sac.bc_weight if c.bc_weight_start is None else c.bc_weight_start, c.bc_weight_final) > 0
         if c.learn_mode == "policy" and cloning:
-            raise ConfigError(f"train: {path} is a portable checkpoint (no labelled rows), and in the learn phase with learn_mode "
+            raise ConfigError(f"train: {path} carries no tables (a portable checkpoint: no labelled rows), and in the learn phase with learn_mode "
                               "'policy' the cloning term would have none: start with initialize_phase: demonstrations (and "
                               "demonstrations to collect) or learn_mode: dagger")
 
@@ -329,7 +336,8 @@ class Checkpointing:
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
         # counted per run (max_worker_failures); the earlier run's stay in its logs
         s.worker_failures, s.evaluation_failures = [], []
-        s.tables_refilled_at = [s.env_steps] if portable else []  # this run's tables start empty (refill_steps)
+        # this run's learn phase starts with empty tables (refill_steps); demonstrations first fill them
+        s.tables_refilled_at = [s.env_steps] if portable and c.initialize_phase == "learn" else []
         s.learn_tasks = 0  # the stage's labelling pattern starts with a labelled task
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps

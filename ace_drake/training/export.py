@@ -40,7 +40,8 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
         policy_path,
         seed=c.seed,
         name=c.name,
-        actor=ACTOR_LABELS["final" if which == "best" and s.best_actor is None else which],
+        actor=ACTOR_LABELS["final" if which == "best" and s.best_actor is None else which]
+        + (" (not its average)" if which == "actor" and trainer.learner.averaged_actor is not None else ""),
         actor_at=None if chosen is None else {"env_steps": chosen[0], "updates": chosen[1], "evaluation": chosen[2]},
         **trainer.run_record(),
         final_evaluation=evaluation,
@@ -115,7 +116,7 @@ def train_and_export(config_path, run_dir=None, export_dir=MODELS_DIR / "policie
 
 
 # What each choice of ``chosen_actor`` exports, in the sidecar's words.
-ACTOR_LABELS = {"best": "best evaluated", "final": "final", "actor": "final, the actor itself (not its average)"}
+ACTOR_LABELS = {"best": "best evaluated", "final": "final", "actor": "final, the actor itself"}
 
 
 def chosen_actor(trainer: Trainer, which: str) -> tuple[dict, tuple | None]:
