@@ -256,6 +256,22 @@ def test_a_diverged_track_gives_no_estimate_and_its_next_position_restarts_it():
         state = dut.update(state, positions_along(truth_at, [0.1, 0.105, 0.11, 0.115], start_sequence=30))
         assert state.latest.resets == 1
         np.testing.assert_allclose(dut.estimate(state, 0.115).mean[:3], truth_at(0.115)[:3], atol=1e-3)
+    # Diverged to absurd finite values, which no finiteness check catches (a velocity of 1e24 m/s
+    # reached a training run's observations and turned its networks into NaN): faster or spinning
+    # faster than any ball (EstimatorParams.max_speed, max_spin), no estimate either.
+    for column, value in ((ekf_kernels.C_MEAN + 3, -500.0), (ekf_kernels.C_MEAN + 7, 1e5)):
+        state = dut.update(dut.initial_state(), positions_along(truth_at, np.arange(0.0, 0.1, 0.005)))
+        index = state.batch.index[0]
+        latest = int(index[ekf_kernels.X_CORE0] + index[ekf_kernels.X_N] - index[ekf_kernels.X_FIRST])
+        state.batch.core_f[0, latest, column] = value
+        mean, covariance, _ = dut.predict(state.latest.mean, state.latest.covariance, 0.005)
+        assert np.all(np.isfinite(mean)) and np.all(np.isfinite(covariance))
+        assert dut.estimate(state, 0.1) is None
+        state = dut.update(state, positions_along(truth_at, [0.1, 0.105, 0.11, 0.115], start_sequence=30))
+        assert state.latest.resets == 1  # the next position restarts it
+        np.testing.assert_allclose(dut.estimate(state, 0.115).mean[:3], truth_at(0.115)[:3], atol=1e-3)
+    with pytest.raises(ConfigError, match="max_speed"):
+        EstimatorParams(max_speed=0.0)
 
 
 def test_a_racket_contact_restarts_from_the_measurements_after_it():

@@ -236,6 +236,14 @@ def split_play_options(sac: dict) -> tuple[dict, dict]:
     return {k: v for k, v in sac.items() if k not in PLAY_OPTIONS}, {k: v for k, v in sac.items() if k in PLAY_OPTIONS}
 
 
+
+def _require_finite(loss: torch.Tensor, which: str) -> None:
+    """Raises FloatingPointError before a non-finite ``loss`` reaches the networks: one such step
+    turns every weight into NaN, and a run that went on would write them into its checkpoints."""
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"SacLearner.update: the {which} loss is {loss.item()} (a non-finite or overflowing batch); "
+                                 "no weight was changed by it")
+
 class SacLearner:
     """The learner: actor, twin critics, target critics and their Adam optimisers (module
     docstring). Seeded by ``config.seed``: network initialisation and every sampled action come
@@ -402,6 +410,7 @@ class SacLearner:
         critic_input = self.critic_features(b["privileged"], b["obs"])
         q1, q2 = self.critic(critic_input, b["action"])
         critic_loss = torch.mean((q1 - y) ** 2) + torch.mean((q2 - y) ** 2)
+        _require_finite(critic_loss, "critic")
         self.critic_optimizer.zero_grad()
         critic_loss.backward()
         self.critic_optimizer.step()
@@ -415,6 +424,7 @@ class SacLearner:
         if demonstrations is not None and bc_weight > 0.0:
             bc_loss = self.behaviour_cloning_loss(demonstrations)
             actor_loss = actor_loss + bc_weight * bc_loss
+        _require_finite(actor_loss, "actor")
         self.actor_optimizer.zero_grad()
         actor_loss.backward()  # also reaches the critic's grads, which its next zero_grad clears
         self.actor_optimizer.step()

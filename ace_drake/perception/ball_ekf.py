@@ -351,6 +351,7 @@ class BallEkf:
             math.nan if p.position_observation_variance is None else p.position_observation_variance,
             math.nan if p.spin_observation_variance is None else p.spin_observation_variance,
             ph.aero.ball_radius, ph.table.length, ph.table.width, ph.table.surface_height, ph.net.height, ph.net.overhang,
+            p.max_speed, p.max_spin,
         ]
         config[kernels.F_FLIGHT:] = flight_constants(ph.aero)
         self._config = config

@@ -62,7 +62,7 @@ INDEX_SIZE = 6
 # configuration (``config_arrays``)
 (F_GAP, F_JUMP, F_INNOVATION, F_HISTORY, F_FD_STEP, F_MAX_STEP, F_Q_A, F_Q_W, F_BOUNCE_V, F_BOUNCE_W,
  F_BIAS_MAGNITUDE, F_BIAS_AXIS, F_FIT_THRESHOLD, F_POSITION_VARIANCE, F_SPIN_VARIANCE, F_RADIUS,
- F_TABLE_LENGTH, F_TABLE_WIDTH, F_SURFACE_HEIGHT, F_NET_HEIGHT, F_NET_OVERHANG, F_FLIGHT) = range(22)
+ F_TABLE_LENGTH, F_TABLE_WIDTH, F_SURFACE_HEIGHT, F_NET_HEIGHT, F_NET_OVERHANG, F_MAX_SPEED, F_MAX_SPIN, F_FLIGHT) = range(24)
 CONFIG_SIZE = F_FLIGHT + FLIGHT_CONSTANT_COUNT  # then physics.flight.flight_constants
 OK, BLOCKED = 0, 1
 NAN = math.nan
@@ -552,9 +552,11 @@ def _fuse_position(core_f, core_i, obs_row_f, obs_row_i, obs_number, obs_f, offs
     noise = np.empty((3, 3))
     _noise(obs_row_f, cfg[F_POSITION_VARIANCE], noise)
     normalised = _quadratic3(covariance[:3, :3] + noise, innovation)
-    # Written as "not within both bounds" so that a non-finite prediction (a diverged track: an
-    # absurd velocity through the quadratic drag overflows RK4 to inf and NaN) restarts it too.
-    if not (_norm3(innovation[0], innovation[1], innovation[2]) <= cfg[F_JUMP] and normalised <= cfg[F_INNOVATION]):
+    # Written as "not within the bounds" so that a non-finite prediction (a diverged track: an
+    # absurd velocity through the quadratic drag overflows RK4 to inf and NaN) restarts it too, as
+    # does one faster or spinning faster than any ball (``estimate`` gives none for it).
+    if not (_norm3(innovation[0], innovation[1], innovation[2]) <= cfg[F_JUMP] and normalised <= cfg[F_INNOVATION]
+            and _plausible(mean, cfg)):
         _reset(core_f, core_i, core_f[C_NOT_BEFORE])
         return _collect(core_f, core_i, obs_row_f, obs_row_i, obs_number, obs_f, offset, cfg, start_covariance, request, result)
     _kalman_update(mean, covariance, innovation, False, noise)
@@ -772,12 +774,20 @@ def advance(obs_f, obs_i, core_f, core_i, index, base_key, progress, cfg, start_
 
 
 @numba.njit(cache=True)
+def _plausible(mean, cfg):
+    """Whether a ball state (9,) is one a ball can have: speed and spin within ``EstimatorParams``'
+    max_speed and max_spin (False for NaN)."""
+    return (_norm3(mean[3], mean[4], mean[5]) <= cfg[F_MAX_SPEED]
+            and _norm3(mean[6], mean[7], mean[8]) <= cfg[F_MAX_SPIN])
+
+
+@numba.njit(cache=True)
 def estimate(core_f, core_i, index, times, cfg, requests, results, pending, means, covariances, status):
     """Predicts each pending environment's latest posterior to times[b] (s) into means (B, 9),
     covariances (B, 9, 9) and status (B, 3) [valid, spin fused, last capture (s)]; pending[b]
     False when done, True when blocked (a request in requests[b], as in ``advance``). An
-    environment without a track, or whose prediction (mean or covariance) is not finite (a
-    diverged track), gets valid 0; times[b] before the posterior gives valid -1. Returns how
+    environment without a track, or whose prediction is not finite or faster or spinning faster
+    than any ball (``EkfParams.max_speed``, ``max_spin``: a diverged track), gets valid 0; times[b] before the posterior gives valid -1. Returns how
     many environments are blocked."""
     blocked_count = 0
     for b in range(index.shape[0]):
@@ -800,8 +810,10 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
             blocked_count += 1
             continue
         # a diverged track: no estimate (its next position restarts it); its covariance, through the
-        # finite-difference Jacobian, overflows before its mean does
-        if not (np.all(np.isfinite(predicted_mean)) and np.all(np.isfinite(predicted_covariance[:9, :9]))):
+        # finite-difference Jacobian, overflows before its mean does, and a mean can diverge to
+        # absurd finite values first (a velocity of 1e24 m/s was seen in training)
+        if not (np.all(np.isfinite(predicted_mean)) and np.all(np.isfinite(predicted_covariance[:9, :9]))
+                and _plausible(predicted_mean, cfg)):
             status[b, 0] = 0.0
             continue
         means[b] = predicted_mean

@@ -159,6 +159,10 @@ class EstimatorParams:
     # the prediction missed something discrete (a net-cord contact on the wrong side of the cord).
     # chi-square(3) passes 100 with probability 2e-21.
     max_position_innovation: float = 100.0
+    # A track predicted faster or spinning faster than any ball (the fastest smashes ~30 m/s, elite
+    # spins ~1,000 rad/s) has diverged: it gives no estimate until its next position restarts it.
+    max_speed: float = 60.0  # m/s
+    max_spin: float = 3000.0  # rad/s
     history_duration: float = 0.05  # s of capture time kept for re-filtering late measurements
     # Spins are processed this long after their capture time, so that one arriving after a position
     # captured up to this much later (spin latency 8-14 ms against 8.2-12.2 ms) needs no re-filtering.
@@ -169,7 +173,8 @@ class EstimatorParams:
     def __post_init__(self) -> None:
         require_positive(
             self, "update_period", "initial_position_variance", "initial_velocity_variance",
-            "initial_spin_variance", "max_measurement_gap", "max_position_jump", "max_position_innovation", "history_duration",
+            "initial_spin_variance", "max_measurement_gap", "max_position_jump", "max_position_innovation", "max_speed", "max_spin",
+            "history_duration",
             "max_integration_step", "finite_difference_step",
         )
         require_non_negative(
