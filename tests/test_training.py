@@ -246,6 +246,9 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
     _needs_match_data()  # the configs' evaluation data must exist to load
     for name in IN_TRAINING:
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
+        # its latest portable checkpoint, for the next machine (docs/training.md), with finite weights
+        carried = read_checkpoint(MODELS_DIR / "runs" / name / PORTABLE_CHECKPOINT)
+        assert all(torch.isfinite(value).all() for value in carried["learner"]["actor"].values())
 
 
 def test_the_paper_action_run_is_two_stages_in_one_config():
