@@ -42,8 +42,8 @@ import numpy as np
 from ace_drake.config import ConfigError
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.learning.sac import SacConfig, SacLearner, load_policy
-from ace_drake.training.export import export
 from ace_drake.training.checkpoint import CHECKPOINT, PORTABLE_CHECKPOINT
+from ace_drake.training.export import export
 from ace_drake.training.loop import TrainConfig, Trainer
 from ace_drake.training.rollout import RolloutWorker
 

@@ -236,13 +236,13 @@ def split_play_options(sac: dict) -> tuple[dict, dict]:
     return {k: v for k, v in sac.items() if k not in PLAY_OPTIONS}, {k: v for k, v in sac.items() if k in PLAY_OPTIONS}
 
 
-
 def _require_finite(loss: torch.Tensor, which: str) -> None:
     """Raises FloatingPointError before a non-finite ``loss`` reaches the networks: one such step
     turns every weight into NaN, and a run that went on would write them into its checkpoints."""
     if not torch.isfinite(loss):
         raise FloatingPointError(f"SacLearner.update: the {which} loss is {loss.item()} (a non-finite or overflowing batch); "
                                  "no weight was changed by it")
+
 
 class SacLearner:
     """The learner: actor, twin critics, target critics and their Adam optimisers (module

@@ -787,8 +787,8 @@ def estimate(core_f, core_i, index, times, cfg, requests, results, pending, mean
     covariances (B, 9, 9) and status (B, 3) [valid, spin fused, last capture (s)]; pending[b]
     False when done, True when blocked (a request in requests[b], as in ``advance``). An
     environment without a track, or whose prediction is not finite or faster or spinning faster
-    than any ball (``EkfParams.max_speed``, ``max_spin``: a diverged track), gets valid 0; times[b] before the posterior gives valid -1. Returns how
-    many environments are blocked."""
+    than any ball (``EstimatorParams.max_speed``, ``max_spin``: a diverged track), gets valid 0;
+    times[b] before the posterior gives valid -1. Returns how many environments are blocked."""
     blocked_count = 0
     for b in range(index.shape[0]):
         if not pending[b]:

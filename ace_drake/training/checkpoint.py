@@ -323,7 +323,8 @@ class Checkpointing:
         self._check_robot(path, payload)
         c = self.config
         portable = payload["replay"] is None
-        if portable and c.initialize_phase == "learn":
+        empty = portable and c.initialize_phase == "learn"  # (demonstrations first would fill the tables)
+        if empty:
             self._refuse_portable(path)
         self.learner.load_state_dict(payload["learner"])
         self.learner.set_actor_lr(c.sac.actor_lr)  # then the schedule (actor_lr_final), if any
@@ -336,12 +337,12 @@ class Checkpointing:
         s.best_rate, s.best_actor, s.best_evaluation = -1.0, None, -1
         # counted per run (max_worker_failures); the earlier run's stay in its logs
         s.worker_failures, s.evaluation_failures = [], []
-        # this run's learn phase starts with empty tables (refill_steps); demonstrations first fill them
-        s.tables_refilled_at = [s.env_steps] if portable and c.initialize_phase == "learn" else []
+        s.tables_refilled_at = [s.env_steps] if empty else []  # its learn phase starts with empty tables (refill_steps)
         s.learn_tasks = 0  # the stage's labelling pattern starts with a labelled task
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
-        tables = "; its tables were not kept (a portable checkpoint): they fill anew" + self._refill_note() if portable else ""
+        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else ""
+        tables += self._refill_note() if empty else ""
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase{tables}")
 
     def _save_config(self) -> None:
