@@ -971,6 +971,17 @@ def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhe
     assert rows_at_update and min(rows_at_update) > 0  # no update without the cloning term's rows (labels were due)
     # Resumed, it reads its own checkpoint; the earlier stage's is not needed any more.
     assert Trainer(config, tmp_path / "run", progress=lambda line: None).state.phase == "done"
+    # A whole checkpoint with empty tables (the earlier stage resumed elsewhere from its portable
+    # one, to be exported) starts a stage as the portable one does: refill recorded, or refused.
+    Trainer(earlier, tmp_path / "exported", progress=lambda line: None, resume_from=portable)
+    emptied = tmp_path / "exported" / CHECKPOINT
+    assert read_checkpoint(emptied)["replay"] is not None
+    lines = []
+    refilled = Trainer(config, tmp_path / "from_emptied", progress=lines.append, earlier_stage=emptied)
+    assert refilled.state.tables_refilled_at == [first.state.env_steps] and "tables are empty" in lines[-1]
+    with pytest.raises(ConfigError, match="carries no tables.*learn_mode 'policy'"):
+        Trainer(_config(seed=4, env_steps=config.env_steps, after=earlier), tmp_path / "policy", progress=lambda line: None,
+                earlier_stage=emptied)
     other = dataclasses.replace(config, after=_config(seed=9, env_steps=30))
     with pytest.raises(ConfigError, match="not a checkpoint of the config's earlier stage.*seed"):
         Trainer(other, tmp_path / "other", progress=lambda line: None, earlier_stage=portable)

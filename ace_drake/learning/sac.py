@@ -238,10 +238,13 @@ def split_play_options(sac: dict) -> tuple[dict, dict]:
 
 def _require_finite(loss: torch.Tensor, which: str) -> None:
     """Raises FloatingPointError before a non-finite ``loss`` reaches the networks: one such step
-    turns every weight into NaN, and a run that went on would write them into its checkpoints."""
+    turns every weight into NaN, and a run that went on would write them into its checkpoints.
+    (Not atomic across the update: when the actor's loss is the non-finite one, the critic has
+    already taken its step on its own finite loss.)"""
     if not torch.isfinite(loss):
+        step = "; the critic's step on its finite loss before it stands" if which == "actor" else ""
         raise FloatingPointError(f"SacLearner.update: the {which} loss is {loss.item()} (a non-finite or overflowing batch); "
-                                 "no weight was changed by it")
+                                 f"the networks did not take it{step}")
 
 
 class SacLearner:

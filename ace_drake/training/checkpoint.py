@@ -256,7 +256,7 @@ class Checkpointing:
         if resized:
             self._resize(saved_steps, self.config.env_steps)
         # (a finished run resumed only to be exported learns nothing more: no refusal, no refill)
-        empty = self.state.phase == "learn" and len(self.replay) == 0 and len(self.demonstrations) == 0
+        empty = self.state.phase == "learn" and self._tables_empty()
         if empty:
             self._refuse_portable(path)
             if self.state.tables_refilled_at[-1:] != [self.state.env_steps]:
@@ -266,6 +266,11 @@ class Checkpointing:
             "; its tables are empty: they fill anew" if empty else "")
         tables += self._refill_note() if empty else ""
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates{tables}")
+
+    def _tables_empty(self) -> bool:
+        """Whether the replay tables and the labelled rows hold nothing (read from a portable
+        checkpoint, or from a whole one written before any rows came back)."""
+        return len(self.replay) == 0 and len(self.demonstrations) == 0
 
     def _refill_note(self) -> str:
         """The log's words for the learner's wait while its tables refill (``refill_steps``)."""
@@ -279,7 +284,7 @@ class Checkpointing:
         c = self.config
         cloning = max(c.sac.bc_weight if c.bc_weight_start is None else c.bc_weight_start, c.bc_weight_final) > 0
         if c.learn_mode == "policy" and cloning:
-            raise ConfigError(f"train: {path} carries no tables (a portable checkpoint: no labelled rows), and in the learn phase with learn_mode "
+            raise ConfigError(f"train: {path} carries no tables (a portable checkpoint, or one written from it: no labelled rows), and in the learn phase with learn_mode "
                               "'policy' the cloning term would have none: start with initialize_phase: demonstrations (and "
                               "demonstrations to collect) or learn_mode: dagger")
 
@@ -323,14 +328,16 @@ class Checkpointing:
         self._check_robot(path, payload)
         c = self.config
         portable = payload["replay"] is None
-        empty = portable and c.initialize_phase == "learn"  # (demonstrations first would fill the tables)
+        if not portable:
+            self.replay.load_state_dict(payload["replay"])
+            self.demonstrations.load_state_dict(payload["demonstrations"])
+        # a portable checkpoint's tables, or a whole one's written from it before rows came (a
+        # finished run resumed elsewhere to be exported); demonstrations first would fill them
+        empty = c.initialize_phase == "learn" and self._tables_empty()
         if empty:
             self._refuse_portable(path)
         self.learner.load_state_dict(payload["learner"])
         self.learner.set_actor_lr(c.sac.actor_lr)  # then the schedule (actor_lr_final), if any
-        if not portable:
-            self.replay.load_state_dict(payload["replay"])
-            self.demonstrations.load_state_dict(payload["demonstrations"])
         s = self.state = Progress(**payload["progress"])  # its counters and history
         s.phase, s.learn_start, s.resumptions = c.initialize_phase, (s.env_steps, self.learner.updates), 0
         s.initialized_at = s.env_steps
@@ -341,7 +348,8 @@ class Checkpointing:
         s.learn_tasks = 0  # the stage's labelling pattern starts with a labelled task
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
-        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else ""
+        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else (
+            "; its tables are empty: they fill anew" if empty else "")
         tables += self._refill_note() if empty else ""
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase{tables}")
 
