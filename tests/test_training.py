@@ -204,8 +204,9 @@ def test_each_kept_runs_checkpoints_are_of_its_configs_stages(name):
     """models/runs/<name>/[after/...]/checkpoint.portable.pt: each kept portable checkpoint is a
     finished one of the stage of models/train_<name>.yaml at that depth, at that stage's length (as
     ``train --earlier-stage`` takes it), and every earlier stage has one (an earlier stage of
-    another name in models/runs/<its name>/); a run in training (IN_TRAINING) keeps its latest, in
-    its learn phase, which ``train --resume-from`` takes."""
+    another name in models/runs/<its name>/); a kept run without a shipped policy (KEPT_RUNS) keeps
+    its latest: in its learn phase while in training, which ``train --resume-from`` takes, or
+    finished, with the learning curve it records (curve.png)."""
     _needs_match_data()
     stage, directory, kept = load_train_config(MODELS_DIR / f"train_{name}.yaml"), MODELS_DIR / "runs" / name, 0
     while stage is not None:
@@ -214,13 +215,15 @@ def test_each_kept_runs_checkpoints_are_of_its_configs_stages(name):
             record = json.loads(sidecar.read_text())
             assert config_differences(record["config"], stage) == [], directory
             finished = record["phase"] == "done" and record["config"]["env_steps"] == stage.env_steps <= record["env_steps"]
-            in_training = (name in IN_TRAINING and directory == MODELS_DIR / "runs" / name and record["phase"] == "learn"
+            in_training = (name in KEPT_RUNS and directory == MODELS_DIR / "runs" / name and record["phase"] == "learn"
                            and record["env_steps"] < stage.env_steps)
             assert finished or in_training, directory
+            if finished and name in KEPT_RUNS and directory == MODELS_DIR / "runs" / name:
+                assert (directory / "curve.png").is_file(), directory
             assert record["artefact_sha256"] == hashlib.sha256((directory / PORTABLE_CHECKPOINT).read_bytes()).hexdigest(), directory
             kept += 1
         else:
-            assert directory == MODELS_DIR / "runs" / name and name not in IN_TRAINING, f"a stage's checkpoint is missing in {directory}"
+            assert directory == MODELS_DIR / "runs" / name and name not in KEPT_RUNS, f"a stage's checkpoint is missing in {directory}"
         after = stage.after
         directory = directory / "after" if after is None or after.name == stage.name else MODELS_DIR / "runs" / after.name
         stage = after
@@ -234,17 +237,18 @@ def _needs_match_data() -> None:
         pytest.skip(f"the match data is not at {data} (run from the project root, beside ../shared)")
 
 
-# Runs in training: their config is kept, and in models/runs/<name>/ their latest portable
-# checkpoint, so that a later session resumes them on any machine (train --resume-from).
-IN_TRAINING = ("rally_paper_10m",)  # the paper-action run continued to 10 million steps (issue 30's curve)
+# Runs kept without a shipped policy: their config, and in models/runs/<name>/ their latest portable
+# checkpoint: in training, so that a later session resumes them on any machine (train
+# --resume-from); finished, for the curve they record (docs/training.md).
+KEPT_RUNS = ("rally_paper_10m",)  # the paper-action run continued to 10 million steps (issue 30's curve)
 
 
 def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
     assert {path.name for path in MODELS_DIR.glob("train_*.yaml")} == {
-        "train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES + IN_TRAINING)}
+        "train_base.yaml", *(f"train_{name}.yaml" for name in KEPT_POLICIES + KEPT_RUNS)}
     assert {path.stem for path in (MODELS_DIR / "policies").glob("*.pt")} == set(KEPT_POLICIES)
     _needs_match_data()  # the configs' evaluation data must exist to load
-    for name in IN_TRAINING:
+    for name in KEPT_RUNS:
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
         # its latest portable checkpoint, for the next machine (docs/training.md), with finite weights
         carried = read_checkpoint(MODELS_DIR / "runs" / name / PORTABLE_CHECKPOINT)
