@@ -1178,6 +1178,8 @@ def test_the_learning_curve_names_what_its_evaluations_played(tmp_path):
     assert label == "evaluation: 60 synthetic shots (deterministic actor)" and "started from" in earlier_label
     ((points, _),) = evaluation_series(state)
     assert [e[0] for e in points] == [100, 200]
+    ((_, label),) = evaluation_series(state, "60 synthetic shots", actor="averaged actor, deterministic")
+    assert label == "evaluation: 60 synthetic shots (averaged actor, deterministic)"  # what a learner with an average evaluates
     assert cloning_curve(state) is None  # evaluations at several step counts: drawn against steps
     plot_learning_curve(state, tmp_path / "curve.png", "run", "60 synthetic shots", started_at=150)
     assert (tmp_path / "curve.png").stat().st_size > 1000

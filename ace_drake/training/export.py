@@ -55,7 +55,9 @@ def export(trainer: Trainer, policies_dir, which: str = "best", evaluation: dict
     if started_at is None and c.initialize_from:
         started_at = s.learn_start[0]  # a run initialised before Progress.initialized_at existed: the same step
     step_seconds = c.env.rally.control.segment_samples * load_scenario(MODELS_DIR / c.env.rally.scenario).dynamics.command_period
-    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c), started_at, rollouts, step_seconds)
+    evaluated = "averaged actor, deterministic" if trainer.learner.averaged_actor is not None else "deterministic actor"
+    plot_learning_curve(s, policies_dir / f"{c.name}_curve.png", c.name, evaluation_description(c), started_at, rollouts, step_seconds,
+                        evaluated)
     return sidecar
 
 
@@ -164,12 +166,14 @@ def _draw_evaluations(axes, points: list, color: str, label: str) -> None:
     axes.errorbar([e[0] for e in points], rates, yerr=[low, high], fmt="o-", color=color, capsize=3, label=label)
 
 
-def evaluation_series(state: Progress, description: str = "", started_at: int | None = None) -> list[tuple[list, str]]:
+def evaluation_series(state: Progress, description: str = "", started_at: int | None = None,
+                      actor: str = "deterministic actor") -> list[tuple[list, str]]:
     """The learning curve's evaluation series, [(points, label)], points (env_steps, figures):
     one series, or for a run started from another's checkpoint at ``started_at`` steps the
-    earlier run's evaluations (at or before it) and this run's (after it)."""
+    earlier run's evaluations (at or before it) and this run's (after it); ``actor``: what the
+    evaluations played (the averaged actor where the learner keeps one, ``SacConfig.actor_average``)."""
     evaluated = [(e[0], e[2]) for e in state.evaluations if e[2]["rate"] is not None]
-    label = f"evaluation: {description} (deterministic actor)" if description else "evaluation (deterministic actor)"
+    label = f"evaluation: {description} ({actor})" if description else f"evaluation ({actor})"
     if started_at is None:
         return [(evaluated, label)]
     return [([e for e in evaluated if e[0] <= started_at], "evaluation of the run it started from (its own shots)"),
@@ -197,26 +201,28 @@ def cloning_curve(state: Progress) -> list[tuple[int, dict]] | None:
 
 
 def plot_learning_curve(state: Progress, path, title: str, description: str = "", started_at: int | None = None,
-                        rollouts: str = "stochastic actor", step_seconds: float = 0.032) -> None:
+                        rollouts: str = "stochastic actor", step_seconds: float = 0.032,
+                        actor: str = "deterministic actor") -> None:
     """Return rate against environment steps: the rollout policy's (last 100 episodes; how it
     acted: ``rollouts``) and the periodic evaluations' (with their 95 % intervals) on
     ``description``'s shots. A run started from another's checkpoint at ``started_at`` steps
     (``initialize_from``) draws the earlier run's evaluations, which may be of other shots, as a
     separate series; evaluations on held-out players (``heldout_series``) as one more. The top axis
     counts hours of simulated play (``step_seconds`` per environment step: one control segment). A
-    run that only clones (``cloning_curve``) is drawn against learner updates."""
+    run that only clones (``cloning_curve``) is drawn against learner updates; ``actor`` names
+    what the evaluations played (``evaluation_series``)."""
     figure = Figure(figsize=(6, 3.5), dpi=100)  # no pyplot: no display, no global figure state
     axes = figure.subplots()
     cloning = cloning_curve(state) if started_at is None else None
     if cloning is not None:
-        ((_, label),) = evaluation_series(state, description)
+        ((_, label),) = evaluation_series(state, description, actor=actor)
         _draw_evaluations(axes, cloning, "C0", label)
         axes.set_xlabel(f"cloning updates (on {state.evaluations[0][0]:,} environment steps collected)")
     else:
         if state.rollout_curve:
             steps, _, rates = zip(*state.rollout_curve)
             axes.plot(steps, rates, color="0.6", label=f"rollouts ({rollouts}, last 100)")
-        series = evaluation_series(state, description, started_at)
+        series = evaluation_series(state, description, started_at, actor)
         for (points, name), color in zip(series, ("C1", "C0")[-len(series):]):  # this run's in C0
             _draw_evaluations(axes, points, color, name)
         heldout = heldout_series(state)
