@@ -211,7 +211,7 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     counts hours of simulated play (``step_seconds`` per environment step: one control segment). A
     run that only clones (``cloning_curve``) is drawn against learner updates; ``actor`` names
     what the evaluations played (``evaluation_series``)."""
-    figure = Figure(figsize=(6, 3.5), dpi=100)  # no pyplot: no display, no global figure state
+    figure = Figure(figsize=(6, 4.5), dpi=100, layout="constrained")  # no pyplot: no display, no global figure state
     axes = figure.subplots()
     cloning = cloning_curve(state) if started_at is None else None
     if cloning is not None:
@@ -236,6 +236,6 @@ def plot_learning_curve(state: Progress, path, title: str, description: str = ""
     axes.set_title(title)
     axes.grid(alpha=0.3)
     if axes.get_legend_handles_labels()[0]:  # a run with nothing drawn yet has no legend
-        axes.legend(loc="best", fontsize=7)  # where it hides the fewest points
-    figure.tight_layout()
+        # beneath the axes, where it hides no point however long a run's curve and labels are
+        figure.legend(loc="outside lower center", fontsize=7)
     figure.savefig(path)
