@@ -250,7 +250,7 @@ def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
     _needs_match_data()  # the configs' evaluation data must exist to load
     for name in KEPT_RUNS:
         assert load_train_config(MODELS_DIR / f"train_{name}.yaml").name == name
-        # its latest portable checkpoint, for the next machine (docs/training.md), with finite weights
+        # its latest portable checkpoint (for the next machine while in training), with finite weights
         carried = read_checkpoint(MODELS_DIR / "runs" / name / PORTABLE_CHECKPOINT)
         assert all(torch.isfinite(value).all() for value in carried["learner"]["actor"].values())
 
@@ -939,6 +939,8 @@ def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path
     assert any(not torch.equal(value, trainer.learner.actor.state_dict()[name]) for name, value in average.items())
     for name, value in chosen_actor(trainer, "final")[0].items():
         assert torch.equal(value, average[name])
+    drawn = []  # what each export's curve names as evaluated
+    monkeypatch.setattr("ace_drake.training.export.plot_learning_curve", lambda *args: drawn.append(args[-1]))
     export(trainer, tmp_path / "policies", "final")
     obs = torch.zeros(2, trainer.learner.observation_size)
     torch.testing.assert_close(load_policy(tmp_path / "policies" / "tiny.pt")(obs), trainer.learner.policy()(obs))
@@ -947,6 +949,7 @@ def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path
     assert evaluated is None and all(torch.equal(value, trainer.learner.actor.state_dict()[name]) for name, value in actor.items())
     sidecar = export(trainer, tmp_path / "itself", "actor")
     assert sidecar["actor"].startswith("final, the actor itself") and sidecar["actor_at"] is None
+    assert drawn == ["averaged actor, deterministic"] * 2  # the periodic evaluations played the average
     torch.testing.assert_close(load_policy(tmp_path / "itself" / "tiny.pt")(obs), trainer.learner.policy(trainer.learner.actor.state_dict())(obs))
     assert not torch.allclose(load_policy(tmp_path / "itself" / "tiny.pt")(obs), trainer.learner.policy()(obs))
     with pytest.raises(ValueError, match="which must be one of"):

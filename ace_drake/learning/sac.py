@@ -242,9 +242,9 @@ def _require_finite(loss: torch.Tensor, which: str) -> None:
     (Not atomic across the update: when the actor's loss is the non-finite one, the critic has
     already taken its step on its own finite loss.)"""
     if not torch.isfinite(loss):
-        step = "; the critic's step on its finite loss before it stands" if which == "actor" else ""
-        raise FloatingPointError(f"SacLearner.update: the {which} loss is {loss.item()} (a non-finite or overflowing batch); "
-                                 f"the networks did not take it{step}")
+        taken = ("the actor did not step; the critic had already stepped on its finite loss" if which == "actor"
+                 else "no network stepped")
+        raise FloatingPointError(f"SacLearner.update: the {which} loss is {loss.item()} (a non-finite or overflowing batch); {taken}")
 
 
 class SacLearner:

@@ -39,7 +39,8 @@ so a killed run loses only the work since then; ``train`` on the same directory 
 (from the previous one, with a warning, if the latest cannot be read or is missing) (the workers
 are reseeded from the run's seed, the number of resumptions and the number of failed tasks, so a
 resumed run is reproducible but not identical to an uninterrupted one). Every
-``evaluate_every`` steps the deterministic actor is evaluated in the rally diagram
+``evaluate_every`` steps the deterministic policy actor (``SacLearner.policy_actor``: the averaged one where
+the learner keeps an average) is evaluated in the rally diagram
 (``evaluation.evaluate.play``) on ``evaluation_episodes`` shots, each ``evaluation_repeats``
 times with successive seeds; the best evaluated actor is
 kept (and, with ``heldout_players``, also on all of those players' shots, as many times, for the
@@ -565,7 +566,7 @@ class Trainer(Checkpointing):
                  f"{s.wall_time + self._elapsed():.0f} s; {text}")
 
     def _evaluate(self) -> None:
-        """Evaluates the deterministic actor in the rally diagram (module docstring), surviving a
+        """Evaluates the deterministic policy actor in the rally diagram (module docstring), surviving a
         failed evaluation: it is logged with its traceback (``run_dir/evaluation_failures.log``)
         and counted, and the run goes on to the next one (a held-out part that fails takes the
         whole evaluation with it). More than ``max_worker_failures`` such failures in a stage
@@ -617,7 +618,7 @@ class Trainer(Checkpointing):
                  f"({(rate['rate'] or 0):.1%}), {time.perf_counter() - start:.0f} s")
 
     def _play_repeats(self, params: RallyParams, shots: np.ndarray, serve: np.ndarray) -> dict:
-        """The deterministic actor's figures (``evaluate.summarize``) on ``shots``, each played
+        """The deterministic policy actor's figures (``evaluate.summarize``) on ``shots``, each played
         ``evaluation_repeats`` times with the seeds from the run's seed on (pooled, with the
         repeats' clustered interval when there are several)."""
         c = self.config
