@@ -262,9 +262,7 @@ class Checkpointing:
             if self.state.tables_refilled_at[-1:] != [self.state.env_steps]:
                 self.state.tables_refilled_at.append(self.state.env_steps)
         self._recent.extend(payload["recent"])
-        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else (
-            "; its tables are empty: they fill anew" if empty else "")
-        tables += self._refill_note() if empty else ""
+        tables = self._tables_note(portable, empty)
         self.log(f"train: resumed from {path}: phase {self.state.phase}, {self.state.env_steps} steps, {self.learner.updates} updates{tables}")
 
     def _tables_empty(self) -> bool:
@@ -272,10 +270,13 @@ class Checkpointing:
         checkpoint, or from a whole one written before any rows came back)."""
         return len(self.replay) == 0 and len(self.demonstrations) == 0
 
-    def _refill_note(self) -> str:
-        """The log's words for the learner's wait while its tables refill (``refill_steps``)."""
+    def _tables_note(self, portable: bool, empty: bool) -> str:
+        """The log's words for the tables a checkpoint brought: none (``portable``), or empty ones
+        (``empty``), and then the learner's wait while they refill (``refill_steps``)."""
+        note = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else (
+            "; its tables are empty: they fill anew" if empty else "")
         steps = self.config.refill_steps
-        return f", the learner waiting {steps} steps before it updates" if steps else ""
+        return note + (f", the learner waiting {steps} steps before it updates" if empty and steps else "")
 
     def _refuse_portable(self, path: Path) -> None:
         """Raises ConfigError if the run's learn phase, started or resumed from the checkpoint at
@@ -348,9 +349,7 @@ class Checkpointing:
         s.learn_tasks = 0  # the stage's labelling pattern starts with a labelled task
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
-        tables = "; its tables were not kept (a portable checkpoint): they fill anew" if portable else (
-            "; its tables are empty: they fill anew" if empty else "")
-        tables += self._refill_note() if empty else ""
+        tables = self._tables_note(portable, empty)
         self.log(f"train: initialised from {path}: {s.env_steps} steps, {self.learner.updates} updates; {s.phase} phase{tables}")
 
     def _save_config(self) -> None:
