@@ -102,6 +102,12 @@ class ObservationLayout:
         values = np.asarray(observation)[self.slice(name)]
         return values.reshape(-1, HISTORY_COLUMNS) if name in ("positions", "spins") else values
 
+    def hit_within(self, observations, window: float):
+        """Whether each observation's predicted hit is valid and at most ``window`` s ahead: a
+        bool array (...,) for observations (..., size), NumPy or torch alike."""
+        prediction = observations[..., self.slice("hit_prediction")]
+        return (prediction[..., 0] > 0.5) & (prediction[..., 1] <= window)
+
     def assemble(self, positions, spins, robot_state, end_effector, skill, estimate, estimate_status, hit_prediction=None) -> np.ndarray:
         """The observation vector from its parts (shapes as in the module docstring);
         ``hit_prediction`` None: zeros (no prediction)."""

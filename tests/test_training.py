@@ -145,6 +145,33 @@ def test_rollout_episodes_on_the_real_diagram(worker, tmp_path):
     np.testing.assert_array_equal(again[-1].transitions["demo_action"], demo.transitions["demo_action"])
 
 
+def test_a_guided_episode_plays_the_returners_action_near_the_hit(worker):
+    with pytest.raises(ValueError, match="mode must be one of"):
+        worker.collect(1, "guiding")
+    # The untrained actor collides before a ball is 0.3 s away; guided wherever a hit is predicted,
+    # the returner takes over in time to hit.
+    guided = dataclasses.replace(worker.exploration, guided_window=10.0, policy_std_scale=0.0)
+    worker.exploration, before = guided, worker.exploration
+    try:
+        episodes = worker.collect(3, "guided")
+    finally:
+        worker.exploration = before
+    layout = worker.learner.config.layout
+    near_rows = 0
+    for episode in episodes:
+        t = episode.transitions
+        near = layout.hit_within(t["obs"], 10.0)
+        np.testing.assert_array_equal(t["action"][near], t["demo_action"][near])  # the returner's, near the hit
+        far = ~near
+        assert not np.any(np.all(t["action"][far] == t["demo_action"][far], axis=-1))  # the actor's elsewhere
+        near_rows += int(near.sum())
+    assert near_rows > 0 and episodes[0].mode == "guided"
+    hit_state = RolloutWorker(sac=dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts,
+                                                                                                          "hit_prediction")))
+    with pytest.raises(ValueError, match="guided mode"):
+        hit_state.collect(1, "guided")
+
+
 def test_rollouts_are_reproducible_from_the_seed():
     first = RolloutWorker(sac=SMALL, seed=11, index=1).collect(2, "ou")
     second = RolloutWorker(sac=SMALL, seed=11, index=1).collect(2, "ou")
@@ -499,6 +526,35 @@ def test_a_dagger_fraction_labels_that_share_of_the_learn_phases_tasks(tmp_path,
         _config(dagger_fraction=0.5)  # learn_mode policy
     with pytest.raises(ConfigError, match="dagger_fraction"):
         _config(learn_mode="dagger", dagger_fraction=0.0)
+
+
+def test_a_guided_fraction_guides_that_share_of_the_policy_tasks(tmp_path, monkeypatch):
+    config = _config(batch=2, demonstrations=2, ou_episodes=0, pretrain_updates=4, learn_mode="dagger", dagger_fraction=0.25,
+                     guided_fraction=0.5, env_steps=120, evaluation_episodes=2, episodes_per_task=1)
+    trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
+    # Of every four tasks the first is labelled (dagger_fraction); of the policy tasks, every second
+    # is guided, the first included.
+    assert [trainer._learn_task_mode() for _ in range(8)] == ["dagger", "guided", "policy", "guided", "dagger", "policy", "guided", "policy"]
+    assert (trainer.state.learn_tasks, trainer.state.guided_tasks) == (8, 6)
+    plain = Trainer(dataclasses.replace(config, learn_mode="policy", dagger_fraction=1.0, guided_fraction=0.25), tmp_path / "plain",
+                    progress=lambda line: None)
+    assert [plain._learn_task_mode() for _ in range(4)] == ["guided", "policy", "policy", "policy"]
+    modes, recent = [], []
+    ingest = trainer._ingest
+    monkeypatch.setattr(trainer, "_ingest", lambda episode: (modes.append(episode.mode), ingest(episode), recent.append(len(trainer._recent))))
+    trainer.state.learn_tasks = trainer.state.guided_tasks = 0
+    state = trainer.run()
+    assert state.phase == "done" and "guided" in modes and "policy" in modes
+    counted = [after - before for before, after in zip([0] + recent, recent)]
+    assert all(n == 0 for mode, n in zip(modes, counted) if mode in ("guided", "demonstrator"))  # the rate stays the actor's own
+    assert any(n == 1 for mode, n in zip(modes, counted) if mode == "policy")
+    for bad, match in ((dict(guided_fraction=1.0), "guided_fraction must be in"), (dict(guided_fraction=-0.1), "guided_fraction must be in"),
+                       (dict(learn_mode="dagger", guided_fraction=0.2), "there are none")):
+        with pytest.raises(ConfigError, match=match):
+            _config(**bad)
+    hit_state = dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts, "hit_prediction"))
+    with pytest.raises(ConfigError, match="eq. \\(12\\) action"):
+        _config(guided_fraction=0.2, sac=hit_state)
 
 
 def test_batched_workers_refuse_the_hit_state_action():

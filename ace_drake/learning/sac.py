@@ -270,7 +270,6 @@ class SacLearner:
         obs_scale = observation_scale(layout)
         self._actor_index = torch.as_tensor(layout.indices(c.actor_observation_parts))
         self._critic_obs_index = torch.as_tensor(layout.indices(c.critic_observation_parts))
-        self._hit_prediction_slice = layout.slice("hit_prediction")  # [valid, time to the hit (s), ...]
         self._actor_scale = torch.as_tensor(obs_scale, dtype=torch.float32)[self._actor_index]
         self._critic_scale = torch.cat([
             torch.as_tensor(privileged_scale(), dtype=torch.float32),
@@ -397,8 +396,7 @@ class SacLearner:
         """The cloning term's row weights (B,) for full observations (B, layout.size): 1, or
         1 + ``bc_hit_weight`` where the hit prediction is valid and at most ``bc_hit_window`` s
         ahead (module docstring)."""
-        prediction = obs[:, self._hit_prediction_slice]
-        near = (prediction[:, 0] > 0.5) & (prediction[:, 1] <= self.config.bc_hit_window)
+        near = self.config.layout.hit_within(obs, self.config.bc_hit_window)
         return 1.0 + self.config.bc_hit_weight * near.to(obs.dtype)
 
     def update(self, batch: dict, demonstrations: dict | None = None, bc_weight: float | None = None) -> dict[str, float]:

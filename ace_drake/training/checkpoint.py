@@ -108,6 +108,7 @@ class Progress:
     # the learn phase's rollout tasks given a mode under a dagger_fraction below 1 (loop.Trainer._learn_task_mode;
     # per stage: tasks in flight at a checkpoint are counted and, after a resume, not played)
     learn_tasks: int = 0
+    guided_tasks: int = 0  # the learn phase's policy tasks given a mode under a guided_fraction (per stage, as learn_tasks)
     best_rate: float = -1.0
     best_actor: dict | None = None
     best_evaluation: int = -1  # index into evaluations of the best actor's evaluation
@@ -346,7 +347,7 @@ class Checkpointing:
         # counted per run (max_worker_failures); the earlier run's stay in its logs
         s.worker_failures, s.evaluation_failures = [], []
         s.tables_refilled_at = [s.env_steps] if empty else []  # its learn phase starts with empty tables (refill_steps)
-        s.learn_tasks = 0  # the stage's labelling pattern starts with a labelled task
+        s.learn_tasks = s.guided_tasks = 0  # the stage's labelling and guiding patterns start with a labelled, a guided task
         s.next_checkpoint = s.env_steps + c.checkpoint_every
         s.next_evaluation = s.env_steps
         tables = self._tables_note(portable, empty)

@@ -22,7 +22,8 @@ A run lives in one directory (``run_dir``) and goes through four phases, each re
    there), and the actor's learning rate from ``sac.actor_lr`` to ``actor_lr_final`` if that is
    given (a schedule lets the actor settle on a precise fit by the end of a run; the paper's is
    fixed). With ``learn_mode`` "dagger" the returner labels the states the actor visits (all of
-   them, or the episodes of a ``dagger_fraction`` of the tasks).
+   them, or the episodes of a ``dagger_fraction`` of the tasks); a ``guided_fraction`` of the
+   other tasks plays the returner's action near the predicted hit (``rollout``'s "guided" mode).
 
 A rollout task that raises (an environment's simulation failing) or whose worker dies costs its
 episodes, not the run: the worker is replaced by a fresh one with another seed, the failure is
@@ -128,6 +129,11 @@ class TrainConfig:
     # returner labels; the others' play as in "policy" (1: all). Labelling is what makes DAgger
     # collection ~8 x slower; a share keeps the cloning rows coming from the actor's current states.
     dagger_fraction: float = 1.0
+    # The share of the learn phase's remaining "policy" tasks played in the "guided" mode (the
+    # returner's action where the predicted hit is within exploration.guided_window; rollout
+    # docstring); their episodes are labelled and stored, but not counted in the rollout return
+    # rate, which stays the actor's own. 0: none.
+    guided_fraction: float = 0.0
     updates_per_step: float = 0.25  # the learner's update-to-data ratio (not public)
     # Steps the learner waits, collecting, after its tables start empty in the learn phase (a run
     # started or resumed from a portable checkpoint, Progress.tables_refilled_at) before it updates
@@ -196,6 +202,13 @@ class TrainConfig:
             raise ConfigError(f"TrainConfig.dagger_fraction must be in (0, 1], got {self.dagger_fraction}")
         if self.dagger_fraction != 1.0 and self.learn_mode != "dagger":
             raise ConfigError("TrainConfig.dagger_fraction is the share of labelled tasks with learn_mode 'dagger'")
+        if not 0.0 <= self.guided_fraction < 1.0:
+            raise ConfigError(f"TrainConfig.guided_fraction must be in [0, 1), got {self.guided_fraction}")
+        if self.guided_fraction > 0.0 and self.sac.action != "terminal":
+            raise ConfigError("TrainConfig.guided_fraction: the guided mode plays the returner's eq. (12) action; "
+                              f"the actor's action is {self.sac.action!r}")
+        if self.guided_fraction > 0.0 and self.learn_mode == "dagger" and self.dagger_fraction == 1.0:
+            raise ConfigError("TrainConfig.guided_fraction guides a share of the policy tasks; with dagger_fraction 1 there are none")
         if self.backend not in ("ray", "local"):
             raise ConfigError(f"TrainConfig.backend must be 'ray' or 'local', got {self.backend!r}")
         if self.backend == "local" and self.workers != 1:
@@ -263,6 +276,12 @@ def load_train_config(path) -> TrainConfig:
         return from_dict(TrainConfig, with_earlier_stages(data))
     except (ConfigError, ValueError) as error:
         raise ConfigError(f"{path}: {error}") from None
+
+
+def _spread(n: int, fraction: float) -> bool:
+    """Whether task ``n`` (from 0) is among a ``fraction`` of tasks spread evenly, the first
+    included: ceil((n + 1) f) > ceil(n f)."""
+    return math.ceil((n + 1) * fraction) > math.ceil(n * fraction)
 
 
 class Trainer(Checkpointing):
@@ -507,13 +526,17 @@ class Trainer(Checkpointing):
         """The mode of the learn phase's next rollout task: ``learn_mode``, but with a
         ``dagger_fraction`` below 1, "dagger" for that share of the tasks, evenly spread and
         first (task n is labelled when ceil((n + 1) f) > ceil(n f): the stage's first task is), and
-        "policy" for the rest."""
+        "policy" for the rest; of those "policy" tasks, a ``guided_fraction`` share is "guided",
+        spread over them the same way."""
         c = self.config
-        if c.dagger_fraction >= 1.0:
-            return c.learn_mode
-        n = self.state.learn_tasks
-        self.state.learn_tasks += 1
-        return "dagger" if math.ceil((n + 1) * c.dagger_fraction) > math.ceil(n * c.dagger_fraction) else "policy"
+        mode = c.learn_mode
+        if c.dagger_fraction < 1.0:
+            mode = "dagger" if _spread(self.state.learn_tasks, c.dagger_fraction) else "policy"
+            self.state.learn_tasks += 1
+        if mode == "policy" and c.guided_fraction > 0.0:
+            mode = "guided" if _spread(self.state.guided_tasks, c.guided_fraction) else "policy"
+            self.state.guided_tasks += 1
+        return mode
 
     def _ingest(self, episode: Episode) -> None:
         summary = episode.summary

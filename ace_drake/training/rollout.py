@@ -1,6 +1,6 @@
 """Collecting episodes from the rally environment: the rollout worker's loop (issue 7).
 
-A ``RolloutWorker`` owns one ``RallyEnv`` and plays whole episodes with one of three behaviours
+A ``RolloutWorker`` owns one ``RallyEnv`` and plays whole episodes with one of five behaviours
 (``MODES``), returning each as an ``Episode`` (transitions in ``replay.TRANSITION_KEYS`` layout
 plus the ``EpisodeSummary`` the event tables read):
 
@@ -18,6 +18,12 @@ plus the ``EpisodeSummary`` the event tables read):
 - ``"dagger"``: the actor acts as in ``"policy"`` and the returner labels every state it visits
   (DAgger, Ross et al. 2011: the cloning term then learns what to do in the states the actor's
   own errors lead to, which the returner's demonstrations never visit).
+- ``"guided"``: as ``"dagger"``, but where the observation's predicted hit is valid and at most
+  ``ExplorationParams.guided_window`` s ahead the returner's label is played instead of the
+  actor's action (this project's, eq. (12) action only). The replay then holds, at the states the
+  actor's own approach leads to, the returner's stroke and what it scored: the critic sees the
+  actions the cloning term asks for played out, which neither the actor's narrow exploration nor
+  DAgger's labels show it (docs/experiments/2026-12-07-where-the-actor-loses.md).
 
 Every worker is seeded: worker ``index`` of a run with seed ``s`` draws its episodes from
 ``numpy.random.SeedSequence([s, index])``, so a run's episodes do not depend on how many workers
@@ -54,7 +60,9 @@ from ace_drake.learning.replay import TRANSITION_KEYS, EpisodeSummary
 from ace_drake.learning.sac import SacConfig, SacLearner
 from ace_drake.training.env import RallyEnv, RallyEnvParams
 
-MODES = ("policy", "ou", "demonstrator", "dagger")
+MODES = ("policy", "ou", "demonstrator", "dagger", "guided")
+ACTOR_MODES = ("policy", "dagger", "guided")  # the modes in which the actor acts (their workers need its weights)
+LABELLED_MODES = ("demonstrator", "dagger", "guided")  # the modes whose episodes carry the returner's labels
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +77,11 @@ class ExplorationParams:
     ``policy`` mode samples the policy's Gaussian with its standard deviation times this (1: the
     policy's own sampling; below 1 explores less around the mean than the learner draws, e.g. for
     an actor cloned from demonstrations whose untrained spread would spoil every hit). To narrow
-    the policy itself, for the learner too, use ``SacConfig.std_scale`` instead.
+    the policy itself, for the learner too, use ``SacConfig.std_scale`` instead. guided_window (s):
+    the ``guided`` mode plays the returner's action where the predicted hit is at most this far
+    ahead (0.3 s: played there, the returner's actions recover 17.9 of the shipped actor's 21.9
+    points of deficit to the returner on the training distribution,
+    docs/experiments/2026-12-07-where-the-actor-loses.md).
     """
 
     ou_theta: float = 5.0
@@ -77,9 +89,10 @@ class ExplorationParams:
     demo_noise: float = 0.05
     demo_noise_fraction: float = 0.5
     policy_std_scale: float = 1.0
+    guided_window: float = 0.3
 
     def __post_init__(self) -> None:
-        for name in ("ou_theta", "ou_sigma", "demo_noise", "policy_std_scale"):
+        for name in ("ou_theta", "ou_sigma", "demo_noise", "policy_std_scale", "guided_window"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"ExplorationParams.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 <= self.demo_noise_fraction <= 1.0:
@@ -108,7 +121,7 @@ class OrnsteinUhlenbeck:
 @dataclasses.dataclass
 class Episode:
     """One ended episode: ``transitions`` (TRANSITION_KEYS, plus ``demo_action`` (n, 16) in the
-    demonstrator mode), its ``summary`` for the event tables, the ``mode`` that played it, the
+    LABELLED_MODES), its ``summary`` for the event tables, the ``mode`` that played it, the
     outcome and end condition (``RallyEnv`` info), the skill and the wall time (s)."""
 
     transitions: dict[str, np.ndarray]
@@ -235,6 +248,8 @@ class RolloutWorker:
         """Plays ``episodes`` whole episodes with ``mode`` (MODES) and returns them."""
         if mode not in MODES:
             raise ValueError(f"RolloutWorker.collect: mode must be one of {MODES}, got {mode!r}")
+        if mode == "guided" and self.learner.config.action != "terminal":
+            raise ValueError("RolloutWorker.collect: the guided mode plays the returner's eq. (12) action; the actor's is a hit state")
         return [self._play(mode) for _ in range(episodes)]
 
     # ------------------------------------------------------------------------------ one episode
@@ -244,7 +259,7 @@ class RolloutWorker:
         obs, info = env.reset()
         if mode == "ou":
             self.noise.reset(self.rng)
-        if mode in ("demonstrator", "dagger"):
+        if mode in LABELLED_MODES:
             self.returner.reset()
         rows = {key: [] for key in (*TRANSITION_KEYS, "demo_action")}
         closest = self._blade_distance(None)
@@ -262,7 +277,7 @@ class RolloutWorker:
                                ("demo_action", label)):
                 rows[key].append(value)
             obs, info = next_obs, next_info
-        if mode not in ("demonstrator", "dagger"):
+        if mode not in LABELLED_MODES:
             del rows["demo_action"]
         transitions = {key: np.asarray(value, dtype=np.float32) for key, value in rows.items()}
         self.episodes += 1
@@ -276,8 +291,11 @@ class RolloutWorker:
             return self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale), None
         if mode == "ou":
             return self.noise.sample(self.rng), None
-        if mode == "dagger":
-            return self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale), self._label(obs)
+        if mode in ("dagger", "guided"):
+            label = self._label(obs)
+            if mode == "guided" and self.learner.config.layout.hit_within(obs, self.exploration.guided_window):
+                return label, label
+            return self.learner.act(obs, generator=self.generator, std_scale=self.exploration.policy_std_scale), label
         label = self._label(obs)
         return demonstrated_action(self.returner, obs, label, self.rng, self.exploration), label
 
@@ -336,7 +354,7 @@ class VectorRolloutWorker:
     batch until at least ``episodes`` episodes have ended and returns those that did (episodes
     still running go on in the next call). Every mode of ``RolloutWorker`` with the eq. (12)
     action: ``"policy"`` (the actor, sampled; one batched forward pass per step), ``"ou"`` (one
-    Ornstein-Uhlenbeck process per environment), ``"demonstrator"`` and ``"dagger"`` (one
+    Ornstein-Uhlenbeck process per environment), ``"demonstrator"``, ``"dagger"`` and ``"guided"`` (one
     model-based returner per environment, all sharing one robot model and control stack, each
     reset when its environment's episode starts). An episode is played to its end by the mode it
     started in: after a change of mode, the running episodes finish in theirs (so that an
@@ -405,7 +423,7 @@ class VectorRolloutWorker:
                 self._rows[row] = self._empty_rows(mode)
                 if mode == "ou":
                     self.noises[row].reset(self.rng)
-                if mode in ("demonstrator", "dagger"):
+                if mode in LABELLED_MODES:
                     self.returners[row].reset()
             actions, labels = self._actions()
             obs, rewards, terminated, _, info = self.env.step(actions)
@@ -447,15 +465,17 @@ class VectorRolloutWorker:
         labels = np.full((self.batch, ACTION_SIZE), np.nan)
         running = ~self._restarting
         modes = np.array([m if r else "" for m, r in zip(self._modes, running)])
-        sampled = np.flatnonzero((modes == "policy") | (modes == "dagger"))
+        sampled = np.flatnonzero(np.isin(modes, ACTOR_MODES))
         if sampled.size:
             actions[sampled] = self.learner.act(self._obs[sampled], generator=self.generator, std_scale=self.exploration.policy_std_scale)
         for row in np.flatnonzero(modes == "ou"):
             actions[row] = self.noises[row].sample(self.rng)
-        for row in np.flatnonzero((modes == "demonstrator") | (modes == "dagger")):
+        for row in np.flatnonzero(np.isin(modes, LABELLED_MODES)):
             labels[row] = self._label(row)
             if modes[row] == "demonstrator":
                 actions[row] = self._demonstrate(row, labels[row])
+        guided = (modes == "guided") & self.learner.config.layout.hit_within(self._obs, self.exploration.guided_window)
+        actions[guided] = labels[guided]
         return actions, labels
 
     def _label(self, row: int) -> np.ndarray:
@@ -473,5 +493,5 @@ class VectorRolloutWorker:
 
     @staticmethod
     def _empty_rows(mode: str = "policy") -> dict:
-        keys = (*TRANSITION_KEYS, "demo_action") if mode in ("demonstrator", "dagger") else TRANSITION_KEYS
+        keys = (*TRANSITION_KEYS, "demo_action") if mode in LABELLED_MODES else TRANSITION_KEYS
         return {key: [] for key in keys}

@@ -25,7 +25,7 @@ from collections import deque
 
 import ray
 
-from ace_drake.training.rollout import RolloutWorker, VectorRolloutWorker
+from ace_drake.training.rollout import ACTOR_MODES, RolloutWorker, VectorRolloutWorker
 
 BACKENDS = ("ray", "local")
 
@@ -102,11 +102,11 @@ class WorkerPool:
         the last published weights."""
         worker = self._workers[index]
         if self.backend == "ray":
-            if self._actor_ref is not None and mode in ("policy", "dagger"):
+            if self._actor_ref is not None and mode in ACTOR_MODES:
                 worker.set_actor.remote(self._actor_ref)  # actor tasks run in order: before the collect
             self._pending[worker.collect.remote(episodes, mode)] = index
         else:
-            self._queue.append((index, episodes, mode, self._actor_state if mode in ("policy", "dagger") else None))
+            self._queue.append((index, episodes, mode, self._actor_state if mode in ACTOR_MODES else None))
 
     @property
     def in_flight(self) -> int:
