@@ -59,7 +59,10 @@ def test_the_returner_acts_exactly_where_the_substitution_says(distribution, act
             near = first
         np.testing.assert_allclose(t["action"][~near], own[~near], atol=1e-5)
         substituted += int(near.sum())
-    assert substituted > 0 and any(not near_rows(worker, e.transitions, window).all() for e in episodes)
+    layout = worker.learner.config.layout
+    predicted_far = sum(int((layout.hit_within(e.transitions["obs"], 10.0) & ~layout.hit_within(e.transitions["obs"], window)).sum())
+                        for e in episodes)
+    assert substituted > 0 and predicted_far > 0  # the window, not the prediction, decides
 
 
 def test_a_substitution_is_one_of_the_four(distribution):

@@ -24,7 +24,7 @@ from ace_drake.control.action_mapping import ACTION_SIZE
 from ace_drake.control.params import RallyParams, ReturnerParams
 from ace_drake.evaluation import controllers
 from ace_drake.evaluation.evaluate import evaluate, evaluate_controller, play, summarize
-from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer
+from ace_drake.learning.replay import TRANSITION_KEYS, DemonstrationBuffer, load_weights_only
 from ace_drake.learning.sac import PlayOptions, SacConfig, SacLearner, load_policy, save_policy
 from ace_drake.match_data import MatchDataError
 from ace_drake.perception.params import PerceptionParams
@@ -145,27 +145,29 @@ def test_rollout_episodes_on_the_real_diagram(worker, tmp_path):
     np.testing.assert_array_equal(again[-1].transitions["demo_action"], demo.transitions["demo_action"])
 
 
-def test_a_guided_episode_plays_the_returners_action_near_the_hit(worker):
+@pytest.mark.parametrize("batch", [0, 2])  # RolloutWorker, VectorRolloutWorker
+def test_a_guided_episode_plays_the_returners_action_near_the_hit(batch):
+    # The shipped paper-action actor, deterministic, reaches the ball: within 0.3 s of the
+    # predicted hit the returner's action is played, before it the actor's.
+    config = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    exploration = dataclasses.replace(config.exploration, policy_std_scale=0.0, guided_window=0.3)
+    args = dict(sac=config.sac, seed=5, exploration=exploration, returner=config.returner, play=config.play)
+    dut = VectorRolloutWorker(batch, config.env, **args) if batch else RolloutWorker(config.env, **args)
+    dut.set_actor(load_weights_only(MODELS_DIR / "policies" / "rally_paper.pt")["actor"])
     with pytest.raises(ValueError, match="mode must be one of"):
-        worker.collect(1, "guiding")
-    # The untrained actor collides before a ball is 0.3 s away; guided wherever a hit is predicted,
-    # the returner takes over in time to hit.
-    guided = dataclasses.replace(worker.exploration, guided_window=10.0, policy_std_scale=0.0)
-    worker.exploration, before = guided, worker.exploration
-    try:
-        episodes = worker.collect(3, "guided")
-    finally:
-        worker.exploration = before
-    layout = worker.learner.config.layout
-    near_rows = 0
+        dut.collect(1, "guiding")
+    episodes = dut.collect(2, "guided")
+    layout = config.sac.layout
+    near_rows = predicted_far = 0
     for episode in episodes:
         t = episode.transitions
-        near = layout.hit_within(t["obs"], 10.0)
+        near = layout.hit_within(t["obs"], 0.3)
         np.testing.assert_array_equal(t["action"][near], t["demo_action"][near])  # the returner's, near the hit
-        far = ~near
-        assert not np.any(np.all(t["action"][far] == t["demo_action"][far], axis=-1))  # the actor's elsewhere
+        own = dut.learner.act(t["obs"], deterministic=True)
+        np.testing.assert_allclose(t["action"][~near], own[~near], atol=1e-5)  # the actor's elsewhere
         near_rows += int(near.sum())
-    assert near_rows > 0 and episodes[0].mode == "guided"
+        predicted_far += int((layout.hit_within(t["obs"], 10.0) & ~near).sum())  # a hit predicted, further than 0.3 s
+    assert near_rows > 0 and predicted_far > 0 and {e.mode for e in episodes} == {"guided"}
     hit_state = RolloutWorker(sac=dataclasses.replace(SMALL, action="hit_state", actor_observation_parts=(*SMALL.actor_observation_parts,
                                                                                                           "hit_prediction")))
     with pytest.raises(ValueError, match="guided mode"):

@@ -114,8 +114,8 @@ def critic_preference(learner: SacLearner, rows: dict, actor: str = "actor") -> 
     action the tanh of ``actor``'s mean: "actor" or "averaged"), the mean L1 distance |label -
     action|_1, the mean cosine between the critic's ascent direction in the actor's mean
     (d Q(tanh(mu)) / d mu) and label - action, and the mean norms of that ascent and of the
-    cloning term's gradient in the mean at weight 1 (the learner's ``bc_loss``): what the actor
-    loss weighs against each other, before ``bc_weight``."""
+    cloning term's gradient in the mean at weight 1 (the learner's ``bc_loss``, every row alike:
+    ``bc_hit_weight`` left out): what the actor loss weighs against each other, before ``bc_weight``."""
     network = learner.actor if actor == "actor" else learner.averaged_actor
     if network is None:
         raise ValueError(f"critic_preference: the learner has no {actor!r} actor")

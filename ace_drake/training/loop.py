@@ -131,8 +131,9 @@ class TrainConfig:
     dagger_fraction: float = 1.0
     # The share of the learn phase's remaining "policy" tasks played in the "guided" mode (the
     # returner's action where the predicted hit is within exploration.guided_window; rollout
-    # docstring); their episodes are labelled and stored, but not counted in the rollout return
-    # rate, which stays the actor's own. 0: none.
+    # docstring); their episodes are labelled (their rows join the cloning term's) and stored, but
+    # not counted in the rollout return rate, which stays the actor's own; they cost what DAgger's
+    # do (the returner runs at every step). 0: none.
     guided_fraction: float = 0.0
     updates_per_step: float = 0.25  # the learner's update-to-data ratio (not public)
     # Steps the learner waits, collecting, after its tables start empty in the learn phase (a run

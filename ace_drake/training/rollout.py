@@ -460,7 +460,8 @@ class VectorRolloutWorker:
     def _actions(self) -> tuple[np.ndarray, np.ndarray]:
         """(this step's actions (B, 16), the returner's labels (B, 16), NaN where there is none):
         each running environment's by the mode its episode plays (``RolloutWorker._action``'s
-        rules); a restarting environment's action is ignored (zeros)."""
+        rules); a restarting environment's action is ignored (zeros). (``analysis.learner_probes``
+        overrides it, reading ``_fresh`` and ``_obs``: keep them, or change it with them.)"""
         actions = np.zeros((self.batch, ACTION_SIZE))
         labels = np.full((self.batch, ACTION_SIZE), np.nan)
         running = ~self._restarting
