@@ -943,6 +943,12 @@ def test_a_run_resumes_from_its_checkpoint_carried_to_another_machine(tmp_path):
         Trainer(_config(env_steps=60, seed=8), tmp_path / "refused", progress=lambda line: None,
                 resume_from=tmp_path / "policy" / PORTABLE_CHECKPOINT)
     assert not any((tmp_path / name / CHECKPOINT).exists() for name in ("other", "both", "early", "refused"))
+    # Guided episodes are labelled: a guided share brings the cloning term its rows.
+    guided = dict(seed=8, batch=2, guided_fraction=0.5)
+    Trainer(_config(env_steps=30, **guided), tmp_path / "guided", progress=lambda line: None).run()
+    resumed = Trainer(_config(env_steps=60, **guided), tmp_path / "guided_on", progress=lambda line: None,
+                      resume_from=tmp_path / "guided" / PORTABLE_CHECKPOINT)
+    assert resumed.state.tables_refilled_at == [resumed.state.env_steps] and len(resumed.demonstrations) == 0
     # (nor learns on later from the empty checkpoint of its export elsewhere)
     Trainer(_config(env_steps=30, seed=8), tmp_path / "exported", progress=lambda line: None,
             resume_from=tmp_path / "policy" / PORTABLE_CHECKPOINT)

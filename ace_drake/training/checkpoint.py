@@ -282,13 +282,14 @@ class Checkpointing:
     def _refuse_portable(self, path: Path) -> None:
         """Raises ConfigError if the run's learn phase, started or resumed from the checkpoint at
         ``path`` with empty tables (a portable one, or one written from it), would have a cloning
-        term and no labels to come."""
+        term and no labels to come (none come with learn_mode "policy" unless a ``guided_fraction``
+        of its tasks is guided: guided episodes are labelled)."""
         c = self.config
         cloning = max(c.sac.bc_weight if c.bc_weight_start is None else c.bc_weight_start, c.bc_weight_final) > 0
-        if c.learn_mode == "policy" and cloning:
+        if c.learn_mode == "policy" and c.guided_fraction == 0.0 and cloning:
             raise ConfigError(f"train: {path} carries no tables (a portable checkpoint, or one written from it: no labelled rows), and in the learn phase with learn_mode "
                               "'policy' the cloning term would have none: start with initialize_phase: demonstrations (and "
-                              "demonstrations to collect) or learn_mode: dagger")
+                              "demonstrations to collect), learn_mode: dagger or a guided_fraction")
 
     def robot_record(self) -> dict:
         """The run's robot (``robot.params.scenario_record`` of its rally scenario)."""

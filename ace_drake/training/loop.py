@@ -479,9 +479,9 @@ class Trainer(Checkpointing):
             result = self._wait(pool, timeout=0.0 if self.config.backend == "ray" else None)
             self._take(pool, result)
             learned = self.state.env_steps - learn_start
-            # With labels to come (DAgger) but none yet (a stage started from a portable checkpoint), SAC
-            # without its cloning term would move the actor off what it was cloned to: wait for them.
-            labels_due = c.learn_mode == "dagger" and len(self.demonstrations) == 0 and self.bc_weight() > 0
+            # With labels to come (DAgger, guided episodes) but none yet (a stage started from a portable
+            # checkpoint), SAC without its cloning term would move the actor off what it was cloned to: wait for them.
+            labels_due = (c.learn_mode == "dagger" or c.guided_fraction > 0) and len(self.demonstrations) == 0 and self.bc_weight() > 0
             paused = refill_pause(self.state.tables_refilled_at, c.refill_steps, learn_start, self.state.env_steps)
             refilling = any(at <= self.state.env_steps < at + c.refill_steps for at in self.state.tables_refilled_at)
             if (len(self.replay) >= c.sac.batch_size and not labels_due and not refilling
