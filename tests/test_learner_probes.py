@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from ace_drake.analysis import learner_probes
-from ace_drake.analysis.learner_probes import SubstitutingWorker, critic_preference, substitution_rollouts
+from ace_drake.analysis.learner_probes import SubstitutingWorker, critic_against_outcome, critic_preference, substitution_rollouts
 from ace_drake.config import MODELS_DIR
 from ace_drake.contracts import ObservationLayout
 from ace_drake.control.action_mapping import ACTION_SIZE
@@ -18,6 +18,7 @@ from ace_drake.learning.replay import load_weights_only
 from ace_drake.learning.sac import PRIVILEGED_SIZE, SacLearner
 from ace_drake.play.shots import make_distribution
 from ace_drake.training.loop import load_train_config
+from ace_drake.training.rollout import Episode
 
 CONFIG = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
 CONFIG = dataclasses.replace(CONFIG, env=dataclasses.replace(CONFIG.env, shot_batch=8))
@@ -125,3 +126,21 @@ def test_a_portable_checkpoint_has_no_rows_to_probe(tmp_path):
     torch.save({"demonstrations": None}, path)
     with pytest.raises(ValueError, match="portable"):
         learner_probes.checkpoint_rows(path)
+
+
+def test_the_critic_against_the_discounted_outcome():
+    learner = SacLearner()
+    learner.critic = KnownCritic(torch.zeros(ACTION_SIZE))  # Q = -|a|^2: 0 for zero actions
+    layout = ObservationLayout()
+    obs = np.zeros((3, layout.size), np.float32)
+    prediction = layout.slice("hit_prediction")
+    obs[:, prediction.start] = 1.0
+    obs[:, prediction.start + 1] = [0.5, 0.2, 0.0]  # the last two steps within 0.3 s of the hit
+    transitions = {"obs": obs, "privileged": np.zeros((3, PRIVILEGED_SIZE), np.float32), "action": np.zeros((3, ACTION_SIZE), np.float32),
+                   "reward": np.array([0.0, 0.0, 2.0], np.float32)}
+    episode = Episode(transitions, None, "guided", "returned", "hit", np.zeros(3), 0.0)
+    figures = critic_against_outcome(learner, [episode], window=0.3)
+    gamma = learner.config.gamma
+    assert figures["near"]["steps"] == 2 and figures["elsewhere"]["steps"] == 1
+    assert figures["near"]["q"] == 0.0 and figures["near"]["outcome"] == pytest.approx((2.0 * gamma + 2.0) / 2)
+    assert figures["elsewhere"]["outcome"] == pytest.approx(2.0 * gamma**2)

@@ -17,6 +17,8 @@ whether its critic knows (docs/experiments/2026-12-07-where-the-actor-loses.md).
   twin critics' minimum at the returner's label against at the actor's deterministic action, and
   whether the critic's ascent direction at the actor's action points towards the label, in bands
   of time to the predicted hit.
+- ``critic_against_outcome``: the critic's value of the actions played along episodes (those of
+  ``SubstitutingWorker``, say) against what followed them, the discounted terminal reward.
 """
 
 from __future__ import annotations
@@ -165,3 +167,25 @@ def checkpoint_rows(path, rows: int = 20000, seed: int = 0) -> dict:
     data, size = buffer["buffer"]["data"], buffer["buffer"]["size"]
     chosen = np.sort(np.random.default_rng(seed).choice(size, size=min(rows, size), replace=False))
     return {key: data[key][chosen].numpy() for key in ("obs", "privileged", "demo_action")}
+
+
+def critic_against_outcome(learner: SacLearner, episodes, window: float = 0.3) -> dict:
+    """The twin critics' minimum Q(s, a) at every step of ``episodes`` (``rollout.Episode``, the
+    action being the one played) against the step's discounted outcome gamma^(T - 1 - t) r_T (the
+    reward is terminal, eq. (10); T the episode's length, gamma the learner's), as means over the
+    steps whose predicted hit is at most ``window`` s ahead ("near") and over the others
+    ("elsewhere"), with their counts."""
+    q_all, outcome_all, near_all = [], [], []
+    for episode in episodes:
+        t = episode.transitions
+        steps = len(t["reward"])
+        outcome_all.append(t["reward"][-1] * learner.config.gamma ** (steps - 1 - np.arange(steps)))
+        with torch.no_grad():
+            obs = torch.as_tensor(t["obs"], dtype=torch.float32)
+            features = learner.critic_features(torch.as_tensor(t["privileged"], dtype=torch.float32), obs)
+            q_all.append(torch.minimum(*learner.critic(features, torch.as_tensor(t["action"], dtype=torch.float32))).numpy())
+        near_all.append(learner.config.layout.hit_within(t["obs"], window))
+    q, outcome, near = (np.concatenate(parts) for parts in (q_all, outcome_all, near_all))
+    return {name: {"steps": int(members.sum()), "q": float(q[members].mean()) if members.any() else None,
+                   "outcome": float(outcome[members].mean()) if members.any() else None}
+            for name, members in (("near", near), ("elsewhere", ~near))}
