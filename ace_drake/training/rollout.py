@@ -23,7 +23,9 @@ plus the ``EpisodeSummary`` the event tables read):
   actor's action (this project's, eq. (12) action only). The replay then holds, at the states the
   actor's own approach leads to, the returner's stroke and what it scored: the critic sees the
   actions the cloning term asks for played out, which neither the actor's narrow exploration nor
-  DAgger's labels show it (docs/experiments/2026-12-07-where-the-actor-loses.md).
+  DAgger's labels show it. Measured once, a tenth of the tasks guided changed neither the return
+  rate nor, much, the critic, whose target values an action followed by the actor's own
+  (docs/experiments/2026-12-07-where-the-actor-loses.md).
 
 Every worker is seeded: worker ``index`` of a run with seed ``s`` draws its episodes from
 ``numpy.random.SeedSequence([s, index])``, so a run's episodes do not depend on how many workers
