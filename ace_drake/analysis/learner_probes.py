@@ -35,7 +35,9 @@ from ace_drake.learning.sac import SacConfig, SacLearner, split_play_options
 from ace_drake.training.loop import TrainConfig
 from ace_drake.training.rollout import VectorRolloutWorker
 
-SUBSTITUTIONS = ("none", "stroke", "first", "returner")
+# Each substitution (module docstring) and the rollout mode it plays in: the actor acts and the
+# returner labels ("dagger"), the training's "guided" mode, or the returner alone ("demonstrator").
+SUBSTITUTIONS = {"none": "dagger", "stroke": "guided", "first": "dagger", "returner": "demonstrator"}
 # Bands of time to the predicted hit (s) for critic_preference; rows without a valid prediction
 # form their own band.
 HIT_BANDS = ((-np.inf, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, np.inf))
@@ -48,11 +50,9 @@ class SubstitutingWorker(VectorRolloutWorker):
     returner's label (``demo_action``) beside the action played. "stroke" is the training's
     ``guided`` mode (``training.rollout``) with ``guided_window`` = ``window``."""
 
-    MODES = {"none": "dagger", "stroke": "guided", "first": "dagger", "returner": "demonstrator"}
-
     def __init__(self, batch: int, config: TrainConfig, substitute: str, window: float = 0.1, seed: int = 0, distribution=None):
         if substitute not in SUBSTITUTIONS:
-            raise ValueError(f"SubstitutingWorker: substitute must be one of {SUBSTITUTIONS}, got {substitute!r}")
+            raise ValueError(f"SubstitutingWorker: substitute must be one of {tuple(SUBSTITUTIONS)}, got {substitute!r}")
         if not window >= 0.0:
             raise ValueError(f"SubstitutingWorker: window must be >= 0 s, got {window}")
         exploration = dataclasses.replace(config.exploration, policy_std_scale=0.0, demo_noise_fraction=0.0, guided_window=window)
@@ -64,10 +64,10 @@ class SubstitutingWorker(VectorRolloutWorker):
 
     def collect(self, episodes: int, mode: str | None = None) -> list:
         """Plays until at least ``episodes`` episodes have ended (``VectorRolloutWorker.collect``)
-        and returns them, in the substitution's mode (``MODES``)."""
+        and returns them, in the substitution's mode (``SUBSTITUTIONS``)."""
         if mode is not None:
             raise ValueError("SubstitutingWorker.collect: the substitution sets the mode")
-        return super().collect(episodes, self.MODES[self.substitute])
+        return super().collect(episodes, SUBSTITUTIONS[self.substitute])
 
     def _actions(self) -> tuple[np.ndarray, np.ndarray]:
         self._substituted[self._fresh] = False  # rows starting an episode now
@@ -102,8 +102,7 @@ def load_learner(path) -> SacLearner:
     """The learner (actor, averaged actor, critics) of a training checkpoint at ``path``, whole or
     portable."""
     state = load_weights_only(path)["learner"]
-    config = {k: tuple(v) if isinstance(v, list) else v for k, v in split_play_options(state["config"])[0].items()}
-    learner = SacLearner(from_dict(SacConfig, config))
+    learner = SacLearner(from_dict(SacConfig, split_play_options(state["config"])[0]))
     learner.load_state_dict(state)
     return learner
 
@@ -142,9 +141,9 @@ def critic_preference(learner: SacLearner, rows: dict, actor: str = "actor") -> 
         cosine = ((ascent * toward).sum(-1) / (ascent.norm(dim=-1) * toward.norm(dim=-1)).clamp_min(1e-12)).numpy()
         distance = toward.abs().sum(-1).numpy()
         ascent_norm, cloning_norm = ascent.norm(dim=-1).numpy(), cloning.norm(dim=-1).numpy()
-    prediction = obs[:, learner.config.layout.slice("hit_prediction")].numpy()
-    valid = prediction[:, 0] > 0.5
-    bands = [("none", ~valid)] + [(f"{lo:g}-{hi:g} s", valid & (prediction[:, 1] > lo) & (prediction[:, 1] <= hi)) for lo, hi in HIT_BANDS]
+    layout, observations = learner.config.layout, obs.numpy()
+    bands = [("none", ~layout.hit_within(observations, np.inf))] + [
+        (f"{lo:g}-{hi:g} s", layout.hit_within(observations, hi) & ~layout.hit_within(observations, lo)) for lo, hi in HIT_BANDS]
     table = []
     for name, members in bands:
         n = int(members.sum())

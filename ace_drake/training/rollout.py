@@ -477,8 +477,10 @@ class VectorRolloutWorker:
             labels[row] = self._label(row)
             if modes[row] == "demonstrator":
                 actions[row] = self._demonstrate(row, labels[row])
-        guided = (modes == "guided") & self.learner.config.layout.hit_within(self._obs, self.exploration.guided_window)
-        actions[guided] = labels[guided]
+        guided = modes == "guided"
+        if guided.any():  # the returner's action near the hit (module docstring)
+            guided &= self.learner.config.layout.hit_within(self._obs, self.exploration.guided_window)
+            actions[guided] = labels[guided]
         return actions, labels
 
     def _label(self, row: int) -> np.ndarray:
