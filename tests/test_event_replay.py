@@ -13,6 +13,7 @@ from ace_drake.learning.replay import (
     EventReplay,
     ReplayConfig,
     RingBuffer,
+    discounted_returns,
     episode_events,
     relabel_episode,
 )
@@ -101,6 +102,43 @@ def test_add_episode_stores_returns_twice_in_their_tables():
     flipped = EventReplay(ReplayConfig(), LAYOUT, PARAMS, augment=[lambda t: {**t, "action": -t["action"]}])
     flipped.add_episode(episode(), summary(Outcome.RETURNED, 6.0, landing()))
     assert flipped.tables["return"].size == 12
+
+
+def test_discounted_returns_by_hand():
+    np.testing.assert_allclose(discounted_returns([0.0, 0.0, 2.0], 0.5), [0.5, 1.0, 2.0])
+    np.testing.assert_allclose(discounted_returns([1.0, -1.0, 4.0], 0.5), [1.0 - 0.5 + 1.0, -1.0 + 2.0, 4.0])
+
+
+def test_each_stored_copy_carries_its_own_monte_carlo_returns():
+    replay = EventReplay(ReplayConfig(), LAYOUT, PARAMS, gamma=0.9)
+    replay.add_episode(episode(steps=4), summary(Outcome.RETURNED, 6.0, landing(y=0.1)))
+    rows = replay.tables["all"].get(replay.tables["all"].oldest_first())
+    original, relabelled = slice(0, 4), slice(4, 8)
+    powers = 0.9 ** np.arange(3, -1, -1)
+    np.testing.assert_allclose(rows["mc_return"][original], 0.7 * powers, rtol=1e-6)
+    # The hindsight copy's terminal reward is recomputed, and its returns with it.
+    relabelled_reward = rows["reward"][relabelled][-1]
+    assert relabelled_reward != pytest.approx(0.7)
+    np.testing.assert_allclose(rows["mc_return"][relabelled], relabelled_reward * powers, rtol=1e-6)
+    assert "mc_return" in replay.sample(5)
+    with pytest.raises(ValueError, match="gamma"):
+        EventReplay(gamma=1.0)
+
+
+def test_tables_written_before_the_monte_carlo_returns_load_with_no_bound():
+    replay = EventReplay(ReplayConfig(), LAYOUT, PARAMS)
+    replay.add_episode(episode(), summary(Outcome.MISSED))
+    state = replay.state_dict()
+    for table in state["tables"].values():  # as a checkpoint of before the column
+        if table["data"] is not None:
+            del table["data"]["mc_return"]
+    restored = EventReplay(ReplayConfig(), LAYOUT, PARAMS)
+    restored.load_state_dict(state)
+    batch = restored.sample(6)
+    assert np.all(batch["mc_return"] == -np.inf)
+    np.testing.assert_array_equal(restored.tables["all"].get(np.arange(3))["obs"], replay.tables["all"].get(np.arange(3))["obs"])
+    with pytest.raises(KeyError, match="lacks the column"):  # any other missing column is an error
+        RingBuffer(4).load_state_dict({"capacity": 4, "size": 1, "next": 1, "data": {"obs": np.zeros((1, 2))}})
 
 
 def test_demonstrations_are_stored_with_their_augmentations():

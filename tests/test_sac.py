@@ -231,6 +231,31 @@ def test_the_averaged_actor_is_the_polyak_average_the_policy_reads_and_a_stage_m
         SacConfig(actor_average=1.5)
 
 
+def test_the_monte_carlo_bound_is_the_max_of_the_bellman_target_and_the_return():
+    plain = SacLearner(SacConfig(gamma=0.95, **SMALL))
+    bounded = SacLearner(SacConfig(gamma=0.95, mc_bound=True, **SMALL))
+    batch = make_batch(plain)
+    y = plain.target(batch).numpy()
+    mc_return = y + np.where(np.arange(len(y)) % 2 == 0, 0.5, -0.5)  # every other row above y
+    mc_return[1] = -np.inf  # a row with no return stored: no bound
+    np.testing.assert_allclose(bounded.target({**batch, "mc_return": mc_return}).numpy(), np.maximum(y, mc_return), rtol=1e-6)
+    assert bounded.update({**batch, "mc_return": mc_return})["mc_bound_share"] == pytest.approx(0.5)
+    with pytest.raises(KeyError, match="mc_return"):
+        bounded.update(batch)
+    assert "mc_bound_share" not in plain.update({**batch, "mc_return": mc_return})  # the plain learner ignores it
+
+
+def test_the_monte_carlo_bound_lifts_the_critic_to_the_returns_and_a_stage_may_switch_it():
+    plain = SacLearner(SacConfig(critic_lr=1e-3, **SMALL))
+    batch = make_batch(plain, size=64)
+    batch["mc_return"] = np.full(64, 3.0)  # better continuations than the policy's
+    bounded = SacLearner(SacConfig(critic_lr=1e-3, mc_bound=True, **SMALL))
+    bounded.load_state_dict(plain.state_dict())  # a stage field: the same networks
+    for _ in range(150):
+        plain_losses, bounded_losses = plain.update(batch), bounded.update(batch)
+    assert bounded_losses["q_mean"] > 2.5 > plain_losses["q_mean"] + 1.0
+
+
 def test_same_seed_same_learner():
     a, b = SacLearner(SacConfig(seed=5, **SMALL)), SacLearner(SacConfig(seed=5, **SMALL))
     batch = make_batch(a)

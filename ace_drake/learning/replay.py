@@ -32,7 +32,13 @@ Paper, Methods *Algorithm*, data augmentation (2) and (3):
   terminal reward recomputed by ``rewards.return_reward`` with that skill: the landing is then
   exactly on target, so the position term is its maximum ``position_reward``.
 
-Transitions are dicts of arrays with the keys of ``sac.BATCH_KEYS`` (one row per policy step).
+- Monte Carlo returns: every stored row also holds its episode's discounted return from that step
+  on, G_t = sum_{k>=t} gamma^(k-t) r_k (``discounted_returns``; the reward is terminal, so
+  G_t = gamma^(T-1-t) r_T), computed for each copy after relabelling, so a hindsight copy's
+  returns are its own. The learner may bound its Bellman target by it (``sac``, ``mc_bound``).
+
+Transitions are dicts of arrays with the keys of ``sac.BATCH_KEYS`` (one row per policy step); a
+table's rows add ``mc_return`` (``TABLE_KEYS``).
 """
 
 from __future__ import annotations
@@ -45,8 +51,14 @@ import torch
 from ace_drake.contracts import EpisodeResult, ObservationLayout, Outcome, privileged_slice
 from ace_drake.learning.params import RewardParams
 from ace_drake.learning.rewards import return_reward, travel_frame_spin
+from ace_drake.learning.sac import SacConfig
 
 TRANSITION_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
+# A table row: the transition and its discounted return to the episode's end (module docstring).
+TABLE_KEYS = TRANSITION_KEYS + ("mc_return",)
+# The value of a column that a loaded table state lacks (a checkpoint written before the column
+# was stored): -inf, the Monte Carlo bound that bounds nothing.
+MISSING_COLUMNS = {"mc_return": -np.inf}
 
 # What a replay table's state (NumPy arrays; NumPy scalars in the evaluation figures beside them)
 # needs from the unpickler beyond tensors and plain containers: NumPy's array and scalar
@@ -153,6 +165,18 @@ class ReplayConfig:
             raise ValueError(f"ReplayConfig.table_capacities must be >= 1, got {self.table_capacities}")
 
 
+def discounted_returns(reward, gamma: float) -> np.ndarray:
+    """G_t = sum_{k>=t} gamma^(k-t) r_k (n,) for an episode's rewards (n,) in step order: each
+    step's discounted return to the episode's end (the Monte Carlo return of module docstring)."""
+    reward = np.asarray(reward, dtype=float)
+    out = np.empty_like(reward)
+    running = 0.0
+    for t in range(len(reward) - 1, -1, -1):
+        running = reward[t] + gamma * running
+        out[t] = running
+    return out
+
+
 class RingBuffer:
     """Fixed-capacity storage of transitions (float32 arrays allocated at the first insert);
     when full, each new transition overwrites the oldest."""
@@ -209,6 +233,11 @@ class RingBuffer:
             self._data = {key: np.zeros((self.capacity, *value.shape[1:]), np.float32) for key, value in state["data"].items()}
             for key, value in state["data"].items():  # tensors, or NumPy arrays in older checkpoints
                 self._data[key][: self.size] = np.asarray(value)[rows]
+            for key in self.keys:  # a scalar column stored since the state was written
+                if key not in self._data:
+                    if key not in MISSING_COLUMNS:
+                        raise KeyError(f"RingBuffer.load_state_dict: the state lacks the column {key!r}")
+                    self._data[key] = np.full(self.capacity, MISSING_COLUMNS[key], np.float32)
 
 
 def relabel_episode(transitions: dict[str, np.ndarray], landing_state: np.ndarray, layout: ObservationLayout,
@@ -234,24 +263,28 @@ class EventReplay:
 
     ``augment``: callables mapping a transitions dict to another (e.g. ``mirror.Mirror.transitions``),
     each applied to the episode and its hindsight copy, whose outputs are stored as well.
+    ``gamma``: the discount of the stored Monte Carlo returns (the learner's ``SacConfig.gamma``).
     """
 
     def __init__(self, config: ReplayConfig | None = None, layout: ObservationLayout | None = None,
-                 reward: RewardParams | None = None, augment=()):
+                 reward: RewardParams | None = None, augment=(), gamma: float = SacConfig.gamma):
+        if not 0.0 <= gamma < 1.0:
+            raise ValueError(f"EventReplay: gamma must be in [0, 1), got {gamma}")
+        self.gamma = gamma
         self.config = config or ReplayConfig()
         self.layout = layout or ObservationLayout()
         self.reward = reward or RewardParams()
         self.augment = tuple(augment)
         capacities = {**_default_capacities(), **self.config.table_capacities}
-        self.tables = {name: RingBuffer(capacities[name]) for name in EVENTS}
+        self.tables = {name: RingBuffer(capacities[name], TABLE_KEYS) for name in EVENTS}
         self.weights = np.array([self.config.table_weights.get(name, 0.0) for name in EVENTS])
         self.rng = np.random.default_rng(self.config.seed)
         self.episodes = 0
 
     def add_episode(self, transitions: dict[str, np.ndarray], summary: EpisodeSummary) -> tuple[str, ...]:
         """Stores an ended episode's transitions (keys TRANSITION_KEYS, rows in step order, the
-        last terminal), its hindsight copy if it was returned, and their augmentations, in the
-        tables of its events (returned)."""
+        last terminal), its hindsight copy if it was returned, and their augmentations, each with
+        its own Monte Carlo returns, in the tables of its events (returned)."""
         missing = [key for key in TRANSITION_KEYS if key not in transitions]
         if missing:
             raise KeyError(f"EventReplay.add_episode: transitions lack {missing}")
@@ -261,8 +294,9 @@ class EventReplay:
             copies.append(relabel_episode(transitions, summary.result.landing.state_pre, self.layout, self.reward))
         copies += [augment(copy) for augment in self.augment for copy in list(copies)]
         for copy in copies:
+            rows = {**copy, "mc_return": discounted_returns(copy["reward"], self.gamma)}
             for name in events:
-                self.tables[name].add(copy)
+                self.tables[name].add(rows)
         self.episodes += 1
         return events
 
@@ -275,7 +309,7 @@ class EventReplay:
         return weights / total
 
     def sample(self, batch_size: int) -> dict[str, np.ndarray]:
-        """A batch (keys TRANSITION_KEYS, plus ``table``: the EVENTS index each row came from)."""
+        """A batch (keys TABLE_KEYS, plus ``table``: the EVENTS index each row came from)."""
         counts = self.rng.multinomial(batch_size, self.table_probabilities())
         parts, tables = [], []
         for index, (name, count) in enumerate(zip(EVENTS, counts)):
@@ -283,7 +317,7 @@ class EventReplay:
                 table = self.tables[name]
                 parts.append(table.get(self.rng.integers(table.size, size=count)))
                 tables.append(np.full(count, index))
-        batch = {key: np.concatenate([part[key] for part in parts]) for key in TRANSITION_KEYS}
+        batch = {key: np.concatenate([part[key] for part in parts]) for key in TABLE_KEYS}
         batch["table"] = np.concatenate(tables)
         return batch
 

@@ -56,8 +56,16 @@ With s the learner draws where the episodes play. Its log density leaves out the
 paper-action actor within ~1,600 updates (docs/training.md): near the mean the draws no longer
 saturate tanh, whose log-Jacobian had held the spread down, and the entropy bonus widened it.
 
-The cloning term's fields (``CLONING_FIELDS``) and the entropy weight ``alpha`` only weigh a
-loss, and ``actor_average``, ``std_scale`` and ``actor_lr`` do not change the networks: a
+The Monte Carlo bound (``SacConfig.mc_bound``; this project's, not the paper's): the critic's target
+becomes max(y, G), G the row's discounted return to its episode's end as played (``replay``
+docstring), after MCAC (Wilcox et al. 2022, "Monte Carlo augmented actor-critic for sparse reward
+deep RL from suboptimal demonstrations"). y values an action followed by the policy's own
+continuation; G is what did follow it. Where an episode's continuation was better than the
+policy's (a guided episode's returner strokes, ``training.rollout``; a lucky draw), the target
+keeps it. A lower bound only in a deterministic environment: in a noisy one it is optimistic.
+
+The cloning term's fields (``CLONING_FIELDS``), the Monte Carlo bound ``mc_bound`` and the entropy
+weight ``alpha`` only shape a loss, and ``actor_average``, ``std_scale`` and ``actor_lr`` do not change the networks: a
 learner's state loads into a learner whose config differs in them alone (``STAGE_FIELDS``), so
 that a later training stage may change them (a stage starts at its own ``actor_lr``:
 ``training.checkpoint``).
@@ -75,7 +83,8 @@ The critic's features are the privileged observation plus the actor observation'
 ``SacConfig.critic_observation_parts`` (``networks`` docstring).
 
 Batches are dicts of arrays (NumPy or torch) with keys ``BATCH_KEYS``: obs (B, n_obs),
-privileged (B, 28), action (B, 16), reward (B,), next_obs, next_privileged, done (B,).
+privileged (B, 28), action (B, 16), reward (B,), next_obs, next_privileged, done (B,); and
+``mc_return`` (B,) for the Monte Carlo bound (``replay.EventReplay.sample`` gives it).
 """
 
 from __future__ import annotations
@@ -107,7 +116,7 @@ ACTIONS = ("terminal", "hit_state")
 # SacConfig's fields that only weigh the cloning term (module docstring).
 CLONING_FIELDS = ("bc_weight", "bc_loss", "bc_hit_weight", "bc_hit_window")
 # SacConfig's fields a later training stage may change: a learner's state loads across them (module docstring).
-STAGE_FIELDS = CLONING_FIELDS + ("actor_average", "std_scale", "actor_lr", "alpha")
+STAGE_FIELDS = CLONING_FIELDS + ("actor_average", "std_scale", "actor_lr", "alpha", "mc_bound")
 CLONING_LOSSES = ("squared", "absolute")  # SacConfig.bc_loss (module docstring)
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())
@@ -159,6 +168,8 @@ class SacConfig:
     # The policy's spread s (module docstring): its Gaussian's standard deviation is the actor
     # network's times s, in the Bellman target, the actor loss and the rollouts alike (1: SAC's).
     std_scale: float = 1.0
+    # The critic's target is max(y, G), G the row's Monte Carlo return (module docstring; MCAC).
+    mc_bound: bool = False
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
     seed: int = 0
@@ -360,15 +371,20 @@ class SacLearner:
         missing = [key for key in BATCH_KEYS if key not in batch]
         if missing:
             raise KeyError(f"SacLearner: the batch lacks {missing}; expected keys {BATCH_KEYS}")
-        return {key: torch.as_tensor(np.asarray(batch[key]), dtype=torch.float32) for key in BATCH_KEYS}
+        if self.config.mc_bound and "mc_return" not in batch:
+            raise KeyError("SacLearner: SacConfig.mc_bound needs the batch's mc_return (the replay's Monte Carlo returns)")
+        keys = BATCH_KEYS + (("mc_return",) if "mc_return" in batch else ())
+        return {key: torch.as_tensor(np.asarray(batch[key]), dtype=torch.float32) for key in keys}
 
     @torch.no_grad()
     def target(self, batch: dict) -> torch.Tensor:
-        """The soft Bellman target y (B,) of the module docstring (samples a' from the actor)."""
+        """The critic's target (B,): the soft Bellman target y of the module docstring (samples a'
+        from the actor), or max(y, G) with the Monte Carlo bound (``mc_bound``)."""
         b = batch if isinstance(batch.get("reward"), torch.Tensor) else self._tensors(batch)
         next_action, next_log_prob, _, _ = self.actor.sample(self.actor_features(b["next_obs"]), self.generator, self.config.std_scale)
         next_q1, next_q2 = self.target_critic(self.critic_features(b["next_privileged"], b["next_obs"]), next_action)
-        return soft_target(b["reward"], b["done"], next_q1, next_q2, next_log_prob, self.config.gamma, self.config.alpha)
+        y = soft_target(b["reward"], b["done"], next_q1, next_q2, next_log_prob, self.config.gamma, self.config.alpha)
+        return torch.maximum(y, b["mc_return"]) if self.config.mc_bound else y
 
     def auxiliary_loss(self, embedding: torch.Tensor, privileged: torch.Tensor) -> torch.Tensor:
         """The paper's auxiliary loss: MSE of the decoded ball state against the true one (the
@@ -403,11 +419,13 @@ class SacLearner:
         """One SAC update (critic, then actor, then targets) on ``batch``; returns the losses and
         diagnostics: critic_loss, actor_loss (policy + weighted auxiliary [+ weighted cloning]),
         policy_loss, aux_loss, entropy (mean -log pi), q_mean, target_mean, and bc_loss when a
-        demonstration batch is given (``bc_weight`` overrides the config's, e.g. for annealing)."""
+        demonstration batch is given (``bc_weight`` overrides the config's, e.g. for annealing),
+        and with the Monte Carlo bound mc_bound_share (the share of rows whose target it raised)."""
         c = self.config
         bc_weight = c.bc_weight if bc_weight is None else bc_weight
         b = self._tensors(batch)
         y = self.target(b)
+        bound_share = (b["mc_return"] >= y).float().mean().item() if c.mc_bound else None
         critic_input = self.critic_features(b["privileged"], b["obs"])
         q1, q2 = self.critic(critic_input, b["action"])
         critic_loss = torch.mean((q1 - y) ** 2) + torch.mean((q2 - y) ** 2)
@@ -439,6 +457,7 @@ class SacLearner:
         self.updates += 1
         return {
             **({} if bc_loss is None else {"bc_loss": bc_loss.item()}),
+            **({} if bound_share is None else {"mc_bound_share": bound_share}),
             "critic_loss": critic_loss.item(),
             "actor_loss": actor_loss.item(),
             "policy_loss": policy_loss.item(),

@@ -316,7 +316,8 @@ class Trainer(Checkpointing):
                 augment = (Mirror.from_robot(robot, config.sac.layout).transitions,)
             except ValueError as error:
                 raise ConfigError(f"mirror: true needs a mirror-symmetric robot ({config.env.rally.scenario}): {error}") from None
-        self.replay = EventReplay(dataclasses.replace(config.replay, seed=config.seed), config.sac.layout, config.env.reward, augment)
+        self.replay = EventReplay(dataclasses.replace(config.replay, seed=config.seed), config.sac.layout, config.env.reward, augment,
+                                  config.sac.gamma)
         self.demonstrations = DemonstrationBuffer(config.demonstration_capacity, seed=config.seed + 1, augment=augment)
         self.state = Progress(next_checkpoint=config.checkpoint_every, next_evaluation=config.evaluate_every)
         self._recent = deque(maxlen=100)  # outcomes of the latest policy episodes
