@@ -245,6 +245,22 @@ def test_the_monte_carlo_bound_is_the_max_of_the_bellman_target_and_the_return()
     assert "mc_bound_share" not in plain.update({**batch, "mc_return": mc_return})  # the plain learner ignores it
 
 
+def test_the_mixed_monte_carlo_target_blends_the_bellman_target_and_the_return():
+    plain = SacLearner(SacConfig(gamma=0.95, **SMALL))
+    mixed = SacLearner(SacConfig(gamma=0.95, mc_mix=0.25, **SMALL))
+    batch = make_batch(plain)
+    y = plain.target(batch).numpy()
+    mc_return = np.linspace(-1.0, 2.0, len(y))
+    mc_return[3] = -np.inf  # no return stored: the Bellman target alone
+    expected = 0.75 * y + 0.25 * mc_return
+    expected[3] = y[3]
+    np.testing.assert_allclose(mixed.target({**batch, "mc_return": mc_return}).numpy(), expected, rtol=1e-5, atol=1e-6)
+    with pytest.raises(KeyError, match="mc_return"):
+        mixed.update(batch)
+    with pytest.raises(ValueError, match="mc_mix"):
+        SacConfig(mc_mix=1.5)
+
+
 def test_the_monte_carlo_bound_lifts_the_critic_to_the_returns_and_a_stage_may_switch_it():
     plain = SacLearner(SacConfig(critic_lr=1e-3, **SMALL))
     batch = make_batch(plain, size=64)

@@ -56,15 +56,26 @@ With s the learner draws where the episodes play. Its log density leaves out the
 paper-action actor within ~1,600 updates (docs/training.md): near the mean the draws no longer
 saturate tanh, whose log-Jacobian had held the spread down, and the entropy bonus widened it.
 
-The Monte Carlo bound (``SacConfig.mc_bound``; this project's, not the paper's): the critic's target
-becomes max(y, G), G the row's discounted return to its episode's end as played (``replay``
-docstring), after MCAC (Wilcox et al. 2022, "Monte Carlo augmented actor-critic for sparse reward
-deep RL from suboptimal demonstrations"). y values an action followed by the policy's own
-continuation; G is what did follow it. Where an episode's continuation was better than the
-policy's (a guided episode's returner strokes, ``training.rollout``; a lucky draw), the target
-keeps it. A lower bound only in a deterministic environment: in a noisy one it is optimistic.
+Monte Carlo targets (this project's, not the paper's; ``replay`` docstring: each row stores G, its
+discounted return to its episode's end as played). y values an action followed by the policy's own
+continuation; G is what did follow it: the returner's strokes after a guided episode's action
+(``training.rollout``), the narrow exploring draws after an ordinary one. Two ways to bring G in:
 
-The cloning term's fields (``CLONING_FIELDS``), the Monte Carlo bound ``mc_bound`` and the entropy
+    mixed (SacConfig.mc_mix = beta > 0):  y <- (1 - beta) y + beta G     (the mixed Monte Carlo
+          update of Bellemare et al. 2016, "Unifying count-based exploration and intrinsic
+          motivation"; beta = 1: the behaviour's Monte Carlo value, no bootstrapping)
+    bound (SacConfig.mc_bound):           y <- max(y, G)                 (MCAC, Wilcox et al.
+          2022, "Monte Carlo augmented actor-critic for sparse reward deep RL from suboptimal
+          demonstrations")
+
+The bound is a lower bound only where outcomes are deterministic. Here they are not (the same
+state and action return some balls and miss others), and the bound is optimistic: where a share p
+of similar rows return (G_ret) and the others miss, bootstrapping from next states the critic
+cannot tell apart gives
+Q = p G_ret / (1 - (1 - p) gamma), ~G_ret for gamma near 1, whatever p. Rows without a stored
+return (G = -inf, tables of older checkpoints) keep y.
+
+The cloning term's fields (``CLONING_FIELDS``), the Monte Carlo targets (``mc_mix``, ``mc_bound``) and the entropy
 weight ``alpha`` only shape a loss, and ``actor_average``, ``std_scale`` and ``actor_lr`` do not change the networks: a
 learner's state loads into a learner whose config differs in them alone (``STAGE_FIELDS``), so
 that a later training stage may change them (a stage starts at its own ``actor_lr``:
@@ -116,7 +127,7 @@ ACTIONS = ("terminal", "hit_state")
 # SacConfig's fields that only weigh the cloning term (module docstring).
 CLONING_FIELDS = ("bc_weight", "bc_loss", "bc_hit_weight", "bc_hit_window")
 # SacConfig's fields a later training stage may change: a learner's state loads across them (module docstring).
-STAGE_FIELDS = CLONING_FIELDS + ("actor_average", "std_scale", "actor_lr", "alpha", "mc_bound")
+STAGE_FIELDS = CLONING_FIELDS + ("actor_average", "std_scale", "actor_lr", "alpha", "mc_mix", "mc_bound")
 CLONING_LOSSES = ("squared", "absolute")  # SacConfig.bc_loss (module docstring)
 BATCH_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_privileged", "done")
 PRIVILEGED_SIZE = sum(PRIVILEGED_PARTS.values())
@@ -168,7 +179,9 @@ class SacConfig:
     # The policy's spread s (module docstring): its Gaussian's standard deviation is the actor
     # network's times s, in the Bellman target, the actor loss and the rollouts alike (1: SAC's).
     std_scale: float = 1.0
-    # The critic's target is max(y, G), G the row's Monte Carlo return (module docstring; MCAC).
+    # Monte Carlo targets (module docstring), G the row's return: the target (1 - mc_mix) y + mc_mix G
+    # (0: the paper's y), then max(y, G) with mc_bound (MCAC).
+    mc_mix: float = 0.0
     mc_bound: bool = False
     position_history: int = 10  # the ObservationLayout the learner reads (N_p, N_s)
     spin_history: int = 10
@@ -180,6 +193,8 @@ class SacConfig:
                 raise ValueError(f"SacConfig.{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 < self.std_scale <= 1.0:
             raise ValueError(f"SacConfig.std_scale must be in (0, 1] (1: the actor network's spread), got {self.std_scale}")
+        if not 0.0 <= self.mc_mix <= 1.0:
+            raise ValueError(f"SacConfig.mc_mix must be in [0, 1] (0: no Monte Carlo return in the target), got {self.mc_mix}")
         if not 0.0 <= self.actor_average <= 1.0:
             raise ValueError(f"SacConfig.actor_average must be in [0, 1] (0: no averaged actor), got {self.actor_average}")
         if not 0.0 <= self.gamma < 1.0:
@@ -371,20 +386,30 @@ class SacLearner:
         missing = [key for key in BATCH_KEYS if key not in batch]
         if missing:
             raise KeyError(f"SacLearner: the batch lacks {missing}; expected keys {BATCH_KEYS}")
-        if self.config.mc_bound and "mc_return" not in batch:
-            raise KeyError("SacLearner: SacConfig.mc_bound needs the batch's mc_return (the replay's Monte Carlo returns)")
+        if self.uses_returns and "mc_return" not in batch:
+            raise KeyError("SacLearner: SacConfig.mc_mix and mc_bound need the batch's mc_return (the replay's Monte Carlo returns)")
         keys = BATCH_KEYS + (("mc_return",) if "mc_return" in batch else ())
         return {key: torch.as_tensor(np.asarray(batch[key]), dtype=torch.float32) for key in keys}
+
+    @property
+    def uses_returns(self) -> bool:
+        """Whether the critic's target reads the rows' Monte Carlo returns (``mc_mix``, ``mc_bound``)."""
+        return self.config.mc_mix > 0.0 or self.config.mc_bound
 
     @torch.no_grad()
     def target(self, batch: dict) -> torch.Tensor:
         """The critic's target (B,): the soft Bellman target y of the module docstring (samples a'
-        from the actor), or max(y, G) with the Monte Carlo bound (``mc_bound``)."""
+        from the actor), with the Monte Carlo return mixed in (``mc_mix``) and bounding it
+        (``mc_bound``) where the config asks (module docstring)."""
         b = batch if isinstance(batch.get("reward"), torch.Tensor) else self._tensors(batch)
-        next_action, next_log_prob, _, _ = self.actor.sample(self.actor_features(b["next_obs"]), self.generator, self.config.std_scale)
+        c = self.config
+        next_action, next_log_prob, _, _ = self.actor.sample(self.actor_features(b["next_obs"]), self.generator, c.std_scale)
         next_q1, next_q2 = self.target_critic(self.critic_features(b["next_privileged"], b["next_obs"]), next_action)
-        y = soft_target(b["reward"], b["done"], next_q1, next_q2, next_log_prob, self.config.gamma, self.config.alpha)
-        return torch.maximum(y, b["mc_return"]) if self.config.mc_bound else y
+        y = soft_target(b["reward"], b["done"], next_q1, next_q2, next_log_prob, c.gamma, c.alpha)
+        if c.mc_mix > 0.0:
+            stored = torch.isfinite(b["mc_return"])
+            y = torch.where(stored, (1.0 - c.mc_mix) * y + c.mc_mix * torch.where(stored, b["mc_return"], 0.0), y)
+        return torch.maximum(y, b["mc_return"]) if c.mc_bound else y
 
     def auxiliary_loss(self, embedding: torch.Tensor, privileged: torch.Tensor) -> torch.Tensor:
         """The paper's auxiliary loss: MSE of the decoded ball state against the true one (the
@@ -420,7 +445,7 @@ class SacLearner:
         diagnostics: critic_loss, actor_loss (policy + weighted auxiliary [+ weighted cloning]),
         policy_loss, aux_loss, entropy (mean -log pi), q_mean, target_mean, and bc_loss when a
         demonstration batch is given (``bc_weight`` overrides the config's, e.g. for annealing),
-        and with the Monte Carlo bound mc_bound_share (the share of rows whose target it raised)."""
+        and with the Monte Carlo bound mc_bound_share (the share of rows whose target it set)."""
         c = self.config
         bc_weight = c.bc_weight if bc_weight is None else bc_weight
         b = self._tensors(batch)
