@@ -132,11 +132,16 @@ def test_tables_written_before_the_monte_carlo_returns_load_with_no_bound():
     for table in state["tables"].values():  # as a checkpoint of before the column
         if table["data"] is not None:
             del table["data"]["mc_return"]
-    restored = EventReplay(ReplayConfig(), LAYOUT, PARAMS)
-    restored.load_state_dict(state)
-    batch = restored.sample(6)
-    assert np.all(batch["mc_return"] == -np.inf)
-    np.testing.assert_array_equal(restored.tables["all"].get(np.arange(3))["obs"], replay.tables["all"].get(np.arange(3))["obs"])
+    for capacities in ({}, {"all": 2}):  # as it lay, and into a table of another capacity (a later stage's)
+        restored = EventReplay(ReplayConfig(table_capacities=capacities), LAYOUT, PARAMS)
+        restored.load_state_dict(state)
+        assert np.all(restored.sample(6)["mc_return"] == -np.inf)
+        kept = restored.tables["all"].size
+        np.testing.assert_array_equal(restored.tables["all"].get(restored.tables["all"].oldest_first())["obs"],
+                                      replay.tables["all"].get(np.arange(3))["obs"][-kept:])
+        restored.add_episode(episode(seed=4), summary(Outcome.MISSED))  # new rows carry their returns beside the old
+        table = restored.tables["all"]
+        assert np.isfinite(table.get(table.oldest_first())["mc_return"][-3:]).all()
     with pytest.raises(KeyError, match="lacks the column"):  # any other missing column is an error
         RingBuffer(4).load_state_dict({"capacity": 4, "size": 1, "next": 1, "data": {"obs": np.zeros((1, 2))}})
 

@@ -240,6 +240,9 @@ def test_the_monte_carlo_bound_is_the_max_of_the_bellman_target_and_the_return()
     mc_return[1] = -np.inf  # a row with no return stored: no bound
     np.testing.assert_allclose(bounded.target({**batch, "mc_return": mc_return}).numpy(), np.maximum(y, mc_return), rtol=1e-6)
     assert bounded.update({**batch, "mc_return": mc_return})["mc_bound_share"] == pytest.approx(0.5)
+    # G = y (the same networks and draws: fresh learners of one seed) raises nothing, terminal rows included.
+    tied, y_fresh = SacLearner(SacConfig(gamma=0.95, mc_bound=True, **SMALL)), SacLearner(SacConfig(gamma=0.95, **SMALL)).target(batch)
+    assert tied.update({**batch, "mc_return": y_fresh.numpy()})["mc_bound_share"] == 0.0
     with pytest.raises(KeyError, match="mc_return"):
         bounded.update(batch)
     assert "mc_bound_share" not in plain.update({**batch, "mc_return": mc_return})  # the plain learner ignores it

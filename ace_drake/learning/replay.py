@@ -33,9 +33,10 @@ Paper, Methods *Algorithm*, data augmentation (2) and (3):
   exactly on target, so the position term is its maximum ``position_reward``.
 
 - Monte Carlo returns: every stored row also holds its episode's discounted return from that step
-  on, G_t = sum_{k>=t} gamma^(k-t) r_k (``discounted_returns``; the reward is terminal, so
-  G_t = gamma^(T-1-t) r_T), computed for each copy after relabelling, so a hindsight copy's
-  returns are its own. The learner may bound its Bellman target by it (``sac``, ``mc_bound``).
+  on, G_t = sum_{k>=t} gamma^(k-t) r_k (``discounted_returns``; gamma per policy step, G in reward
+  units; the reward is terminal, so G_t = gamma^(n-1-t) r_{n-1} for an episode of n rows),
+  computed for each copy after relabelling and augmentation, so a hindsight copy's returns are its
+  own. The learner's target may read it (``sac``: ``mc_mix``, ``mc_bound``).
 
 Transitions are dicts of arrays with the keys of ``sac.BATCH_KEYS`` (one row per policy step); a
 table's rows add ``mc_return`` (``TABLE_KEYS``).
@@ -166,8 +167,9 @@ class ReplayConfig:
 
 
 def discounted_returns(reward, gamma: float) -> np.ndarray:
-    """G_t = sum_{k>=t} gamma^(k-t) r_k (n,) for an episode's rewards (n,) in step order: each
-    step's discounted return to the episode's end (the Monte Carlo return of module docstring)."""
+    """G_t = sum_{k>=t} gamma^(k-t) r_k (n,), in reward units, for an episode's rewards (n,) in
+    step order and the discount ``gamma`` per policy step: each step's discounted return to the
+    episode's end (the Monte Carlo return of the module docstring)."""
     reward = np.asarray(reward, dtype=float)
     out = np.empty_like(reward)
     running = 0.0
@@ -263,7 +265,8 @@ class EventReplay:
 
     ``augment``: callables mapping a transitions dict to another (e.g. ``mirror.Mirror.transitions``),
     each applied to the episode and its hindsight copy, whose outputs are stored as well.
-    ``gamma``: the discount of the stored Monte Carlo returns (the learner's ``SacConfig.gamma``).
+    ``gamma``: the discount per policy step of the stored Monte Carlo returns (the learner's
+    ``SacConfig.gamma``).
     """
 
     def __init__(self, config: ReplayConfig | None = None, layout: ObservationLayout | None = None,

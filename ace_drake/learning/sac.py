@@ -68,12 +68,16 @@ continuation; G is what did follow it: the returner's strokes after a guided epi
           2022, "Monte Carlo augmented actor-critic for sparse reward deep RL from suboptimal
           demonstrations")
 
-The bound is a lower bound only where outcomes are deterministic. Here they are not (the same
-state and action return some balls and miss others), and the bound is optimistic: where a share p
-of similar rows return (G_ret) and the others miss, bootstrapping from next states the critic
-cannot tell apart gives
-Q = p G_ret / (1 - (1 - p) gamma), ~G_ret for gamma near 1, whatever p. Rows without a stored
-return (G = -inf, tables of older checkpoints) keep y.
+G is the plain return; y is a soft value, which adds the entropy bonus -alpha log pi at every
+step to come (~0.03 per step at the entropies logged), so the two differ by that bonus before the
+episode's end. The bound is a lower bound only where outcomes are deterministic. Here they are
+not (the same state and action return some balls and miss others), and the bound is optimistic.
+Take rows of states the critic cannot tell apart, whose next states it cannot tell apart either:
+a share p return (G = G_ret), the others miss (G <= gamma Q, R_miss < 0), and the reward is
+terminal. The fixed point of Q = p max(gamma Q, G_ret) + (1 - p) gamma Q is then
+Q = p G_ret / (1 - (1 - p) gamma): ~G_ret wherever p >> 1 - gamma (0.99 G_ret at p = 0.6 and
+gamma = 0.99), though the expected return is p G_ret + (1 - p) G_miss. Rows without a stored
+return (G = -inf, tables of older checkpoints) keep y, with either knob.
 
 The cloning term's fields (``CLONING_FIELDS``), the Monte Carlo targets (``mc_mix``, ``mc_bound``) and the entropy
 weight ``alpha`` only shape a loss, and ``actor_average``, ``std_scale`` and ``actor_lr`` do not change the networks: a
@@ -95,7 +99,7 @@ The critic's features are the privileged observation plus the actor observation'
 
 Batches are dicts of arrays (NumPy or torch) with keys ``BATCH_KEYS``: obs (B, n_obs),
 privileged (B, 28), action (B, 16), reward (B,), next_obs, next_privileged, done (B,); and
-``mc_return`` (B,) for the Monte Carlo bound (``replay.EventReplay.sample`` gives it).
+``mc_return`` (B,) for the Monte Carlo targets (``replay.EventReplay.sample`` gives it).
 """
 
 from __future__ import annotations
@@ -386,8 +390,6 @@ class SacLearner:
         missing = [key for key in BATCH_KEYS if key not in batch]
         if missing:
             raise KeyError(f"SacLearner: the batch lacks {missing}; expected keys {BATCH_KEYS}")
-        if self.uses_returns and "mc_return" not in batch:
-            raise KeyError("SacLearner: SacConfig.mc_mix and mc_bound need the batch's mc_return (the replay's Monte Carlo returns)")
         keys = BATCH_KEYS + (("mc_return",) if "mc_return" in batch else ())
         return {key: torch.as_tensor(np.asarray(batch[key]), dtype=torch.float32) for key in keys}
 
@@ -402,6 +404,13 @@ class SacLearner:
         from the actor), with the Monte Carlo return mixed in (``mc_mix``) and bounding it
         (``mc_bound``) where the config asks (module docstring)."""
         b = batch if isinstance(batch.get("reward"), torch.Tensor) else self._tensors(batch)
+        y = self._mixed_target(b)
+        return torch.maximum(y, b["mc_return"]) if self.config.mc_bound else y
+
+    def _mixed_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The target before the Monte Carlo bound: y, or its mixture with G (``mc_mix``)."""
+        if self.uses_returns and "mc_return" not in b:
+            raise KeyError("SacLearner: SacConfig.mc_mix and mc_bound need the batch's mc_return (the replay's Monte Carlo returns)")
         c = self.config
         next_action, next_log_prob, _, _ = self.actor.sample(self.actor_features(b["next_obs"]), self.generator, c.std_scale)
         next_q1, next_q2 = self.target_critic(self.critic_features(b["next_privileged"], b["next_obs"]), next_action)
@@ -409,7 +418,7 @@ class SacLearner:
         if c.mc_mix > 0.0:
             stored = torch.isfinite(b["mc_return"])
             y = torch.where(stored, (1.0 - c.mc_mix) * y + c.mc_mix * torch.where(stored, b["mc_return"], 0.0), y)
-        return torch.maximum(y, b["mc_return"]) if c.mc_bound else y
+        return y
 
     def auxiliary_loss(self, embedding: torch.Tensor, privileged: torch.Tensor) -> torch.Tensor:
         """The paper's auxiliary loss: MSE of the decoded ball state against the true one (the
@@ -445,12 +454,16 @@ class SacLearner:
         diagnostics: critic_loss, actor_loss (policy + weighted auxiliary [+ weighted cloning]),
         policy_loss, aux_loss, entropy (mean -log pi), q_mean, target_mean, and bc_loss when a
         demonstration batch is given (``bc_weight`` overrides the config's, e.g. for annealing),
-        and with the Monte Carlo bound mc_bound_share (the share of rows whose target it set)."""
+        and with the Monte Carlo bound mc_bound_share (the share of rows whose target it raised)."""
         c = self.config
         bc_weight = c.bc_weight if bc_weight is None else bc_weight
         b = self._tensors(batch)
-        y = self.target(b)
-        bound_share = (b["mc_return"] >= y).float().mean().item() if c.mc_bound else None
+        with torch.no_grad():
+            y = self._mixed_target(b)
+            bound_share = None
+            if c.mc_bound:  # the rows whose target the bound raises (not the terminal ones, where G = y)
+                bound_share = (b["mc_return"] > y).float().mean().item()
+                y = torch.maximum(y, b["mc_return"])
         critic_input = self.critic_features(b["privileged"], b["obs"])
         q1, q2 = self.critic(critic_input, b["action"])
         critic_loss = torch.mean((q1 - y) ** 2) + torch.mean((q2 - y) ** 2)
