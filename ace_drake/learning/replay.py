@@ -58,7 +58,7 @@ TRANSITION_KEYS = ("obs", "privileged", "action", "reward", "next_obs", "next_pr
 # A table row: the transition and its discounted return to the episode's end (module docstring).
 TABLE_KEYS = TRANSITION_KEYS + ("mc_return",)
 # The value of a column that a loaded table state lacks (a checkpoint written before the column
-# was stored): -inf, the Monte Carlo bound that bounds nothing.
+# was stored): -inf, "no return stored", which leaves the target as it is (sac: mc_mix, mc_bound).
 MISSING_COLUMNS = {"mc_return": -np.inf}
 
 # What a replay table's state (NumPy arrays; NumPy scalars in the evaluation figures beside them)
