@@ -531,10 +531,10 @@ def test_a_dagger_fraction_labels_that_share_of_the_learn_phases_tasks(tmp_path,
 
 
 def test_a_guided_fraction_guides_that_share_of_the_policy_tasks(tmp_path, monkeypatch):
-    # With the critic's Monte Carlo bound (sac.mc_bound) and a discount of the config's own.
+    # With both Monte Carlo targets (sac.mc_mix, sac.mc_bound) and a discount of the config's own.
     config = _config(batch=2, demonstrations=2, ou_episodes=0, pretrain_updates=4, learn_mode="dagger", dagger_fraction=0.25,
                      guided_fraction=0.5, env_steps=120, evaluation_episodes=2, episodes_per_task=1,
-                     sac=dataclasses.replace(SMALL, bc_weight=1.0, mc_bound=True, gamma=0.9))
+                     sac=dataclasses.replace(SMALL, bc_weight=1.0, mc_mix=0.5, mc_bound=True, gamma=0.9))
     trainer = Trainer(config, tmp_path / "run", progress=lambda line: None)
     # Of every four tasks the first is labelled (dagger_fraction); of the policy tasks, every second
     # is guided, the first included.
@@ -548,6 +548,8 @@ def test_a_guided_fraction_guides_that_share_of_the_policy_tasks(tmp_path, monke
     monkeypatch.setattr(trainer, "_ingest", lambda episode: (modes.append(episode.mode), ingest(episode), recent.append(len(trainer._recent))))
     updates, update = [], trainer.learner.update
     monkeypatch.setattr(trainer.learner, "update", lambda *args, **kwargs: updates.append(update(*args, **kwargs)) or updates[-1])
+    returns_read, mixed_target = [], trainer.learner._mixed_target
+    monkeypatch.setattr(trainer.learner, "_mixed_target", lambda b: returns_read.append(b["mc_return"].numpy().copy()) or mixed_target(b))
     trainer.state.learn_tasks = trainer.state.guided_tasks = 0
     state = trainer.run()
     assert state.phase == "done" and "guided" in modes and "policy" in modes
@@ -562,6 +564,10 @@ def test_a_guided_fraction_guides_that_share_of_the_policy_tasks(tmp_path, monke
     np.testing.assert_allclose(rows["mc_return"][:-1][going_on], (rows["reward"][:-1] + 0.9 * rows["mc_return"][1:])[going_on], atol=1e-6)
     np.testing.assert_array_equal(rows["mc_return"][rows["done"] > 0.5], rows["reward"][rows["done"] > 0.5])
     assert updates and all("mc_bound_share" in losses for losses in updates)  # the bounded target trained the critic
+    # The mixture read the sampled rows' own returns: finite, each one a stored row's.
+    read = np.concatenate(returns_read)
+    assert len(read) >= 2 * len(updates) and np.isfinite(read).all()
+    assert np.isin(read, rows["mc_return"]).all()
     for bad, match in ((dict(guided_fraction=1.0), "guided_fraction must be in"), (dict(guided_fraction=-0.1), "guided_fraction must be in"),
                        (dict(learn_mode="dagger", guided_fraction=0.2), "there are none")):
         with pytest.raises(ConfigError, match=match):
