@@ -1038,6 +1038,31 @@ def test_a_run_with_an_averaged_actor_evaluates_and_exports_the_average(tmp_path
         chosen_actor(trainer, "average")
 
 
+def test_a_guided_stage_from_a_portable_checkpoint_waits_for_its_first_guided_labels(tmp_path):
+    """learn_mode "policy" with a ``guided_fraction``: the guided episodes are the only labelled
+    rows to come, so a stage started with empty tables updates only once the first of them landed
+    (and a stage with neither labels nor guided episodes to come is refused: ``_refuse_portable``)."""
+    earlier = _config(env_steps=30)
+    first = Trainer(earlier, tmp_path / "elsewhere", progress=lambda line: None)
+    first.run()
+    portable = tmp_path / "elsewhere" / PORTABLE_CHECKPOINT
+    config = _config(seed=4, env_steps=first.state.env_steps + 100, guided_fraction=0.25, after=earlier)
+    second = Trainer(config, tmp_path / "run", progress=lambda line: None, earlier_stage=portable)
+    # Tasks 1-3 of the pattern at 0.25 play the actor alone: the replay holds a batch before the
+    # first guided (labelled) rows come with task 4, and updates must wait for them.
+    second.state.guided_tasks = 1
+    modes, rows_at_update = [], []
+    ingest, update = second._ingest, second.learner.update
+    second._ingest = lambda episode: (modes.append(episode.mode), ingest(episode))[1]
+    second.learner.update = lambda *args, **kwargs: (rows_at_update.append(len(second.demonstrations)), update(*args, **kwargs))[1]
+    state = second.run()
+    assert state.phase == "done" and modes[:3] == ["policy"] * 3 and "guided" in modes
+    assert rows_at_update and min(rows_at_update) > 0  # no update before the guided labels
+    with pytest.raises(ConfigError, match="carries no tables.*or a guided_fraction"):
+        Trainer(dataclasses.replace(config, guided_fraction=0.0), tmp_path / "unguided", progress=lambda line: None,
+                earlier_stage=portable)
+
+
 def test_a_later_stage_starts_from_its_earlier_stages_checkpoint_carried_elsewhere(tmp_path, capsys):
     """``train --earlier-stage``: the after: stage's (portable) checkpoint from another directory, as
     on a machine without ``run_dir/after``; only a finished checkpoint of that very stage."""
