@@ -100,25 +100,25 @@ def test_the_main_jobs_controller_is_the_best_measured_on_the_heldout_players(tm
     from ace_drake.evaluation.controllers import best_controller, controller_names
 
     assert best_controller(tmp_path / "none") == ("returner", None)  # nothing measured
-    _heldout(tmp_path / "a", "policy:rally_paper", 0.95)
+    _heldout(tmp_path / "a", "policy:rally_paper_mc", 0.95)
     assert best_controller(tmp_path / "a") == ("returner", None)  # nothing to beat: the returner is not measured
     _heldout(tmp_path / "a", "returner", 0.91)
     _heldout(tmp_path / "a", "policy:rally_skill", 0.80)
-    assert "policy:rally_paper" in controller_names()
-    assert best_controller(tmp_path / "a") == ("policy:rally_paper", 0.95)
+    assert "policy:rally_paper_mc" in controller_names()
+    assert best_controller(tmp_path / "a") == ("policy:rally_paper_mc", 0.95)
     _heldout(tmp_path / "b", "returner", 0.91)
-    _heldout(tmp_path / "b", "policy:rally_paper", 0.91)  # a tie keeps the returner
+    _heldout(tmp_path / "b", "policy:rally_paper_mc", 0.91)  # a tie keeps the returner
     _heldout(tmp_path / "b", "policy:not_shipped", 0.99)  # a policy this checkout does not have is not chosen
     assert best_controller(tmp_path / "b") == ("returner", 0.91)
     _heldout(tmp_path / "c", "returner", 0.91)
-    _heldout(tmp_path / "c", "policy:rally_paper", 0.95, sensors="statistical")
+    _heldout(tmp_path / "c", "policy:rally_paper_mc", 0.95, sensors="statistical")
     with pytest.raises(ConfigError, match="other conditions.*sensors"):
         best_controller(tmp_path / "c")
     # An evaluation stored before `repeats` was recorded played each shot once.
     _heldout(tmp_path / "d", "returner", 0.91)
-    _heldout(tmp_path / "d", "policy:rally_paper", 0.95, repeats=1)
-    assert best_controller(tmp_path / "d") == ("policy:rally_paper", 0.95)
-    _heldout(tmp_path / "d", "policy:rally_paper", 0.95, repeats=5)
+    _heldout(tmp_path / "d", "policy:rally_paper_mc", 0.95, repeats=1)
+    assert best_controller(tmp_path / "d") == ("policy:rally_paper_mc", 0.95)
+    _heldout(tmp_path / "d", "policy:rally_paper_mc", 0.95, repeats=5)
     with pytest.raises(ConfigError, match="other conditions.*repeats"):
         best_controller(tmp_path / "d")
 

@@ -20,7 +20,7 @@ from ace_drake.play.shots import make_distribution
 from ace_drake.training.loop import load_train_config
 from ace_drake.training.rollout import Episode
 
-CONFIG = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+CONFIG = load_train_config(MODELS_DIR / "train_rally_paper_mc.yaml")
 CONFIG = dataclasses.replace(CONFIG, env=dataclasses.replace(CONFIG.env, shot_batch=8))
 
 
@@ -31,7 +31,7 @@ def distribution():
 
 @pytest.fixture(scope="module")
 def actor():
-    return load_weights_only(MODELS_DIR / "policies" / "rally_paper.pt")["actor"]
+    return load_weights_only(MODELS_DIR / "policies" / "rally_paper_mc.pt")["actor"]
 
 
 def near_rows(worker, transitions, window):

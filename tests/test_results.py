@@ -17,8 +17,8 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 def small_sidecar() -> dict:
     """A policy sidecar with only the keys the table reads (the shape ``ace-drake train`` writes)."""
     return {
-        "name": "rally_paper",
-        "command": "ace-drake train models/train_rally_paper.yaml",
+        "name": "rally_paper_mc",
+        "command": "ace-drake train models/train_rally_paper_mc.yaml",
         "date": "2026-01-02",
         "seed": 3,
         "final_evaluation": {
@@ -37,17 +37,17 @@ def write_json(path: Path, payload: dict) -> None:
 
 
 def test_policy_row_from_a_constructed_sidecar(tmp_path):
-    write_json(tmp_path / "models/policies/rally_paper.json", small_sidecar())
+    write_json(tmp_path / "models/policies/rally_paper_mc.json", small_sidecar())
     rows = {row.what: row for row in results.result_rows(tmp_path)}
-    row = rows["`policy:rally_paper`: the paper's action (eq. 12), SAC at scale"]
+    row = rows["`policy:rally_paper_mc`: the paper's action (eq. 12), SAC at scale"]
     assert row.figure == ("75.0% (3 of 4 playable; 95% CI 30.1-95.4%); "
                           "held-out players (Elite D): 50.0% (1 of 2 playable; 95% CI 9.4-90.5%)")
     assert row.measured_on == "10 recorded human shots of matches.csv, cameras, seed 3 (the run's), 2026-01-02"
-    assert row.source == "`models/policies/rally_paper.json`"
+    assert row.source == "`models/policies/rally_paper_mc.json`"
     table = results.render_results(tmp_path)
-    assert ("| `policy:rally_paper`: the paper's action (eq. 12), SAC at scale | 75.0% (3 of 4 playable; 95% CI 30.1-95.4%); held-out players "
+    assert ("| `policy:rally_paper_mc`: the paper's action (eq. 12), SAC at scale | 75.0% (3 of 4 playable; 95% CI 30.1-95.4%); held-out players "
             "(Elite D): 50.0% (1 of 2 playable; 95% CI 9.4-90.5%) | 10 recorded human shots of matches.csv, cameras, seed 3 "
-            "(the run's), 2026-01-02 | `models/policies/rally_paper.json` |") in table.splitlines()
+            "(the run's), 2026-01-02 | `models/policies/rally_paper_mc.json` |") in table.splitlines()
     # Files that are absent say so instead of showing a number.
     assert rows["`policy:rally_skill`: follows the skill's aim and spin"].figure == "not measured"
     assert rows["`returner`: the default controller"].figure == "not measured"
@@ -56,8 +56,8 @@ def test_policy_row_from_a_constructed_sidecar(tmp_path):
 def test_policy_row_of_an_export_measured_as_evaluate_measures_says_so(tmp_path):
     sidecar = small_sidecar()
     sidecar["final_evaluation"].update(seed=0, stepping="segment", batch=32)  # training.export.final_evaluation today
-    write_json(tmp_path / "models/policies/rally_paper.json", sidecar)
-    row = {row.what: row for row in results.result_rows(tmp_path)}["`policy:rally_paper`: the paper's action (eq. 12), SAC at scale"]
+    write_json(tmp_path / "models/policies/rally_paper_mc.json", sidecar)
+    row = {row.what: row for row in results.result_rows(tmp_path)}["`policy:rally_paper_mc`: the paper's action (eq. 12), SAC at scale"]
     assert row.measured_on == "10 recorded human shots of matches.csv, cameras, seed 0, the segment diagram, 32 at a time, 2026-01-02"
 
 
@@ -100,7 +100,7 @@ def test_check_fails_on_a_stale_readme_and_passes_once_regenerated(tmp_path, mon
     copy_sources(tmp_path)
     monkeypatch.setattr(cli, "REPO_ROOT", tmp_path)
     assert cli.main(["results", "--check"]) == 0
-    sidecar_path = tmp_path / "models/policies/rally_paper.json"
+    sidecar_path = tmp_path / "models/policies/rally_paper_mc.json"
     sidecar = json.loads(sidecar_path.read_text())
     sidecar["final_evaluation"]["return_rate"]["returned"] += 1
     sidecar_path.write_text(json.dumps(sidecar))
@@ -108,7 +108,7 @@ def test_check_fails_on_a_stale_readme_and_passes_once_regenerated(tmp_path, mon
     assert cli.main(["results", "--check"]) == 1
     assert "README.md is stale" in capsys.readouterr().err
     assert cli.main(["results"]) == 0
-    assert "| `models/policies/rally_paper.json` |" in capsys.readouterr().out
+    assert "| `models/policies/rally_paper_mc.json` |" in capsys.readouterr().out
     assert cli.main(["results", "--check"]) == 0
 
 

@@ -149,11 +149,11 @@ def test_rollout_episodes_on_the_real_diagram(worker, tmp_path):
 def test_a_guided_episode_plays_the_returners_action_near_the_hit(batch):
     # The shipped paper-action actor, deterministic, reaches the ball: within 0.3 s of the
     # predicted hit the returner's action is played, before it the actor's.
-    config = load_train_config(MODELS_DIR / "train_rally_paper.yaml")
+    config = load_train_config(MODELS_DIR / "train_rally_paper_mc.yaml")
     exploration = dataclasses.replace(config.exploration, policy_std_scale=0.0, guided_window=0.3)
     args = dict(sac=config.sac, seed=5, exploration=exploration, returner=config.returner, play=config.play)
     dut = VectorRolloutWorker(batch, config.env, **args) if batch else RolloutWorker(config.env, **args)
-    dut.set_actor(load_weights_only(MODELS_DIR / "policies" / "rally_paper.pt")["actor"])
+    dut.set_actor(load_weights_only(MODELS_DIR / "policies" / "rally_paper_mc.pt")["actor"])
     with pytest.raises(ValueError, match="mode must be one of"):
         dut.collect(1, "guiding")
     episodes = dut.collect(2, "guided")
@@ -269,7 +269,10 @@ def _needs_match_data() -> None:
 # Runs kept without a shipped policy: their config, and in models/runs/<name>/ their latest portable
 # checkpoint: in training, so that a later session resumes them on any machine (train
 # --resume-from); finished, for the curve they record (docs/training.md).
-KEPT_RUNS = ("rally_paper_10m",)  # the paper-action run continued to 10 million steps (issue 30's curve)
+KEPT_RUNS = (
+    "rally_paper",  # stages 1 and 2 of the paper-action run, which rally_paper_mc and rally_paper_10m continue
+    "rally_paper_10m",  # the paper-action run continued to 10 million steps (issue 30's curve)
+)
 
 
 def test_the_kept_configs_are_one_per_kept_policy_and_a_base():
@@ -304,6 +307,21 @@ def test_the_paper_action_run_is_two_stages_in_one_config():
     assert (first.env_steps, second.env_steps) == (400_000, 901_097)  # stage 2 ends where its actor was chosen
     assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 and stage.sac.std_scale == 1.0 for stage in (first, second))
 
+
+
+def test_the_shipped_paper_action_policy_is_a_third_stage_with_the_monte_carlo_mixture():
+    """models/train_rally_paper_mc.yaml: stage 3 of train_rally_paper_10m.yaml (the choice on all
+    of the training players' shots, three seeds each) with half the critic's target the episodes'
+    own return and a tenth of the rollout tasks guided; its earlier stages are
+    train_rally_paper.yaml's two, whose kept checkpoint it starts from (docs/training.md)."""
+    _needs_match_data()
+    third, ten_million = load_train_config(MODELS_DIR / "train_rally_paper_mc.yaml"), load_train_config(MODELS_DIR / "train_rally_paper_10m.yaml")
+    assert (third.sac.mc_mix, third.sac.mc_bound, third.guided_fraction, third.exploration.guided_window) == (0.5, False, 0.1, 0.3)
+    assert to_dict(third.after) == to_dict(load_train_config(MODELS_DIR / "train_rally_paper.yaml"))
+    # otherwise the 10M run's third stage: the same learner, schedule and evaluations
+    same = dataclasses.replace(third, name=ten_million.name, seed=ten_million.seed, env_steps=ten_million.env_steps, guided_fraction=0.0,
+                               exploration=ten_million.exploration, sac=dataclasses.replace(third.sac, mc_mix=0.0))
+    assert to_dict(same) == to_dict(ten_million) and third.seed != ten_million.seed
 
 def _write_yaml(path: Path, data: dict) -> Path:
     path.write_text(yaml.safe_dump(json.loads(json.dumps(data)), sort_keys=False))
@@ -1244,13 +1262,13 @@ def test_the_shipped_policy_loads_as_a_controller_and_acts_in_the_box():
         assert action.shape == (1, ACTION_SIZE) and torch.all(action.abs() <= 1.0)
 
 
-@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state_braking", 5), ("policy:rally_skill", 4), ("policy:rally_paper", 5)])
+@pytest.mark.parametrize("name, at_least", [("policy:rally_hit_state_braking", 5), ("policy:rally_skill", 4), ("policy:rally_paper_mc", 5)])
 def test_the_shipped_policies_return_recorded_human_shots(name, at_least):
     # The first 12 recorded shots of Elite A (a training player), cameras, seed 0: 7 are playable;
     # rally_hit_state_braking (cloned from the labeller whose IK starts where braking would stop
     # the arm) returned 7, rally_skill (the same recipe, the labeller following the skill; default
-    # skill here) 5, still 0 (measured). rally_paper, the paper's action with nothing between the actor and eq.
-    # (12)'s mapping, returned 6 of the 9 playable on the robot of 2026-12-06 (measured).
+    # skill here) 5, still 0 (measured). rally_paper_mc, the paper's action with nothing between the actor and
+    # eq. (12)'s mapping, returned 7 of the 9 playable on the robot of 2026-12-06 (measured; stage 2's actor alone 6).
     # A behaviour, not a benchmark (docs/experiments/2026-12-01-hit-state-actor.md
 
     data = Path(__file__).resolve().parents[2] / "shared/data/ace_match_events_elite.csv"

@@ -34,7 +34,7 @@ from ace_drake.evaluation.heldout import choose_controller, heldout_evaluations
 
 POLICY_ROLES = {  # the shipped policies, each with what its row says it is
     "rally_hit_state_braking": "best policy (hit-state actor)",
-    "rally_paper": "the paper's action (eq. 12), SAC at scale",
+    "rally_paper_mc": "the paper's action (eq. 12), SAC at scale",
     "rally_skill": "follows the skill's aim and spin",
 }
 SHIPPED_POLICIES = tuple(sorted(POLICY_ROLES))
