@@ -308,20 +308,21 @@ def test_the_paper_action_run_is_two_stages_in_one_config():
     assert all(stage.mirror and stage.exploration.policy_std_scale == 0.1 and stage.sac.std_scale == 1.0 for stage in (first, second))
 
 
-
 def test_the_shipped_paper_action_policy_is_a_third_stage_with_the_monte_carlo_mixture():
     """models/train_rally_paper_mc.yaml: stage 3 of train_rally_paper_10m.yaml (the choice on all
     of the training players' shots, three seeds each) with half the critic's target the episodes'
-    own return and a tenth of the rollout tasks guided; its earlier stages are
+    own return and a tenth of the policy tasks guided; its earlier stages are
     train_rally_paper.yaml's two, whose kept checkpoint it starts from (docs/training.md)."""
     _needs_match_data()
     third, ten_million = load_train_config(MODELS_DIR / "train_rally_paper_mc.yaml"), load_train_config(MODELS_DIR / "train_rally_paper_10m.yaml")
     assert (third.sac.mc_mix, third.sac.mc_bound, third.guided_fraction, third.exploration.guided_window) == (0.5, False, 0.1, 0.3)
     assert to_dict(third.after) == to_dict(load_train_config(MODELS_DIR / "train_rally_paper.yaml"))
     # otherwise the 10M run's third stage: the same learner, schedule and evaluations
+    exploration = dataclasses.replace(third.exploration, guided_window=ten_million.exploration.guided_window)
     same = dataclasses.replace(third, name=ten_million.name, seed=ten_million.seed, env_steps=ten_million.env_steps, guided_fraction=0.0,
-                               exploration=ten_million.exploration, sac=dataclasses.replace(third.sac, mc_mix=0.0))
+                               exploration=exploration, sac=dataclasses.replace(third.sac, mc_mix=0.0))
     assert to_dict(same) == to_dict(ten_million) and third.seed != ten_million.seed
+
 
 def _write_yaml(path: Path, data: dict) -> Path:
     path.write_text(yaml.safe_dump(json.loads(json.dumps(data)), sort_keys=False))
@@ -582,9 +583,10 @@ def test_a_guided_fraction_guides_that_share_of_the_policy_tasks(tmp_path, monke
     np.testing.assert_allclose(rows["mc_return"][:-1][going_on], (rows["reward"][:-1] + 0.9 * rows["mc_return"][1:])[going_on], atol=1e-6)
     np.testing.assert_array_equal(rows["mc_return"][rows["done"] > 0.5], rows["reward"][rows["done"] > 0.5])
     assert updates and all("mc_bound_share" in losses for losses in updates)  # the bounded target trained the critic
-    # The mixture read the sampled rows' own returns: finite, each one a stored row's.
+    # Every update's target was given its sampled rows' stored returns: finite, each one a stored
+    # row's (the mixture's formula: tests/test_sac.py).
     read = np.concatenate(returns_read)
-    assert len(read) >= 2 * len(updates) and np.isfinite(read).all()
+    assert len(returns_read) == len(updates) and np.isfinite(read).all()
     assert np.isin(read, rows["mc_return"]).all()
     for bad, match in ((dict(guided_fraction=1.0), "guided_fraction must be in"), (dict(guided_fraction=-0.1), "guided_fraction must be in"),
                        (dict(learn_mode="dagger", guided_fraction=0.2), "there are none")):
@@ -1069,12 +1071,20 @@ def test_a_guided_stage_from_a_portable_checkpoint_waits_for_its_first_guided_la
     # Tasks 1-3 of the pattern at 0.25 play the actor alone: the replay holds a batch before the
     # first guided (labelled) rows come with task 4, and updates must wait for them.
     second.state.guided_tasks = 1
-    modes, rows_at_update = [], []
+    modes, rows_at_update, replay_at_guided = [], [], []
     ingest, update = second._ingest, second.learner.update
-    second._ingest = lambda episode: (modes.append(episode.mode), ingest(episode))[1]
+
+    def _ingest(episode):
+        if episode.mode == "guided" and not replay_at_guided:
+            replay_at_guided.append(len(second.replay))
+        modes.append(episode.mode)
+        ingest(episode)
+
+    second._ingest = _ingest
     second.learner.update = lambda *args, **kwargs: (rows_at_update.append(len(second.demonstrations)), update(*args, **kwargs))[1]
     state = second.run()
     assert state.phase == "done" and modes[:3] == ["policy"] * 3 and "guided" in modes
+    assert replay_at_guided[0] >= config.sac.batch_size  # a batch was there to update from, before them
     assert rows_at_update and min(rows_at_update) > 0  # no update before the guided labels
     with pytest.raises(ConfigError, match="carries no tables.*or a guided_fraction"):
         Trainer(dataclasses.replace(config, guided_fraction=0.0), tmp_path / "unguided", progress=lambda line: None,

@@ -81,7 +81,7 @@ class ExplorationParams:
     an actor cloned from demonstrations whose untrained spread would spoil every hit). To narrow
     the policy itself, for the learner too, use ``SacConfig.std_scale`` instead. guided_window (s):
     the ``guided`` mode plays the returner's action where the predicted hit is at most this far
-    ahead (0.3 s: played there, the returner's actions recover 17.9 of the shipped actor's 21.9
+    ahead (0.3 s: played there, the returner's actions recover 17.9 of stage 2's actor's 21.9
     points of deficit to the returner on the training distribution,
     docs/experiments/2026-12-07-where-the-actor-loses.md).
     """
